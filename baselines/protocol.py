@@ -1,0 +1,54 @@
+"""The two small protocols every method follows.
+
+* A **Policy** acts inside an environment on the observation alone (a
+  hand-crafted rule, or a trained agent loaded back): ``policy(obs) -> action``.
+* An **Estimator** is a complete classical filter that cannot be phrased as a
+  policy: it runs a whole Trial and returns its orientation estimate.
+
+``magenv.evaluation`` runs both kinds on the same trials and scores them with
+``magenv.metrics``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from magenv.trial import Trial
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """Chooses the trust from the observation; never sees truth."""
+
+    env_id: str  # the environment whose observations and actions it speaks
+
+    def reset(self) -> None:
+        """Forget any memory before a new episode."""
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """Action for one observation."""
+
+
+@dataclass
+class Estimate:
+    """An estimator's output on one trial.
+
+    Attributes:
+        q: (N, 4) estimated orientation sensor → ENU, ``[w, x, y, z]``.
+        trust: (N,) the magnetometer trust it used per sample (method-specific
+            meaning, e.g. 1 − λ or a gate), or None.
+    """
+
+    q: np.ndarray
+    trust: np.ndarray | None = None
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """Runs a whole trial causally (sample by sample, no look-ahead)."""
+
+    def run(self, trial: Trial) -> Estimate:
+        """Estimate the orientation of every sample of ``trial``."""

@@ -1,0 +1,1 @@
+"""Estimator kernels: pure step functions on plain arrays."""

@@ -1,0 +1,1 @@
+"""The simulated world: gimbal, magnet, fields and sensors."""

@@ -1,0 +1,57 @@
+"""``magenv`` command: one subcommand per module of this package.
+
+Each subcommand module defines ``add_arguments(parser)`` and ``run(args) -> int``.
+Modules are imported only when their command runs, so ``magenv --help`` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMANDS = {
+    "simulate": ("train.simulate", "make one simulated trial and write it to HDF5"),
+    "plot": ("train.plot", "draw a trial file: orientation, rates, field norm and dip, magnet distance"),
+    "compare": ("train.compare", "run every method on the same trials and print the RMSE table"),
+    "train": ("train.train", "train a learning agent on an environment"),
+    "evaluate": ("train.evaluate", "score a trained agent on scenarios or recordings"),
+    "tune": ("train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
+    "report": ("train.report", "write a Markdown report with tables and plots"),
+    "demo": ("train.demo", "the main job: train briefly, then compare learned against hand-tuned weighting"),
+}
+
+
+class CommandError(Exception):
+    """A user-facing error: printed without a traceback, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="magenv", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        # Arguments are added lazily below, only for the command being run.
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser()
+    if argv and argv[0] in COMMANDS:
+        module = importlib.import_module(COMMANDS[argv[0]][0])
+        p = argparse.ArgumentParser(prog=f"magenv {argv[0]}", description=COMMANDS[argv[0]][1])
+        module.add_arguments(p)
+        args = p.parse_args(argv[1:])
+        try:
+            return int(module.run(args) or 0)
+        except CommandError as exc:
+            print(f"magenv {argv[0]}: error: {exc}", file=sys.stderr)
+            return 2
+    parser.parse_args(argv)  # prints help / errors for unknown commands
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
