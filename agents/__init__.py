@@ -1,1 +1,6 @@
-"""agents"""
+"""Learning agents: SB3 algorithms built from plain YAML files, and trained agents loaded back as policies."""
+
+from agents.hyperparams import ALGORITHMS, ConfigError, load_hyperparams
+from agents.loading import AgentPolicy, RunError, load_agent
+
+__all__ = ["ALGORITHMS", "AgentPolicy", "ConfigError", "RunError", "load_agent", "load_hyperparams"]

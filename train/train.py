@@ -1,0 +1,194 @@
+"""``magenv train``: train an SB3 agent on a magenv environment.
+
+    magenv train --env magenv/MagBlend-v0 --algo ppo --steps 100000 --out runs/NAME \
+        [--config FILE] [--seed S] [--eval-every N] [--eval-scenarios A,B] [--eval-seeds 0:3]
+
+Progress bar, TensorBoard logs (``runs/NAME/tb``), periodic evaluation on
+held-out trials with the best model kept, checkpoints, and resume: running
+the same command again on an existing run folder continues from its last
+checkpoint up to ``--steps`` in all (Ctrl-C saves a checkpoint first).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import signal
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import yaml
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.env_util import make_vec_env
+
+import magenv  # noqa: F401  (registers the environments)
+from agents.hyperparams import ConfigError, algorithm_class, constructor_kwargs, load_hyperparams
+from agents.loading import RUN_FILE, AgentPolicy, RunError, read_run
+from train.cli import CommandError
+from train.seeds import parse_seeds
+
+STATE_FILE = "state.json"
+
+
+class HeldOutEvaluation(BaseCallback):
+    """Scores the current agent on fixed held-out trials every ``every`` steps.
+
+    The score is the mean total-orientation RMSE (degrees) over the trials,
+    the same figure ``magenv compare`` prints; the model with the lowest score
+    is saved as ``best_model.zip``. Checkpoints (``last_model.zip``,
+    ``checkpoints/``, ``state.json``) are written at the same cadence, so an
+    interrupted run resumes from its last evaluation.
+    """
+
+    def __init__(self, run_dir: Path, trials: list, env_id: str, env_kwargs: dict, every: int, state: dict):
+        super().__init__()
+        self.run_dir, self.trials, self.env_id, self.env_kwargs = run_dir, trials, env_id, env_kwargs
+        self.every, self.state = every, state
+        self._next = state["timesteps"] + every
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self._next:
+            self._next += self.every
+            self.evaluate_and_checkpoint()
+        return True
+
+    def evaluate_and_checkpoint(self) -> float:
+        from magenv.evaluation import run_policy_on_trials
+
+        policy = AgentPolicy(self.model, self.env_id, self.env_kwargs, name="candidate")
+        scores = run_policy_on_trials(policy, self.trials, self.env_id, self.env_kwargs)
+        score = float(sum(s.total for s in scores) / len(scores))
+        self.logger.record("heldout/total_rmse_deg", score)
+        self.logger.dump(self.num_timesteps)
+        if score < self.state["best_score"]:
+            self.state["best_score"] = score
+            self.state["best_timesteps"] = self.num_timesteps
+            self.model.save(self.run_dir / "best_model.zip")
+        with open(self.run_dir / "evaluations.csv", "a", newline="") as f:
+            csv.writer(f).writerow([self.num_timesteps, f"{score:.4f}", f"{time.time() - self.state['t0']:.1f}"])
+        save_checkpoint(self.model, self.run_dir, self.state, self.num_timesteps)
+        return score
+
+
+def save_checkpoint(model, run_dir: Path, state: dict, timesteps: int) -> None:
+    """Model, SAC replay buffer and progress, written so that a kill at any moment leaves a usable run."""
+    state["timesteps"] = int(timesteps)
+    ckpt = run_dir / "checkpoints"
+    ckpt.mkdir(exist_ok=True)
+    model.save(ckpt / f"model_{timesteps}.zip")
+    if hasattr(model, "save_replay_buffer"):
+        model.save_replay_buffer(run_dir / "replay_buffer.pkl")
+    tmp = run_dir / "last_model.tmp.zip"
+    model.save(tmp)
+    tmp.replace(run_dir / "last_model.zip")
+    (run_dir / (STATE_FILE + ".tmp")).write_text(json.dumps(state, indent=1))
+    (run_dir / (STATE_FILE + ".tmp")).replace(run_dir / STATE_FILE)
+
+
+def held_out_trials(scenarios: list[str], seeds: list[int]) -> list:
+    """The fixed evaluation trials: every scenario × every seed (seeds below the training range)."""
+    from magenv.scenarios import make_trial
+
+    return [make_trial(s, seed) for s in scenarios for seed in seeds]
+
+
+def train(
+    env_id: str, algo: str, steps: int | None, out: Path, config: str | None = None, seed: int = 0,
+    eval_every: int = 10_000, eval_scenarios: tuple[str, ...] = ("dynamic_magnet", "dynamic_clean"),
+    eval_seeds: tuple[int, ...] = (0, 1), n_envs: int | None = None, progress_bar: bool = True,
+) -> Path:
+    """Train (or resume) a run; returns the run folder. See the module docstring."""
+    out = Path(out)
+    if (out / RUN_FILE).is_file():
+        run = read_run(out)
+        if (run["env_id"], run["algo"]) != (env_id, algo):
+            raise RunError(f"{out}: existing run is {run['algo']} on {run['env_id']}; "
+                           f"use another --out for {algo} on {env_id}")
+        state = json.loads((out / STATE_FILE).read_text())
+        section = run["hyperparams"]
+        steps = steps or run["steps"]
+        seed = run["seed"]
+    else:
+        section = load_hyperparams(algo, env_id, config)
+        if n_envs:
+            section["n_envs"] = n_envs
+        steps = steps or int(section.get("n_timesteps", 100_000))
+        run = {
+            "env_id": env_id, "algo": algo, "env_kwargs": section["env_kwargs"], "hyperparams": section,
+            "seed": seed, "steps": steps, "eval_scenarios": list(eval_scenarios), "eval_seeds": list(eval_seeds),
+            "magenv_version": magenv.__version__,
+        }
+        out.mkdir(parents=True, exist_ok=True)
+        state = {"timesteps": 0, "best_score": float("inf"), "best_timesteps": None, "t0": time.time()}
+    run["steps"] = steps
+    (out / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
+
+    vec_env = make_vec_env(env_id, n_envs=section["n_envs"], seed=seed + state["timesteps"],
+                           env_kwargs=section["env_kwargs"])
+    cls = algorithm_class(algo)
+    if state["timesteps"] > 0 and (out / "last_model.zip").is_file():
+        model = cls.load(out / "last_model.zip", env=vec_env, device="cpu", tensorboard_log=str(out / "tb"))
+        if (out / "replay_buffer.pkl").is_file() and hasattr(model, "load_replay_buffer"):
+            model.load_replay_buffer(out / "replay_buffer.pkl")
+    else:
+        state["timesteps"] = 0
+        model = cls(env=vec_env, seed=seed, device="cpu", tensorboard_log=str(out / "tb"),
+                    **constructor_kwargs(section))
+    remaining = steps - state["timesteps"]
+    if remaining <= 0:
+        print(f"{out}: already trained for {state['timesteps']} of {steps} steps")
+        return out
+
+    trials = held_out_trials(run["eval_scenarios"], run["eval_seeds"])
+    evaluation = HeldOutEvaluation(out, trials, env_id, section["env_kwargs"], eval_every, state)
+
+    def _stop(signum, frame):  # SIGTERM behaves like Ctrl-C: checkpoint, then exit
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, _stop)
+    try:
+        model.learn(remaining, callback=CallbackList([evaluation]), progress_bar=progress_bar,
+                    reset_num_timesteps=state["timesteps"] == 0, tb_log_name=algo)
+        evaluation.evaluate_and_checkpoint()
+    except KeyboardInterrupt:
+        save_checkpoint(model, out, state, model.num_timesteps)
+        print(f"\ninterrupted at {model.num_timesteps} steps; run the same command again to resume")
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        vec_env.close()
+    return out
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--env", default="magenv/MagBlend-v0", help="environment id (default %(default)s)")
+    p.add_argument("--algo", default="ppo", help="ppo, sac or recurrent_ppo (default %(default)s)")
+    p.add_argument("--steps", type=int, default=None, help="total environment steps (default: the config's n_timesteps)")
+    p.add_argument("--out", required=True, type=Path, help="run folder (created, or resumed if it exists)")
+    p.add_argument("--config", default=None, help="YAML hyperparameter file (default agents/configs/ALGO.yaml)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--n-envs", type=int, default=None, help="parallel environments (default: the config's)")
+    p.add_argument("--eval-every", type=int, default=10_000, help="steps between held-out evaluations")
+    p.add_argument("--eval-scenarios", default="dynamic_magnet,dynamic_clean")
+    p.add_argument("--eval-seeds", default="0:2", help="held-out trial seeds, e.g. 0:4 or 0,5,7")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.env not in gym.registry:
+        known = ", ".join(k for k in gym.registry if k.startswith("magenv/"))
+        raise CommandError(f"unknown env {args.env!r}; magenv envs: {known}")
+    try:
+        out = train(args.env, args.algo, args.steps, args.out, args.config, args.seed, args.eval_every,
+                    tuple(args.eval_scenarios.split(",")), tuple(parse_seeds(args.eval_seeds)),
+                    args.n_envs, not args.no_progress)
+    except (ConfigError, RunError, ValueError) as exc:
+        raise CommandError(str(exc)) from None
+    except KeyboardInterrupt:
+        return 130
+    state = json.loads((out / STATE_FILE).read_text())
+    print(f"trained {state['timesteps']} steps; best held-out total RMSE {state['best_score']:.3f}° "
+          f"at {state['best_timesteps']} steps -> {out / 'best_model.zip'}")
+    return 0
