@@ -1,0 +1,206 @@
+"""Real recordings: the BROAD HDF5 files as ``Trial`` objects.
+
+BROAD (Laidig, Caruso, Cereatti, Seel, "BROAD — A Benchmark for Robust
+Inertial Orientation Estimation", *Data* 6(7):72, 2021, CC-BY-4.0) stores each
+trial as one HDF5 file (layout: ``../shared/data/broad/README.md``):
+
+=============  =======  ==========================================================
+dataset        shape    meaning
+=============  =======  ==========================================================
+``imu_gyr``    (N, 3)   angular rate, rad/s, sensor frame      → ``Trial.gyr``
+``imu_acc``    (N, 3)   specific force, m/s², sensor frame     → ``Trial.acc``
+``imu_mag``    (N, 3)   magnetic field, µT, sensor frame       → ``Trial.mag``
+``opt_quat``   (N, 4)   sensor → ENU, ``[w,x,y,z]``, NaN rows  → ``Trial.q_true``
+``opt_pos``    (N, 3)   board position, m                      → ``truth["opt_pos"]``
+``movement``   (N,)     samples to score                       → ``Trial.score_mask``
+=============  =======  ==========================================================
+
+plus the attributes ``sampling_rate`` (Hz → ``Trial.rate``) and ``info``
+(free text → ``meta["info"]``). BROAD's frames and quaternion order are
+magenv's own (``magenv.quaternion``), so nothing is converted. The truth's
+north is the trial's own undisturbed magnetic north, so an estimate made with
+the magnetometer is scored directly (``magenv.metrics.score(q, trial.q_true,
+trial.score_mask)`` is the authors' protocol).
+
+Earth field (``Trial.field_norm``, ``Trial.field_dip``): estimated from the
+file itself, over the *initial rest* (see ``initial_rest``): the median field
+magnitude |m| and the median dip ``asin(−m̂·â)`` (tilt-independent: the
+accelerometer points up at rest). If that window is shorter than 1 s, or the
+field in it is not steady (|m| or dip spread beyond ``REST_MAX_NORM_STD`` /
+``REST_MAX_DIP_STD``), or the result is implausible (more than
+``MAX_FIELD_DEVIATION`` from the documented Berlin values), the documented
+constants ``BERLIN_FIELD_NORM`` = 44.5 µT and ``BERLIN_FIELD_DIP`` = 69° are used
+instead. ``meta["field_source"]`` says which ("initial_rest" or "documented").
+On the nine shipped trials the estimate is always taken from the file
+(|m| ≈ 41.6–44.4 µT, dip ≈ 67.5–71.5°; trial 10 was recorded at a
+different spot of the room).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from magenv.trial import Trial, TrialError
+
+BERLIN_FIELD_NORM = 44.5  # µT, documented local field (README of the data)
+BERLIN_FIELD_DIP = 69.0  # degrees, positive down
+
+REST_GYR_THRESHOLD = np.deg2rad(2.0)  # rad/s, smoothed |ω| above this ends the initial rest
+REST_MAX_SECONDS = 10.0  # s, longest stretch of the initial rest used for the field
+REST_MIN_SECONDS = 1.0  # s, shorter rests fall back to the documented field
+REST_MAX_NORM_STD = 2.0  # µT, |m| spread beyond this: field not steady, fall back
+REST_MAX_DIP_STD = 3.0  # degrees
+MAX_FIELD_DEVIATION = (8.0, 8.0)  # (µT, degrees) from the Berlin values, beyond: fall back
+
+SENSOR_KEYS = ("imu_gyr", "imu_acc", "imu_mag")
+REQUIRED = (*SENSOR_KEYS, "opt_quat", "opt_pos", "movement")
+
+_DEFAULT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "broad"
+
+
+def broad_dir() -> Path:
+    """Folder of the shipped BROAD recordings (``<checkout>/../shared/data/broad``).
+
+    The environment variable ``MAGENV_BROAD_DIR`` overrides it.
+    """
+    import os
+
+    folder = Path(os.environ.get("MAGENV_BROAD_DIR", _DEFAULT_DIR))
+    if not folder.is_dir():
+        raise TrialError(f"{folder}: BROAD recordings folder not found (set MAGENV_BROAD_DIR)")
+    return folder
+
+
+def list_recordings(folder: str | Path | None = None) -> list[Path]:
+    """Sorted ``*.hdf5`` files in ``folder`` (default ``broad_dir()``)."""
+    folder = broad_dir() if folder is None else Path(folder)
+    if not folder.is_dir():
+        raise TrialError(f"{folder}: no such folder")
+    return sorted(folder.glob("*.hdf5"))
+
+
+def find_recording(key: str, folder: str | Path | None = None) -> Path:
+    """The recording whose file name starts with ``key`` (e.g. ``"29"``, ``"02_undisturbed"``)."""
+    hits = [p for p in list_recordings(folder) if p.stem.startswith(key)]
+    if len(hits) != 1:
+        raise TrialError(f"recording {key!r}: {len(hits)} files match in {folder or broad_dir()}")
+    return hits[0]
+
+
+def initial_rest(gyr: np.ndarray, rate: float, threshold: float = REST_GYR_THRESHOLD,
+                 max_seconds: float = REST_MAX_SECONDS) -> slice:
+    """Samples ``0:k`` of the initial rest: until the 0.1 s moving average of
+    |ω| (rad/s) first exceeds ``threshold``, at most ``max_seconds`` s."""
+    gyr = np.asarray(gyr, float)
+    n_max = min(len(gyr), int(round(max_seconds * rate)))
+    win = max(1, int(round(0.1 * rate)))
+    speed = np.linalg.norm(gyr[:n_max], axis=1)
+    smooth = np.convolve(speed, np.ones(win) / win, mode="same")
+    moving = np.flatnonzero(smooth > threshold)
+    return slice(0, int(moving[0]) if moving.size else n_max)
+
+
+def dip_angle(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
+    """Dip angle (degrees, positive down) of ``mag`` below the horizontal plane
+    defined by ``acc`` (both (..., 3), sensor frame; valid where acc ≈ gravity)."""
+    acc = np.asarray(acc, float)
+    mag = np.asarray(mag, float)
+    cosang = np.sum(acc * mag, -1) / (np.linalg.norm(acc, axis=-1) * np.linalg.norm(mag, axis=-1))
+    return np.rad2deg(np.arcsin(np.clip(-cosang, -1.0, 1.0)))
+
+
+def estimate_field(gyr, acc, mag, rate: float) -> tuple[float, float, str]:
+    """Earth field ``(norm µT, dip °, source)`` from the initial rest, or the
+    documented Berlin constants with ``source="documented"`` when the rest is too
+    short, unsteady or implausible (see the module docstring)."""
+    rest = initial_rest(gyr, rate)
+    m, a = np.asarray(mag[rest], float), np.asarray(acc[rest], float)
+    if len(m) >= REST_MIN_SECONDS * rate:
+        norm = np.linalg.norm(m, axis=1)
+        dip = dip_angle(a, m)
+        steady = norm.std() <= REST_MAX_NORM_STD and dip.std() <= REST_MAX_DIP_STD
+        est_norm, est_dip = float(np.median(norm)), float(np.median(dip))
+        plausible = (abs(est_norm - BERLIN_FIELD_NORM) <= MAX_FIELD_DEVIATION[0]
+                     and abs(est_dip - BERLIN_FIELD_DIP) <= MAX_FIELD_DEVIATION[1])
+        if steady and plausible:
+            return est_norm, est_dip, "initial_rest"
+    return BERLIN_FIELD_NORM, BERLIN_FIELD_DIP, "documented"
+
+
+def _text(value) -> str:
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+
+
+def load_recording(path: str | Path) -> Trial:
+    """Read one BROAD HDF5 file into a ``Trial`` (see the module docstring).
+
+    ``Trial.name`` is the file stem; ``meta`` holds ``source`` ("BROAD"),
+    ``file``, ``info``, ``field_source`` and ``initial_rest_s`` (length of the
+    rest used for the field, s). NaN rows of ``opt_quat`` stay NaN.
+
+    Raises:
+        TrialError: naming the file and the problem — missing file, not HDF5,
+            a missing dataset or ``sampling_rate``, wrong shapes or lengths,
+            NaN/inf in a sensor channel, a non-positive rate.
+    """
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise TrialError(f"{path}: no such file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise TrialError(f"{path}: not an HDF5 file ({exc})") from None
+    with f:
+        missing = [k for k in REQUIRED if k not in f or not isinstance(f[k], h5py.Dataset)]
+        if missing:
+            raise TrialError(f"{path}: missing dataset(s) {', '.join(missing)} (a BROAD file needs {', '.join(REQUIRED)})")
+        if "sampling_rate" not in f.attrs:
+            raise TrialError(f"{path}: missing attribute sampling_rate")
+        try:
+            rate = float(np.asarray(f.attrs["sampling_rate"]).reshape(()))
+        except (TypeError, ValueError):
+            raise TrialError(f"{path}: attribute sampling_rate is not a number: {f.attrs['sampling_rate']!r}") from None
+        data = {k: f[k][()] for k in REQUIRED}
+        info = _text(f.attrs.get("info", ""))
+
+    if not (np.isfinite(rate) and rate > 0):
+        raise TrialError(f"{path}: sampling_rate must be a positive number of Hz, got {rate!r}")
+    n = len(data["imu_gyr"]) if np.ndim(data["imu_gyr"]) else -1
+    shapes = {"imu_gyr": (n, 3), "imu_acc": (n, 3), "imu_mag": (n, 3), "opt_quat": (n, 4), "opt_pos": (n, 3), "movement": (n,)}
+    bad = [f"{k} {np.shape(data[k])} (expected {shapes[k]})" for k in REQUIRED if np.shape(data[k]) != shapes[k]]
+    if bad:
+        raise TrialError(f"{path}: mismatched shapes or lengths: {'; '.join(bad)}")
+    for k in (*SENSOR_KEYS, "opt_quat", "opt_pos"):
+        if not np.issubdtype(data[k].dtype, np.number):
+            raise TrialError(f"{path}: dataset {k} is not numeric (dtype {data[k].dtype})")
+        data[k] = np.asarray(data[k], float)
+    for k in SENSOR_KEYS:
+        bad_rows = np.flatnonzero(~np.all(np.isfinite(data[k]), axis=1))
+        if bad_rows.size:
+            raise TrialError(f"{path}: sensor channel {k} has NaN/inf in {bad_rows.size} row(s), first at row {bad_rows[0]}")
+    movement = data["movement"]
+    if not (movement.dtype == bool or np.all(np.isin(movement, (0, 1)))):
+        raise TrialError(f"{path}: dataset movement must be boolean, got dtype {movement.dtype}")
+
+    field_norm, field_dip, field_source = estimate_field(data["imu_gyr"], data["imu_acc"], data["imu_mag"], rate)
+    rest = initial_rest(data["imu_gyr"], rate)
+    try:
+        return Trial(
+            name=path.stem, rate=rate,
+            gyr=data["imu_gyr"], acc=data["imu_acc"], mag=data["imu_mag"], q_true=data["opt_quat"],
+            field_norm=field_norm, field_dip=field_dip, score_mask=movement.astype(bool),
+            truth={"opt_pos": data["opt_pos"]},
+            meta={"source": "BROAD", "file": str(path), "info": info, "field_source": field_source,
+                  "initial_rest_s": (rest.stop - rest.start) / rate},
+        )
+    except TrialError as exc:
+        raise TrialError(f"{path}: {exc}") from None
+
+
+def load_all(folder: str | Path | None = None) -> list[Trial]:
+    """Every recording in ``folder`` (default ``broad_dir()``), sorted by name."""
+    return [load_recording(p) for p in list_recordings(folder)]
