@@ -1,0 +1,149 @@
+"""Hand-crafted λ rules as policies of ``magenv/MagBlend-v0``, acting on the observation alone.
+
+Every rule follows ``baselines.protocol.Policy``, takes its parameters as
+constructor arguments (the defaults are the published values), exposes them
+as ``params`` and ``PARAM_BOUNDS`` (for ``magenv tune``), and rebuilds from
+them with ``from_params``. A rule reads physical values back from the
+observation through the env's fixed scales (``magenv.filters.blend``):
+field-norm deviation as a fraction of m0 (``norm_dev``), dip deviation in
+units of 90° (``dip_dev``). m0 and θ0 are the trial's undisturbed field
+(``Trial.field_norm``/``field_dip``), which the env applies.
+
+* ``ConstantLambda(lam)`` — the registry's ``mimu`` (λ = 0) and ``imu``
+  (λ = 1) are the paper's *original* filters, so they run with the
+  stationary hold off (``stationary_hold=False``); the rules below keep the
+  env's default hold (on), as in the paper's proposed method.
+* ``FanLambda`` — Fan et al. 2017 eqs. 15–17 (reading of ALGORITHMS.md §A:
+  the dip divisor is th_dip = 20°, not θ_dip).
+* ``Threshold`` — all-or-nothing gate: λ = 1 when the field-norm or the dip
+  deviation exceeds its threshold, else 0 (the vector-selector idea of
+  Lee & Park 2009 in Ligorio & Sabatini 2016 Table A1: th_mag = 1.20 µT of
+  m0 = 46 µT ⇒ 0.026, th_α = 5°).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from magenv.filters.blend import DIP_SCALE_DEG, FEATURE_NAMES
+
+ENV_ID = "magenv/MagBlend-v0"
+
+
+class RulePolicy:
+    """Base class: feature lookup, params, reset. Subclasses define ``PARAM_BOUNDS`` and ``weight(obs)``."""
+
+    env_id = ENV_ID
+    name = "rule"
+    PARAM_BOUNDS: dict[str, tuple[float, float]] = {}
+    NEEDS: tuple[str, ...] = ()
+
+    def __init__(self, features: Sequence[str] | None = None, stationary_hold: bool | None = None):
+        self.features = tuple(FEATURE_NAMES if features is None else features)
+        missing = [f for f in self.NEEDS if f not in self.features]
+        if missing:
+            raise ValueError(f"{type(self).__name__} needs observation feature(s) {missing}; "
+                             f"the env's features are {list(self.features)}")
+        self._ix = {f: self.features.index(f) for f in self.NEEDS}
+        # env options this policy runs with: non-default features; the stationary
+        # hold if set (None = the env's default, on)
+        self.env_kwargs = {} if features is None else {"features": list(self.features)}
+        if stationary_hold is not None:
+            self.env_kwargs["stationary_hold"] = bool(stationary_hold)
+
+    @property
+    def params(self) -> dict[str, float]:
+        """The rule's parameters by name (constructor arguments)."""
+        return {k: float(getattr(self, k)) for k in self.PARAM_BOUNDS}
+
+    @classmethod
+    def from_params(cls, params: dict[str, float], **kwargs) -> "RulePolicy":
+        """A rule with these parameters (unknown names raise ValueError)."""
+        unknown = set(params) - set(cls.PARAM_BOUNDS)
+        if unknown:
+            raise ValueError(f"{cls.__name__} has no parameter(s) {sorted(unknown)}; known: {list(cls.PARAM_BOUNDS)}")
+        return cls(**params, **kwargs)
+
+    def reset(self) -> None:
+        """Rules are memoryless."""
+
+    def weight(self, obs: np.ndarray) -> float:
+        """λ ∈ [0, 1] for one observation."""
+        raise NotImplementedError
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return np.array([self.weight(obs)], dtype=np.float32)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({', '.join(f'{k}={v:g}' for k, v in self.params.items())})"
+
+
+class ConstantLambda(RulePolicy):
+    """λ fixed: 0 = pure MIMU filter, 1 = pure IMU filter."""
+
+    name = "constant"
+    PARAM_BOUNDS = {"lam": (0.0, 1.0)}
+
+    def __init__(self, lam: float = 0.0, features: Sequence[str] | None = None, stationary_hold: bool | None = None):
+        super().__init__(features, stationary_hold)
+        if not 0.0 <= lam <= 1.0:
+            raise ValueError(f"λ must lie in [0, 1], got {lam}")
+        self.lam = float(lam)
+        self._action = np.array([self.lam], dtype=np.float32)
+
+    def weight(self, obs: np.ndarray) -> float:
+        return self.lam
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self._action.copy()
+
+
+class FanLambda(RulePolicy):
+    """Fan et al. 2017 eqs. 15–17.
+
+    λ1 = min(|‖m‖ − m0| / (norm_tol·m0), 1)     (eq. 15; paper: divisor m0, norm_tol = 1)
+    λ2 = min(|θ_dip − θ0| / th_dip, 1)           (eq. 16 with th_dip = 20°, eq. 18 for θ_dip)
+    λ  = (λ1 + λ2) / 2                           (eq. 17)
+    """
+
+    name = "fan_lambda"
+    PARAM_BOUNDS = {"norm_tol": (0.02, 2.0), "th_dip_deg": (1.0, 90.0)}
+    NEEDS = ("norm_dev", "dip_dev")
+
+    def __init__(self, norm_tol: float = 1.0, th_dip_deg: float = 20.0, features: Sequence[str] | None = None,
+                 stationary_hold: bool | None = None):
+        super().__init__(features, stationary_hold)
+        if not (norm_tol > 0 and th_dip_deg > 0):
+            raise ValueError(f"norm_tol and th_dip_deg must be positive, got {norm_tol}, {th_dip_deg}")
+        self.norm_tol, self.th_dip_deg = float(norm_tol), float(th_dip_deg)
+
+    def weight(self, obs: np.ndarray) -> float:
+        lam1 = min(abs(float(obs[self._ix["norm_dev"]])) / self.norm_tol, 1.0)  # eq. 15
+        dip_dev_deg = DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])
+        lam2 = min(abs(dip_dev_deg) / self.th_dip_deg, 1.0)  # eq. 16
+        return 0.5 * (lam1 + lam2)  # eq. 17
+
+
+class Threshold(RulePolicy):
+    """λ = 1 when |‖m‖ − m0|/m0 > norm_th or |θ_dip − θ0| > dip_th_deg, else λ = 0."""
+
+    name = "threshold"
+    PARAM_BOUNDS = {"norm_th": (0.005, 1.0), "dip_th_deg": (0.5, 45.0)}
+    NEEDS = ("norm_dev", "dip_dev")
+
+    def __init__(self, norm_th: float = 1.2 / 46.0, dip_th_deg: float = 5.0, features: Sequence[str] | None = None,
+                 stationary_hold: bool | None = None):
+        super().__init__(features, stationary_hold)
+        if not (norm_th > 0 and dip_th_deg > 0):
+            raise ValueError(f"norm_th and dip_th_deg must be positive, got {norm_th}, {dip_th_deg}")
+        self.norm_th, self.dip_th_deg = float(norm_th), float(dip_th_deg)
+
+    def weight(self, obs: np.ndarray) -> float:
+        off = (abs(float(obs[self._ix["norm_dev"]])) > self.norm_th
+               or abs(DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])) > self.dip_th_deg)
+        return 1.0 if off else 0.0
+
+
+RULES: dict[str, type[RulePolicy]] = {"constant": ConstantLambda, "fan_lambda": FanLambda, "threshold": Threshold}

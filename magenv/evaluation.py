@@ -1,0 +1,226 @@
+"""Run any method on the same trials and score it with ``magenv.metrics``.
+
+A method is a **Policy** (``baselines.protocol.Policy``: acts inside the env
+named by its ``env_id``, on observations only) or an **Estimator**
+(``run(trial) -> Estimate``). A policy is run on a given Trial by
+``env.reset(options={"trial": trial})`` and stepped to the end of the trial;
+its estimate is the env's per-sample estimate. Scores are RMSEs (degrees)
+over the trial's ``score_mask`` (``magenv.metrics.score``).
+
+Python use (the lead's demo and report)::
+
+    from magenv import evaluation
+    rows = evaluation.compare(["mimu", "imu", "fan_lambda"], trials)   # list of dicts, CSV_COLUMNS
+    evaluation.write_csv(rows, "out.csv")
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from magenv import metrics
+from magenv.trial import Trial
+
+CSV_COLUMNS = ("method", "scenario", "n", "total_rmse_mean", "total_rmse_std", "heading_rmse_mean",
+               "inclination_rmse_mean")
+
+
+@dataclass
+class Run:
+    """One method on one trial.
+
+    Attributes:
+        method: method name.
+        trial: the Trial.
+        label: the trial's group in tables (scenario name, or the recording's name).
+        q: (N, 4) estimate sensor → ENU.
+        lam: (N,) λ per sample for MagBlend policies, else None.
+        trust: (N,) the method's magnetometer trust (1 − λ for MagBlend), or None.
+        score: RMSE (°) over the trial's score mask.
+    """
+
+    method: str
+    trial: Trial
+    label: str
+    q: np.ndarray
+    lam: np.ndarray | None
+    trust: np.ndarray | None
+    score: metrics.Score
+
+
+def is_policy(method) -> bool:
+    """True for a Policy (has ``env_id`` and is callable), False for an Estimator (has ``run``)."""
+    if hasattr(method, "env_id") and callable(method):
+        return True
+    if hasattr(method, "run"):
+        return False
+    raise TypeError(f"{method!r} is neither a Policy (env_id + __call__) nor an Estimator (run(trial))")
+
+
+def trial_label(trial: Trial) -> str:
+    """Default table group of a trial: its scenario name, else its own name."""
+    return str(trial.meta.get("scenario", trial.name))
+
+
+class PolicyRunner:
+    """Keeps one env per (env_id, env options) so many trials are run without re-making it."""
+
+    def __init__(self, env_id: str | None = None, env_kwargs: dict | None = None):
+        self.env_id, self.env_kwargs = env_id, dict(env_kwargs or {})
+        self._envs: dict[Any, Any] = {}
+
+    def _env(self, policy, trial: Trial):
+        import gymnasium as gym
+
+        import magenv  # noqa: F401  (registers the envs)
+
+        env_id = self.env_id or policy.env_id
+        kwargs = {**getattr(policy, "env_kwargs", {}), **self.env_kwargs}
+        kwargs["scenario"] = [trial]  # never simulate: the trial comes through reset options
+        if "episode_seconds" in kwargs:
+            kwargs["episode_seconds"] = None  # evaluation scores whole trials
+        key = (env_id, repr(sorted((k, repr(v)) for k, v in kwargs.items() if k != "scenario")))
+        if key not in self._envs:
+            self._envs[key] = gym.make(env_id, disable_env_checker=True, **kwargs).unwrapped
+        return self._envs[key]
+
+    def run(self, policy, trial: Trial) -> tuple[np.ndarray, np.ndarray | None]:
+        """Run ``policy`` over the whole ``trial``; returns (estimate (N, 4), λ (N,) or None)."""
+        env = self._env(policy, trial)
+        policy.reset()
+        obs, _ = env.reset(seed=0, options={"trial": trial})
+        truncated = terminated = False
+        while not (truncated or terminated):
+            obs, _, terminated, truncated, _ = env.step(policy(obs))
+        lam = getattr(env, "lambdas", None)
+        return env.estimate.copy(), None if lam is None else np.array(lam, copy=True)
+
+
+def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = None, label: str | None = None) -> Run:
+    """Run one Policy or Estimator on one trial and score it."""
+    if is_policy(method):
+        q, lam = (runner or PolicyRunner()).run(method, trial)
+        trust = None if lam is None else 1.0 - lam
+    else:
+        est = method.run(trial)
+        q, lam, trust = np.asarray(est.q, float), None, est.trust
+    if q.shape != (trial.n, 4):
+        raise ValueError(f"method {name!r} returned an estimate of shape {q.shape} for trial {trial.name!r} "
+                         f"({trial.n} samples)")
+    score = metrics.score(q, trial.q_true, trial.score_mask)
+    return Run(name, trial, label or trial_label(trial), q, lam, trust, score)
+
+
+def run_policy_on_trials(policy, trials: Sequence[Trial], env_id: str | None = None,
+                         env_kwargs: dict | None = None) -> list[metrics.Score]:
+    """Scores of ``policy`` on each trial (env ``env_id`` or the policy's own, with ``env_kwargs``)."""
+    runner = PolicyRunner(env_id, env_kwargs)
+    return [run_method(getattr(policy, "name", "policy"), policy, t, runner).score for t in trials]
+
+
+def resolve(methods) -> dict[str, Any]:
+    """Methods given as names (registry), a dict name → object, or a list mixing names and objects."""
+    from baselines import registry
+
+    if isinstance(methods, dict):
+        return dict(methods)
+    out = {}
+    for m in methods:
+        if isinstance(m, str):
+            out[m] = registry.make(m)
+        else:
+            out[getattr(m, "name", type(m).__name__)] = m
+    return out
+
+
+def evaluate(methods, trials: Iterable[Trial], env_kwargs: dict | None = None,
+             labels: Sequence[str] | None = None, progress: Callable[[str, Trial], None] | None = None) -> list[Run]:
+    """Every method on every trial (same trials for all). ``progress(method, trial)`` is called after each run.
+
+    ``env_kwargs`` are applied to every policy's env (e.g. ``{"decision_every": 1}``);
+    ``labels`` gives each trial's table group (default ``trial_label``).
+    """
+    methods = resolve(methods)
+    trials = list(trials)
+    labels = [trial_label(t) for t in trials] if labels is None else list(labels)
+    runner = PolicyRunner(None, env_kwargs)
+    runs = []
+    for trial, label in zip(trials, labels):
+        for name, method in methods.items():
+            runs.append(run_method(name, method, trial, runner, label))
+            if progress is not None:
+                progress(name, trial)
+    return runs
+
+
+def summarize(runs: Sequence[Run]) -> list[dict]:
+    """One row per (method, label) with ``CSV_COLUMNS``; std is the sample std (ddof 1; NaN for n = 1)."""
+    groups: dict[tuple[str, str], list[metrics.Score]] = {}
+    for r in runs:
+        groups.setdefault((r.method, r.label), []).append(r.score)
+    rows = []
+    for (method, label), scores in groups.items():
+        tot = np.array([s.total for s in scores])
+        rows.append({
+            "method": method, "scenario": label, "n": len(scores),
+            "total_rmse_mean": float(np.mean(tot)),
+            "total_rmse_std": float(np.std(tot, ddof=1)) if len(tot) > 1 else float("nan"),
+            "heading_rmse_mean": float(np.mean([s.heading for s in scores])),
+            "inclination_rmse_mean": float(np.mean([s.inclination for s in scores])),
+        })
+    return rows
+
+
+def compare(methods, trials: Iterable[Trial], env_kwargs: dict | None = None,
+            labels: Sequence[str] | None = None, progress=None) -> list[dict]:
+    """``summarize(evaluate(...))``: the comparison table as a list of dicts (``CSV_COLUMNS``)."""
+    return summarize(evaluate(methods, trials, env_kwargs, labels, progress))
+
+
+def write_csv(rows: Sequence[dict], path: str | Path) -> Path:
+    """Write rows with exactly the header ``CSV_COLUMNS`` (floats to 4 decimals, degrees)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(CSV_COLUMNS)
+        for row in rows:
+            w.writerow([f"{row[c]:.4f}" if isinstance(row[c], float) else row[c] for c in CSV_COLUMNS])
+    return path
+
+
+def plot_runs(runs: Sequence[Run], path: str | Path, title: str | None = None) -> Path:
+    """Total error over time (top) and λ over time (bottom) of runs on one trial."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(9, 6))
+    for r in runs:
+        t = r.trial.t
+        err = metrics.total_error(metrics.error_quaternion(r.q, r.trial.q_true))
+        ax1.plot(t, err, lw=0.8, label=f"{r.method} ({r.score.total:.2f}°)")
+        if r.lam is not None:
+            ax2.plot(t, r.lam, lw=0.8, label=r.method)
+        elif r.trust is not None:
+            ax2.plot(t, 1.0 - np.asarray(r.trust, float), lw=0.8, ls="--", label=f"{r.method} (1 − trust)")
+    ax1.set_ylabel("total error (°)")
+    ax1.legend(fontsize=8)
+    ax2.set_ylabel("λ (IMU weight)")
+    ax2.set_xlabel("time (s)")
+    ax2.set_ylim(-0.05, 1.05)
+    ax2.legend(fontsize=8)
+    if title or runs:
+        ax1.set_title(title or runs[0].trial.name)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

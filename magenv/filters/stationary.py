@@ -1,0 +1,84 @@
+"""Causal stationary detection, Fan et al. 2017 eqs. 11–13.
+
+A sample t is stationary when, on every axis,
+
+* |a_t − a_{t−t0}| < th_a          (eq. 11; th_a = k·a_pp, eq. 12)
+* |ω_t| < th_gyro                   (eq. 13)
+
+Paper values: t0 = 0.5 s, th_a = 0.04 g, th_gyro = 0.5 °/s. Until t0 of
+history exists, no sample is stationary.
+
+Streaming form: the state is a ring buffer of the last ``L = round(t0·rate)``
+accelerometer samples (``buf`` (L, 3)) and a counter array
+``ctr = [next write position, samples seen]`` (int64). ``stationary_peek1``
+evaluates the criterion for a new sample without storing it;
+``stationary_step1`` evaluates and stores.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from magenv.quaternion import GRAVITY
+
+T0_S = 0.5  # s, eq. 11 interval
+TH_ACC_G = 0.04  # g, eq. 12
+TH_GYRO_DPS = 0.5  # °/s, eq. 13
+
+
+def make_state(rate: float, t0: float = T0_S) -> tuple[np.ndarray, np.ndarray]:
+    """Empty detector state ``(buf (L, 3), ctr (2,) int64)`` for ``rate`` Hz and interval ``t0`` s."""
+    length = max(1, int(round(t0 * rate)))
+    return np.zeros((length, 3)), np.zeros(2, np.int64)
+
+
+def thresholds(th_acc_g: float = TH_ACC_G, th_gyro_dps: float = TH_GYRO_DPS) -> tuple[float, float]:
+    """Thresholds in SI units: (m/s², rad/s)."""
+    return th_acc_g * GRAVITY, np.deg2rad(th_gyro_dps)
+
+
+@njit(cache=True, inline="always")
+def stationary_peek1(buf, ctr, acc, gyr, th_a, th_gyro):
+    """Eqs. 11 and 13 for a new sample (acc m/s², gyr rad/s) against the sample t0 ago; no state change."""
+    length = buf.shape[0]
+    if ctr[1] < length:
+        return False
+    old = buf[ctr[0]]  # oldest stored sample = a_{t − t0}
+    for k in range(3):
+        if abs(gyr[k]) >= th_gyro:
+            return False
+        if abs(acc[k] - old[k]) >= th_a:
+            return False
+    return True
+
+
+@njit(cache=True, inline="always")
+def stationary_step1(buf, ctr, acc, gyr, th_a, th_gyro):
+    """Evaluate the new sample (as ``stationary_peek1``), then store its acc in the ring buffer."""
+    still = stationary_peek1(buf, ctr, acc, gyr, th_a, th_gyro)
+    pos = ctr[0]
+    buf[pos, 0] = acc[0]
+    buf[pos, 1] = acc[1]
+    buf[pos, 2] = acc[2]
+    ctr[0] = pos + 1 if pos + 1 < buf.shape[0] else 0
+    ctr[1] += 1
+    return still
+
+
+@njit(cache=True)
+def _detect(acc, gyr, length, th_a, th_gyro):
+    buf = np.zeros((length, 3))
+    ctr = np.zeros(2, np.int64)
+    out = np.empty(acc.shape[0], np.bool_)
+    for i in range(acc.shape[0]):
+        out[i] = stationary_step1(buf, ctr, acc[i], gyr[i], th_a, th_gyro)
+    return out
+
+
+def detect(acc, gyr, rate: float, t0: float = T0_S, th_acc_g: float = TH_ACC_G,
+           th_gyro_dps: float = TH_GYRO_DPS) -> np.ndarray:
+    """(N,) bool stationary flags of whole arrays acc (N, 3) m/s², gyr (N, 3) rad/s, streamed causally."""
+    buf, _ = make_state(rate, t0)
+    th_a, th_g = thresholds(th_acc_g, th_gyro_dps)
+    return _detect(np.ascontiguousarray(acc, float), np.ascontiguousarray(gyr, float), buf.shape[0], th_a, th_g)
