@@ -27,6 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="scenario name(s), comma list (default dynamic_magnet unless --recordings is given)")
     p.add_argument("--seeds", default="0:10", help="trial seeds: START:STOP, comma list or one (default %(default)s)")
     p.add_argument("--methods", default=DEFAULT_METHODS, help="comma list of methods (default %(default)s)")
+    p.add_argument("--agent", action="append", default=[], metavar="RUN_DIR",
+                   help="add a trained agent from its run folder (repeatable; also as method agent:RUN_DIR)")
     p.add_argument("--recordings", nargs="+", default=[], metavar="FILE", help="real recordings to add")
     p.add_argument("--every", type=int, default=None,
                    help="decision interval k (samples) for policies (default: the env's, 8)")
@@ -36,30 +38,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _trials(args) -> tuple[list, list[str]]:
+def make_trials(scenarios: str | None, seeds: str, recordings: list[str]) -> tuple[list, list[str]]:
+    """Trials and their table labels: every scenario (comma list) × seed, then each recording."""
     from train.seeds import parse_seeds
 
     trials, labels = [], []
-    scenarios = args.scenario if args.scenario is not None else ("" if args.recordings else "dynamic_magnet")
-    names = [s.strip() for s in scenarios.split(",") if s.strip()]
+    names = [s.strip() for s in (scenarios or "").split(",") if s.strip()]
     if names:
         try:
-            seeds = parse_seeds(args.seeds)
+            seed_list = parse_seeds(seeds)
         except ValueError as exc:
             raise CommandError(str(exc)) from None
-        try:
-            from magenv.scenarios import make_trial, scenario_names
-        except ImportError as exc:
-            raise CommandError(f"simulated scenarios need magenv.scenarios ({exc})") from None
+        from magenv.scenarios import make_trial, scenario_names
+
         known = list(scenario_names())
         bad = [n for n in names if n not in known]
         if bad:
             raise CommandError(f"unknown scenario(s) {', '.join(bad)}; known: {', '.join(known)}")
         for name in names:
-            for seed in seeds:
+            for seed in seed_list:
                 trials.append(make_trial(name, seed))
                 labels.append(name)
-    for path in args.recordings:
+    for path in recordings:
         from magenv.recordings import load_recording
 
         try:
@@ -73,51 +73,51 @@ def _trials(args) -> tuple[list, list[str]]:
     return trials, labels
 
 
-def _fmt(x: float) -> str:
-    return "–" if math.isnan(x) else f"{x:.2f}"
-
-
-def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-    from rich.table import Table
-
+def select_methods(names: list[str]) -> dict:
+    """Method objects by name (registry names, ``RULE_tuned``, ``agent:RUN_DIR``); unknown names list the known ones."""
     from baselines import registry
-    from magenv import evaluation
 
-    names = [m.strip() for m in args.methods.split(",") if m.strip()]
+    names = [m.strip() for m in names if m.strip()]
     if not names:
-        raise CommandError("--methods is empty")
+        raise CommandError("no methods given")
     known = registry.names()
     bad = [m for m in names if m not in known and not m.startswith(registry.AGENT_PREFIX)]
     if bad:
         raise CommandError(f"unknown method(s) {', '.join(bad)}; known methods: {', '.join(known)}")
-    if args.every is not None and args.every < 1:
-        raise CommandError(f"--every must be a positive number of samples, got {args.every}")
     try:
-        methods = {m: registry.make(m) for m in names}
+        return {m: registry.make(m) for m in names}
     except (ImportError, ValueError) as exc:
         raise CommandError(str(exc)) from None
-    env_kwargs = {}
-    if args.every is not None:
-        env_kwargs["decision_every"] = args.every
-    if args.no_hold:
-        env_kwargs["stationary_hold"] = False
 
-    console = Console(width=None if sys.stdout.isatty() else 120)  # no squeezed columns in logs
+
+def _fmt(x: float) -> str:
+    return "–" if math.isnan(x) else f"{x:.2f}"
+
+
+def run_comparison(methods: dict, trials: list, labels: list[str], env_kwargs: dict | None = None,
+                   progress: bool = True, console=None) -> list:
+    """Every method on every trial with a progress bar; returns ``magenv.evaluation.Run`` objects."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from magenv import evaluation
+
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, disable=args.no_progress, transient=True) as progress:
-        task = progress.add_task("making trials", total=None)
-        trials, labels = _trials(args)
-        progress.update(task, total=len(trials) * len(methods), completed=0, description="running methods")
+                  console=console, disable=not progress, transient=True) as bar:
+        task = bar.add_task("running methods", total=len(trials) * len(methods))
 
         def tick(method, trial):
-            progress.update(task, advance=1, description=f"{method} on {trial.name}")
+            bar.update(task, advance=1, description=f"{method} on {trial.name}")
 
-        runs = evaluation.evaluate(methods, trials, env_kwargs, labels, tick)
-    rows = evaluation.summarize(runs)
+        return evaluation.evaluate(methods, trials, env_kwargs, labels, tick)
 
-    table = Table(title="orientation RMSE (°), mean over trials")
+
+def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (°), mean over trials") -> None:
+    """The comparison rows as a table, best total RMSE first within each scenario."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console(width=None if sys.stdout.isatty() else 120)  # no squeezed columns in logs
+    table = Table(title=title)
     for col, justify in (("method", "left"), ("scenario", "left"), ("n", "right"), ("total", "right"),
                          ("± std", "right"), ("heading", "right"), ("inclination", "right")):
         table.add_column(col, justify=justify, no_wrap=True)
@@ -125,9 +125,28 @@ def run(args: argparse.Namespace) -> int:
         table.add_row(r["method"], r["scenario"], str(r["n"]), _fmt(r["total_rmse_mean"]),
                       _fmt(r["total_rmse_std"]), _fmt(r["heading_rmse_mean"]), _fmt(r["inclination_rmse_mean"]))
     console.print(table)
+
+
+def run(args: argparse.Namespace) -> int:
+    from baselines import registry
+    from magenv import evaluation
+
+    if args.every is not None and args.every < 1:
+        raise CommandError(f"--every must be a positive number of samples, got {args.every}")
+    methods = select_methods(args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent])
+    env_kwargs = {}
+    if args.every is not None:
+        env_kwargs["decision_every"] = args.every
+    if args.no_hold:
+        env_kwargs["stationary_hold"] = False
+    scenarios = args.scenario if args.scenario is not None else ("" if args.recordings else "dynamic_magnet")
+    trials, labels = make_trials(scenarios, args.seeds, args.recordings)
+    runs = run_comparison(methods, trials, labels, env_kwargs, progress=not args.no_progress)
+    rows = evaluation.summarize(runs)
+    print_table(rows)
     if args.csv:
-        console.print(f"wrote {evaluation.write_csv(rows, args.csv)}")
+        print(f"wrote {evaluation.write_csv(rows, args.csv)}")
     if args.plot:
         first = [r for r in runs if r.trial is trials[0]]
-        console.print(f"wrote {evaluation.plot_runs(first, args.plot)}")
+        print(f"wrote {evaluation.plot_runs(first, args.plot)}")
     return 0

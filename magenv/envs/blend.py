@@ -164,7 +164,9 @@ class MagBlendEnv(gym.Env):
         if episode_seconds is not None and not episode_seconds > 0:
             raise ValueError(f"episode_seconds must be positive or None, got {episode_seconds!r}")
         if render_mode is not None:
-            raise ValueError(f"MagBlend-v0 has no render modes, got render_mode={render_mode!r}")
+            # TypeError, like an unknown keyword: wrappers that try a render mode first
+            # (stable-baselines3's make_vec_env) fall back to none.
+            raise TypeError(f"MagBlend-v0 has no render modes, got render_mode={render_mode!r}")
         self._source_kind, self._source = _trial_source(scenario)
         self._recording: Trial | None = None
         self.scenario = scenario if isinstance(scenario, str) else "trials"

@@ -1,0 +1,350 @@
+"""Threshold-based Kalman filter with vector selector (Lee & Park 2009; survey A.1).
+
+A linear Kalman filter whose state is the orientation quaternion: the
+gyroscope predicts it (A1, A3–A6), a single-frame solver (QUEST or TRIAD)
+measures it directly (A2), and a **vector selector** (A7–A8) first replaces an
+accelerometer or magnetometer sample that looks disturbed by its prediction
+from the a-priori quaternion.
+
+Reading of the survey in magenv's convention (scalar-first Hamilton ``q``,
+sensor → ENU; the survey's ``q^bn`` is scalar-last, NED → body):
+
+* A1/A3: ``q_k = Φ q_{k-1}`` with ``Φ`` the matrix of right multiplication
+  by ``δq = exp(½ ω T_s)``: ``q_k = q_{k-1} ⊗ δq``. Reordered to scalar
+  first, the survey's ``[[−[ω×], ω], [−ωᵀ, 0]]`` is exactly the matrix of
+  ``q ↦ q ⊗ [0, ω]``; we use its exact exponential (the survey's first-order
+  ``I + T_s·Ω`` lacks the ½ of ``q̇ = ½ q ⊗ ω``). ω is the trapezoidal mean
+  ``½(ω_{k-1} + ω_k)`` of two causal samples.
+* A4/A6: ``w = (T_s/2) Ξ(q_{k-1}) n_gyr`` with ``Ξ(q) n = q ⊗ [0, n]``,
+  i.e. scalar-first ``Ξ = [−q̄ᵀ; q₀I + [q̄×]]`` — the survey's A6 reordered
+  (its extra −T_s/2 inside Ξ double-counts the factor). ``Q = (T_s/2)² σ_g² Ξ Ξᵀ``.
+* A2: ``z_k = q_k + v_k``, ``H = I₄``, ``R = (σ_θ²/4)·I₄`` where σ_θ (rad) is
+  the solver's angular noise; ``z`` is put on the hemisphere of the prior.
+* A7: gravity input ``s_g = acc/|acc|`` if ``| |acc| − g | < th_acc``, else the
+  prediction ``q̂* ⊗ g_ENU ⊗ q̂`` (direction).
+* A8: field input ``s_h = mag/|mag|`` if ``| |mag| − m0 | < th_mag`` (the
+  survey prints th_acc here — a typo, Table A1 gives th_mag) and
+  ``|θ_k − θ0| < th_α``, else ``q̂* ⊗ h_ENU ⊗ q̂``. The dip θ_k (° down) is
+  the angle of mag below the horizontal plane defined by the *selected*
+  gravity s_g: ``θ_k = asin(−ŝ_g·m̂)``; the survey's α (angle between h and
+  down) is ``90° − θ`` so ``|α_k − α0| = |θ_k − θ0|``.
+
+As in the survey, a replaced sample still feeds the solver and the update
+(its innovation is then ~0); P keeps its usual steady-state value.
+
+Defaults: Table A1 thresholds (0.08 m/s², 1.20 µT, 5°) and the survey's
+sensor noise (gyro 0.5 °/s, acc 0.02 m/s², mag 0.15 µT).
+
+This module also holds the covariance-health kernel shared by the other
+Kalman filters (:func:`repair_cov1`) and :class:`FilterError`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from magenv import quaternion as quat
+from magenv.filters.solvers import quest1, triad1
+from magenv.quaternion import GRAVITY, align1, from_rotvec1, mul1, normalize1, rotate_inv1
+
+TRIAD, QUEST = 0, 1
+SOLVERS = {"triad": TRIAD, "quest": QUEST}
+
+# Survey noise (§4) and Table A1.
+SIGMA_GYR = np.deg2rad(0.5)  # rad/s
+SIGMA_ACC = 0.02  # m/s²
+SIGMA_MAG = 0.15  # µT
+TH_ACC = 0.08  # m/s²
+TH_MAG = 1.20  # µT
+TH_DIP = 5.0  # degrees
+COV_FLOOR = 1e-14  # eigenvalue floor of a repaired covariance (state units²)
+
+# Status codes of the kernels (>= 0: index of the offending sample).
+OK = -1
+
+
+class FilterError(RuntimeError):
+    """A filter met a non-finite input or an unrecoverable covariance."""
+
+
+# ------------------------------------------------------------ covariance health
+
+
+@njit(cache=True)
+def _is_pd(p):
+    """Cholesky test: True if the symmetric matrix ``p`` is positive definite."""
+    n = p.shape[0]
+    lo = np.zeros((n, n))
+    for j in range(n):
+        s = p[j, j]
+        for k in range(j):
+            s -= lo[j, k] * lo[j, k]
+        if not (s > 0.0):
+            return False
+        lo[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            s = p[i, j]
+            for k in range(j):
+                s -= lo[i, k] * lo[j, k]
+            lo[i, j] = s / lo[j, j]
+    return True
+
+
+@njit(cache=True)
+def repair_cov1(p, floor):
+    """Keep a covariance healthy, in place.
+
+    Symmetrises ``p``; if it is then not positive definite, floors its
+    eigenvalues at ``floor``. Returns 0 (healthy), 1 (repaired) or −1
+    (non-finite: cannot be repaired — the caller must fail loudly).
+    """
+    n = p.shape[0]
+    for i in range(n):
+        for j in range(n):
+            if not np.isfinite(p[i, j]):
+                return -1
+    for i in range(n):
+        for j in range(i + 1, n):
+            m = 0.5 * (p[i, j] + p[j, i])
+            p[i, j] = m
+            p[j, i] = m
+    if _is_pd(p):
+        return 0
+    vals, vecs = np.linalg.eigh(p)
+    for k in range(n):
+        if vals[k] < floor:
+            vals[k] = floor
+    p[:, :] = (vecs * vals) @ vecs.T
+    for i in range(n):
+        for j in range(i + 1, n):
+            m = 0.5 * (p[i, j] + p[j, i])
+            p[i, j] = m
+            p[j, i] = m
+    return 1
+
+
+@njit(cache=True, inline="always")
+def finite3(v):
+    return np.isfinite(v[0]) and np.isfinite(v[1]) and np.isfinite(v[2])
+
+
+# ------------------------------------------------------------------ kernels
+
+
+@njit(cache=True)
+def right_matrix1(p):
+    """4×4 matrix M with ``q ⊗ p = M q`` (scalar-first)."""
+    m = np.empty((4, 4))
+    m[0, 0], m[0, 1], m[0, 2], m[0, 3] = p[0], -p[1], -p[2], -p[3]
+    m[1, 0], m[1, 1], m[1, 2], m[1, 3] = p[1], p[0], p[3], -p[2]
+    m[2, 0], m[2, 1], m[2, 2], m[2, 3] = p[2], -p[3], p[0], p[1]
+    m[3, 0], m[3, 1], m[3, 2], m[3, 3] = p[3], p[2], -p[1], p[0]
+    return m
+
+
+@njit(cache=True)
+def xi1(q):
+    """4×3 matrix Ξ(q) with ``q ⊗ [0, n] = Ξ n`` (survey A6, scalar first)."""
+    x = np.empty((4, 3))
+    x[0, 0], x[0, 1], x[0, 2] = -q[1], -q[2], -q[3]
+    x[1, 0], x[1, 1], x[1, 2] = q[0], -q[3], q[2]
+    x[2, 0], x[2, 1], x[2, 2] = q[3], q[0], -q[1]
+    x[3, 0], x[3, 1], x[3, 2] = -q[2], q[1], q[0]
+    return x
+
+
+@njit(cache=True)
+def predict1(q, p, gyr, dt, sigma_gyr):
+    """Gyro prediction (A1, A3–A6): returns the a-priori ``(q, P)``; ``gyr`` rad/s, sensor frame."""
+    dq = from_rotvec1(gyr * dt)
+    phi = right_matrix1(dq)  # A3 (exact)
+    xi = xi1(q)  # A6
+    g = 0.5 * dt * sigma_gyr
+    q_new = normalize1(mul1(q, dq))  # A1
+    p_new = phi @ p @ phi.T + (g * g) * (xi @ xi.T)  # A4: Q = (Ts/2)² σ² Ξ Ξᵀ
+    return q_new, p_new
+
+
+@njit(cache=True)
+def update1(q, p, z, r):
+    """Kalman update with a measured quaternion ``z`` (A2: H = I₄, R = r·I₄), Joseph form."""
+    z = align1(z, q)
+    s = p.copy()
+    for i in range(4):
+        s[i, i] += r
+    k = p @ np.linalg.inv(s)
+    q_new = q + k @ (z - q)
+    ikh = -k
+    for i in range(4):
+        ikh[i, i] += 1.0
+    p_new = ikh @ p @ ikh.T + r * (k @ k.T)
+    return normalize1(q_new), p_new
+
+
+@njit(cache=True)
+def select1(q_prior, acc, mag, g_ref, h_ref, m0, dip0_rad, th_acc, th_mag, th_dip_rad):
+    """Vector selector (A7–A8). Returns ``(s_g, s_h, acc_ok, mag_ok)``, unit vectors, sensor frame."""
+    na = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
+    nm = np.sqrt(mag[0] ** 2 + mag[1] ** 2 + mag[2] ** 2)
+    ng = np.sqrt(g_ref[0] ** 2 + g_ref[1] ** 2 + g_ref[2] ** 2)
+    nh = np.sqrt(h_ref[0] ** 2 + h_ref[1] ** 2 + h_ref[2] ** 2)
+    acc_ok = abs(na - ng) < th_acc  # A7
+    if acc_ok:
+        s_g = acc / na
+    else:
+        s_g = rotate_inv1(q_prior, g_ref) / ng
+    mag_ok = abs(nm - m0) < th_mag and nm > 0.0  # A8, norm test
+    if mag_ok:
+        m_hat = mag / nm
+        sd = -(s_g[0] * m_hat[0] + s_g[1] * m_hat[1] + s_g[2] * m_hat[2])
+        dip = np.arcsin(min(1.0, max(-1.0, sd)))
+        mag_ok = abs(dip - dip0_rad) < th_dip_rad  # A8, dip test
+    if mag_ok:
+        s_h = mag / nm
+    else:
+        s_h = rotate_inv1(q_prior, h_ref) / nh
+    return s_g, s_h, acc_ok, mag_ok
+
+
+@njit(cache=True)
+def solve1(solver, s_g, s_h, g_ref, h_ref, w_acc, w_mag):
+    """Single-frame solution (TRIAD = 0, QUEST = 1), sensor → ENU."""
+    if solver == TRIAD:
+        return triad1(s_g, s_h, g_ref, h_ref)
+    return quest1(s_g, s_h, g_ref, h_ref, w_acc, w_mag)
+
+
+@njit(cache=True)
+def step1(q, p, gyr_prev, gyr, acc, mag, dt, prm, solver):
+    """One full step: predict, select, solve, update. Returns ``(q, P, acc_ok, mag_ok, status)``.
+
+    ``prm`` = [σ_gyr, r, m0, dip0_rad, th_acc, th_mag, th_dip_rad, w_acc, w_mag,
+    g_ref(3), h_ref(3), cov_floor] (see :class:`ThresholdKF`). status: 0 ok,
+    1 covariance repaired, −1 non-finite input/covariance, −2 degenerate solver input.
+    """
+    if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag)):
+        return q, p, False, False, -1
+    g_ref = prm[9:12]
+    h_ref = prm[12:15]
+    qp, pp = predict1(q, p, 0.5 * (gyr_prev + gyr), dt, prm[0])
+    s_g, s_h, acc_ok, mag_ok = select1(qp, acc, mag, g_ref, h_ref, prm[2], prm[3], prm[4], prm[5], prm[6])
+    z = solve1(solver, s_g, s_h, g_ref, h_ref, prm[7], prm[8])
+    if not np.isfinite(z[0]):
+        # degenerate pair (e.g. acc ∥ mag): keep the prediction, as if both were replaced
+        status = repair_cov1(pp, prm[15])
+        return qp, pp, acc_ok, mag_ok, -2 if status >= 0 else -1
+    qn, pn = update1(qp, pp, z, prm[1])
+    status = repair_cov1(pn, prm[15])
+    return qn, pn, acc_ok, mag_ok, status
+
+
+@njit(cache=True)
+def run_kernel(gyr, acc, mag, dt, prm, solver, p0, q_out, acc_ok, mag_ok):
+    """Whole trial. Sample 0 initialises q by the solver on the raw vectors.
+
+    Returns ``(status, repairs)``: status OK (−1) or the index of the first
+    sample with a non-finite input or covariance.
+    """
+    n = gyr.shape[0]
+    g_ref = prm[9:12]
+    h_ref = prm[12:15]
+    if not (finite3(acc[0]) and finite3(mag[0])):
+        return 0, 0
+    q = solve1(solver, acc[0], mag[0], g_ref, h_ref, prm[7], prm[8])
+    if not np.isfinite(q[0]):
+        return 0, 0
+    p = np.eye(4) * p0
+    q_out[0] = q
+    acc_ok[0] = True
+    mag_ok[0] = True
+    repairs = 0
+    for k in range(1, n):
+        q, p, a_ok, m_ok, status = step1(q, p, gyr[k - 1], gyr[k], acc[k], mag[k], dt, prm, solver)
+        if status == -1:
+            return k, repairs
+        if status == 1:
+            repairs += 1
+        q_out[k] = q
+        acc_ok[k] = a_ok
+        mag_ok[k] = m_ok
+    return OK, repairs
+
+
+# --------------------------------------------------------------- wrapper
+
+
+@dataclass
+class ThresholdResult:
+    """Output of :meth:`ThresholdKF.run` on one trial.
+
+    Attributes:
+        q: (N, 4) orientation sensor → ENU.
+        acc_ok, mag_ok: (N,) bool, sample accepted by the vector selector.
+        repairs: number of steps whose covariance had to be repaired.
+    """
+
+    q: np.ndarray
+    acc_ok: np.ndarray
+    mag_ok: np.ndarray
+    repairs: int
+
+
+@dataclass
+class ThresholdKF:
+    """Threshold-based quaternion KF (survey A.1) with TRIAD or QUEST measurement.
+
+    Attributes:
+        solver: "quest" (Lee & Park's choice) or "triad".
+        sigma_gyr: gyro noise std, rad/s (survey: 0.5 °/s).
+        sigma_acc: accelerometer noise std, m/s² (0.02).
+        sigma_mag: magnetometer noise std, µT (0.15).
+        th_acc, th_mag, th_dip: Table A1 thresholds (m/s², µT, degrees).
+        weights: QUEST weights (w_acc, w_mag), relative.
+        sigma_meas: angular noise std of the solver's quaternion, rad; None →
+            ``sqrt((σ_acc/g)² + (σ_mag/(m0·cos θ0))²)`` from the sensor noise.
+        p0: initial covariance P₀ = p0·I₄.
+    """
+
+    solver: str = "quest"
+    sigma_gyr: float = SIGMA_GYR
+    sigma_acc: float = SIGMA_ACC
+    sigma_mag: float = SIGMA_MAG
+    th_acc: float = TH_ACC
+    th_mag: float = TH_MAG
+    th_dip: float = TH_DIP
+    weights: tuple[float, float] = (0.5, 0.5)
+    sigma_meas: float | None = None
+    p0: float = 1e-2
+
+    def params(self, field_norm: float, field_dip: float) -> np.ndarray:
+        """Parameter vector ``prm`` of the kernels for a site (m0 µT, θ0 degrees)."""
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {self.solver!r}")
+        sig = self.sigma_meas
+        if sig is None:
+            sig = np.hypot(self.sigma_acc / GRAVITY, self.sigma_mag / (field_norm * np.cos(np.deg2rad(field_dip))))
+        return np.concatenate([
+            [self.sigma_gyr, 0.25 * sig * sig, field_norm, np.deg2rad(field_dip), self.th_acc, self.th_mag,
+             np.deg2rad(self.th_dip), self.weights[0], self.weights[1]],
+            quat.gravity_up(), quat.earth_field(field_norm, field_dip), [COV_FLOOR],
+        ])
+
+    def run(self, trial) -> ThresholdResult:
+        """Run causally over a :class:`magenv.trial.Trial`; raises FilterError on non-finite data."""
+        prm = self.params(trial.field_norm, trial.field_dip)
+        n = trial.n
+        q = np.empty((n, 4))
+        acc_ok = np.zeros(n, bool)
+        mag_ok = np.zeros(n, bool)
+        status, repairs = run_kernel(trial.gyr, trial.acc, trial.mag, trial.dt, prm, SOLVERS[self.solver],
+                                     self.p0, q, acc_ok, mag_ok)
+        if status != OK:
+            raise FilterError(
+                f"threshold KF ({self.solver}) on trial {trial.name!r}: non-finite or degenerate sample or "
+                f"covariance at sample {status} (gyr={trial.gyr[status]}, acc={trial.acc[status]}, "
+                f"mag={trial.mag[status]})"
+            )
+        return ThresholdResult(q=q, acc_ok=acc_ok, mag_ok=mag_ok, repairs=repairs)

@@ -1,0 +1,274 @@
+"""Quaternion Kalman filter whose magnetometer trust is set from outside (core of the Kalman-gain env).
+
+A multiplicative (error-state) Kalman filter: the estimate ``q̂`` (sensor →
+ENU) is corrected by an **earth-frame** small rotation δθ,
+``q = exp(δθ) ⊗ q̂``, with covariance P (3×3, rad²). Per sample:
+
+1. Gyro prediction: ``q̂ ← q̂ ⊗ exp(½ ω T_s)``, ω the trapezoidal mean of
+   two causal samples; ``P ← P + (σ_g T_s)² I`` (white gyro noise mapped to
+   the earth frame is isotropic).
+2. Accelerometer update (gated as in survey A7: skipped when
+   ``| |acc| − g | ≥ th_acc``): ``ν_a = q̂ ⊗ acc ⊗ q̂* − g_ENU ≈ [g_ENU×] δθ``,
+   ``R_a = σ_a² I``. ``[g_ENU×]`` has a zero z column, so gravity never
+   touches the heading.
+3. Magnetometer update scaled by ``trust`` γ ∈ [0, 1]:
+   ``ν_m = q̂ ⊗ mag ⊗ q̂* − h_ENU ≈ [h_ENU×] δθ``, ``R_m = σ_m² I``,
+   ``S = H P Hᵀ + R_m``, ``K = P Hᵀ S⁻¹``; with ``heading_only`` (default,
+   the survey's conclusion that the magnetometer should stay out of the
+   attitude) only K's z row is kept — the Schmidt (consider) gain, optimal
+   among gains that leave the tilt alone. Then ``δθ = γ K ν_m`` and
+   ``P ← (I − γKH) P (I − γKH)ᵀ + γ² K R_m Kᵀ`` (Joseph form, exact for any
+   gain).
+
+**Why a gain multiplier in [0, 1] and not a log-scale R multiplier.**
+``R_m·10^(−s·a)`` can only approach "ignore" asymptotically, so trust = 0
+could not switch the magnetometer off, and its scale s is one more
+hyper-parameter of the action space. A gain multiplier γ is bounded (a
+natural Box action), γ = 0 ignores the magnetometer *exactly* (heading then
+moves with the gyro alone), γ = 1 is the nominal Kalman filter, and the
+Joseph form keeps P the true error covariance of the filter actually run
+(whatever γ the policy picks), so trace P and S stay meaningful
+observations. A log-R policy can still be emulated inside (0, 1].
+
+Signals (``sig_out`` columns, what a policy may observe; truth-free):
+
+==  =================  =====  ===============================================
+ 0  nu_e               µT     magnetometer innovation, earth frame, east
+ 1  nu_n               µT     … north
+ 2  nu_u               µT     … up
+ 3  nu_norm            µT     |ν_m|
+ 4  nis                –      ν_mᵀ S⁻¹ ν_m (normalised innovation squared, χ²₃ if consistent)
+ 5  s_trace            µT²    trace S (a-priori innovation covariance)
+ 6  p_trace            rad²   trace P after the step
+ 7  heading_std        rad    sqrt(P_zz) after the step
+ 8  mag_norm_dev       µT     |mag| − m0
+ 9  dip_dev            deg    dip of mag below the estimated horizontal − θ0
+10  acc_norm_dev       m/s²   |acc| − g
+11  acc_used           –      1 if the accelerometer update ran, else 0
+12  trust              –      the γ applied
+==  =================  =====  ===============================================
+
+ν_m of a heading error ε about the vertical points mostly east
+(≈ ε·|h_horizontal|); a magnetic disturbance shows as a change of its norm
+or dip too. The same ν_m is the filter's disturbance estimate in µT (earth
+frame): the model-based split is not used here.
+
+``params`` layout (float64, see :func:`make_params`): [σ_g, σ_a, σ_m, th_acc,
+heading_only, g_ref(3), h_ref(3), m0, dip0_rad, cov_floor, p0].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from magenv import quaternion as quat
+from magenv.filters.kalman_threshold import (
+    COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC, FilterError, finite3, repair_cov1,
+)
+from magenv.filters.solvers import triad1
+from magenv.quaternion import from_rotvec1, mul1, normalize1, rotate1
+
+NSIG = 13
+SIGNALS = ("nu_e", "nu_n", "nu_u", "nu_norm", "nis", "s_trace", "p_trace", "heading_std",
+           "mag_norm_dev", "dip_dev", "acc_norm_dev", "acc_used", "trust")
+P0 = np.deg2rad(5.0) ** 2  # initial variance per axis, rad²
+
+
+def make_params(field_norm: float, field_dip: float, sigma_gyr: float = SIGMA_GYR, sigma_acc: float = SIGMA_ACC,
+                sigma_mag: float = SIGMA_MAG, th_acc: float = TH_ACC, heading_only: bool = True,
+                p0: float = P0) -> np.ndarray:
+    """Parameter vector of the kernels.
+
+    Args:
+        field_norm: m0, µT. field_dip: θ0, degrees down.
+        sigma_gyr: rad/s. sigma_acc: m/s². sigma_mag: µT (survey noise by default).
+        th_acc: accelerometer gate, m/s² (Table A1); ``np.inf`` disables it.
+        heading_only: the magnetometer corrects the heading only (Schmidt gain).
+        p0: initial variance of each error angle, rad².
+    """
+    for name, v in (("sigma_gyr", sigma_gyr), ("sigma_acc", sigma_acc), ("sigma_mag", sigma_mag), ("p0", p0)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+    return np.concatenate([
+        [sigma_gyr, sigma_acc, sigma_mag, th_acc, 1.0 if heading_only else 0.0],
+        quat.gravity_up(), quat.earth_field(field_norm, field_dip),
+        [field_norm, np.deg2rad(field_dip), COV_FLOOR, p0],
+    ])
+
+
+@njit(cache=True)
+def _skew(v):
+    m = np.zeros((3, 3))
+    m[0, 1], m[0, 2] = -v[2], v[1]
+    m[1, 0], m[1, 2] = v[2], -v[0]
+    m[2, 0], m[2, 1] = -v[1], v[0]
+    return m
+
+
+@njit(cache=True)
+def init_kernel(acc0, mag0, params, q, p):
+    """Initialise ``q`` (4,) by TRIAD on the first sample and ``P = p0·I``, in place. Returns False if degenerate."""
+    q0 = triad1(acc0, mag0, params[5:8], params[8:11])
+    if not np.isfinite(q0[0]):
+        return False
+    q[:] = q0
+    p[:, :] = 0.0
+    for i in range(3):
+        p[i, i] = params[14]
+    return True
+
+
+@njit(cache=True)
+def _apply(q, dtheta):
+    """q ← exp(δθ) ⊗ q (earth-frame correction)."""
+    return normalize1(mul1(from_rotvec1(dtheta), q))
+
+
+@njit(cache=True)
+def step_kernel(q, p, gyr_prev, gyr, acc, mag, dt, trust, params, sig):
+    """One sample, in place on ``q`` (4,) and ``p`` (3, 3); writes ``sig`` (NSIG,).
+
+    Returns 0 ok, 1 covariance repaired, −1 non-finite input or covariance.
+    """
+    if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
+        return -1
+    sg, sa, sm, th_acc = params[0], params[1], params[2], params[3]
+    heading_only = params[4] > 0.5
+    g_ref = params[5:8]
+    h_ref = params[8:11]
+    m0, dip0 = params[11], params[12]
+    floor = params[13]
+    p_in = p
+    p = p_in.copy()  # work on a copy: on failure the caller's state stays at the previous sample
+    # 1. prediction
+    qn = normalize1(mul1(q, from_rotvec1(0.5 * (gyr_prev + gyr) * dt)))
+    qv = (sg * dt) ** 2
+    for i in range(3):
+        p[i, i] += qv
+    # 2. accelerometer update (gated, A7)
+    na = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
+    ng = np.sqrt(g_ref[0] ** 2 + g_ref[1] ** 2 + g_ref[2] ** 2)
+    acc_used = abs(na - ng) < th_acc
+    if acc_used:
+        h = _skew(g_ref)
+        nu = rotate1(qn, acc) - g_ref
+        s = h @ p @ h.T
+        for i in range(3):
+            s[i, i] += sa * sa
+        k = p @ h.T @ np.linalg.inv(s)
+        qn = _apply(qn, k @ nu)
+        ikh = np.eye(3) - k @ h
+        p = ikh @ p @ ikh.T + (sa * sa) * (k @ k.T)
+    # 3. magnetometer update scaled by trust
+    h = _skew(h_ref)
+    m_e = rotate1(qn, mag)
+    nu = m_e - h_ref
+    s = h @ p @ h.T
+    for i in range(3):
+        s[i, i] += sm * sm
+    s_inv = np.linalg.inv(s)
+    if trust > 0.0:
+        k = p @ h.T @ s_inv
+        if heading_only:
+            k[0, :] = 0.0
+            k[1, :] = 0.0
+        k = trust * k
+        qn = _apply(qn, k @ nu)
+        ikh = np.eye(3) - k @ h
+        p = ikh @ p @ ikh.T + (sm * sm) * (k @ k.T)
+    status = repair_cov1(p, floor)
+    if status < 0:
+        return -1
+    q[:] = qn
+    p_in[:, :] = p
+    nm = np.sqrt(mag[0] ** 2 + mag[1] ** 2 + mag[2] ** 2)
+    sig[0] = nu[0]
+    sig[1] = nu[1]
+    sig[2] = nu[2]
+    sig[3] = np.sqrt(nu[0] ** 2 + nu[1] ** 2 + nu[2] ** 2)
+    sig[4] = nu @ s_inv @ nu
+    sig[5] = s[0, 0] + s[1, 1] + s[2, 2]
+    sig[6] = p[0, 0] + p[1, 1] + p[2, 2]
+    sig[7] = np.sqrt(p[2, 2])
+    sig[8] = nm - m0
+    sig[9] = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -m_e[2] / nm))) - dip0) if nm > 0.0 else np.nan
+    sig[10] = na - ng
+    sig[11] = 1.0 if acc_used else 0.0
+    sig[12] = trust
+    return status
+
+
+@njit(cache=True)
+def run_k_kernel(q, p, gyr, acc, mag, dt, i0, i1, trust, params, q_out, sig_out):
+    """Samples ``i0 … i1−1`` (i0 ≥ 1) at constant ``trust``, in place on q (4,), P (3, 3).
+
+    Step i uses gyr[i−1], gyr[i], acc[i], mag[i]; writes q_out[i] (4,) and
+    sig_out[i] (NSIG,). Returns ``(status, repairs)``: status OK (−1), or the
+    index of the first bad sample (state left at the previous sample).
+    """
+    repairs = 0
+    for i in range(i0, i1):
+        st = step_kernel(q, p, gyr[i - 1], gyr[i], acc[i], mag[i], dt, trust, params, sig_out[i])
+        if st < 0:
+            return i, repairs
+        repairs += st
+        q_out[i] = q
+    return OK, repairs
+
+
+def init(acc0, mag0, params) -> tuple[np.ndarray, np.ndarray]:
+    """Initial state ``(q (4,), P (3, 3))`` from the first accelerometer (m/s²) and magnetometer (µT) sample."""
+    q = np.empty(4)
+    p = np.empty((3, 3))
+    acc0 = np.ascontiguousarray(acc0, dtype=float)
+    mag0 = np.ascontiguousarray(mag0, dtype=float)
+    if not (np.all(np.isfinite(acc0)) and np.all(np.isfinite(mag0)) and init_kernel(acc0, mag0, params, q, p)):
+        raise FilterError(f"trust KF: cannot initialise from acc={acc0}, mag={mag0} (non-finite, zero or parallel)")
+    return q, p
+
+
+def run_k(q, p, gyr, acc, mag, dt, i0, i1, trust, params, q_out, sig_out) -> int:
+    """Advance the filter over samples ``i0 … i1−1`` at magnetometer trust ``trust`` ∈ [0, 1].
+
+    Args:
+        q: (4,) float64 state quaternion, sensor → ENU, updated in place.
+        p: (3, 3) float64 error covariance (earth-frame angles, rad²), in place.
+        gyr, acc, mag: (N, 3) float64 C-contiguous trial arrays (rad/s, m/s², µT).
+        dt: sample interval, s. i0, i1: sample range, 1 ≤ i0 ≤ i1 ≤ N.
+        trust: gain multiplier of the magnetometer update (0 = ignore, 1 = nominal).
+        params: from :func:`make_params`.
+        q_out: (N, 4) written at rows i0…i1−1. sig_out: (N, NSIG) likewise.
+    Returns the number of covariance repairs. Raises FilterError on a
+    non-finite sample or covariance, ValueError on a bad trust or range.
+    """
+    if not 0.0 <= trust <= 1.0:
+        raise ValueError(f"trust must be in [0, 1], got {trust!r}")
+    if not 1 <= i0 <= i1 <= len(gyr):
+        raise ValueError(f"need 1 <= i0 <= i1 <= N={len(gyr)}, got i0={i0}, i1={i1}")
+    status, repairs = run_k_kernel(q, p, gyr, acc, mag, dt, i0, i1, float(trust), params, q_out, sig_out)
+    if status != OK:
+        raise FilterError(
+            f"trust KF: non-finite sample or covariance at sample {status} "
+            f"(gyr={gyr[status]}, acc={acc[status]}, mag={mag[status]}, trust={trust})"
+        )
+    return repairs
+
+
+def run_trial(trial, trust, params=None) -> tuple[np.ndarray, np.ndarray]:
+    """Whole trial with a constant trust or a per-sample (N,) trust array. Returns ``(q (N, 4), sig (N, NSIG))``."""
+    if params is None:
+        params = make_params(trial.field_norm, trial.field_dip)
+    n = trial.n
+    trust = np.broadcast_to(np.asarray(trust, dtype=float), (n,))
+    q, p = init(trial.acc[0], trial.mag[0], params)
+    q_out = np.empty((n, 4))
+    sig = np.full((n, NSIG), np.nan)
+    q_out[0] = q
+    # run in blocks of constant trust
+    change = np.flatnonzero(np.diff(trust[1:]) != 0) + 2
+    bounds = np.concatenate([[1], change, [n]])
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b > a:
+            run_k(q, p, trial.gyr, trial.acc, trial.mag, trial.dt, int(a), int(b), trust[a], params, q_out, sig)
+    return q_out, sig
