@@ -284,3 +284,17 @@ def test_render_mode_is_refused_so_sb3_make_vec_env_falls_back():
     obs = venv.reset()
     assert obs.shape == (2, venv.observation_space.shape[0])
     venv.close()
+
+
+def test_scenario_mixture_draws_only_training_seeds():
+    from magenv.seeding import HELD_OUT_BELOW
+
+    env = gym.make(ENV_ID, scenario="dynamic_clean, dynamic_magnet", episode_seconds=0.5).unwrapped
+    seen = set()
+    for s in range(12):
+        env.reset(seed=s)
+        assert env.trial.meta["seed"] >= HELD_OUT_BELOW
+        seen.add(env.trial.meta["scenario"])
+    assert seen == {"dynamic_clean", "dynamic_magnet"}
+    with pytest.raises(ValueError, match="unknown scenario.*'nope'.*known scenarios"):
+        gym.make(ENV_ID, scenario="dynamic_clean,nope")

@@ -20,9 +20,9 @@ import time
 import numpy as np
 
 from train.cli import CommandError
+from magenv.seeding import HELD_OUT_BELOW as TRAIN_SEED_START
 from train.seeds import parse_seeds
 
-TRAIN_SEED_START = 10_000  # held-out evaluation seeds are below this
 
 
 def _to_params(x: np.ndarray, bounds: dict[str, tuple[float, float]]) -> dict[str, float]:

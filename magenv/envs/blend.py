@@ -14,13 +14,17 @@ from magenv.filters.blend import (
     E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, BlendRunner,
 )
 from magenv.filters.madgwick import BETA_DEFAULT
+from magenv.seeding import draw_training_seed
 from magenv.trial import Trial
 
 RECORDING_PREFIX = "recording:"
 
 
 def _trial_source(scenario) -> tuple[str, Any]:
-    """Classify the ``scenario`` argument: ("trials", [Trial…]), ("recording", path) or ("scenario", name)."""
+    """Classify the ``scenario`` argument: ("trials", [Trial…]), ("recording", path) or ("scenario", [names]).
+
+    A comma list of scenario names is a mixture: each reset picks one at random.
+    """
     if isinstance(scenario, Trial):
         return "trials", [scenario]
     if isinstance(scenario, (list, tuple)):
@@ -37,10 +41,12 @@ def _trial_source(scenario) -> tuple[str, Any]:
     except ImportError as exc:  # the simulator module is missing
         raise RuntimeError(f"scenario {scenario!r} needs magenv.scenarios, which cannot be imported ({exc}); "
                            "pass a list of Trials or 'recording:PATH' instead") from None
-    names = list(scenarios.scenario_names())
-    if scenario not in names:
-        raise ValueError(f"unknown scenario {scenario!r}; known scenarios: {', '.join(names)}")
-    return "scenario", scenario
+    known = list(scenarios.scenario_names())
+    names = [s.strip() for s in scenario.split(",")]
+    bad = [n for n in names if n not in known]
+    if bad:
+        raise ValueError(f"unknown scenario(s) {', '.join(map(repr, bad))}; known scenarios: {', '.join(known)}")
+    return "scenario", names
 
 
 class MagBlendEnv(gym.Env):
@@ -125,7 +131,9 @@ class MagBlendEnv(gym.Env):
 
     ## Arguments
 
-    - `scenario` (default `"random"`): a name from ``magenv.scenarios.scenario_names()``,
+    - `scenario` (default `"random"`): a name from ``magenv.scenarios.scenario_names()`` or a comma
+      list of names (a mixture: each reset picks one), trial seeds drawn at or above
+      ``magenv.seeding.HELD_OUT_BELOW`` (lower seeds are kept for evaluation),
       `"recording:PATH"` (``magenv.recordings.load_recording``), a Trial or a list of Trials.
     - `decision_every` (default 8): samples fused per step (k); 1 = a λ per sample.
     - `episode_seconds` (default None): use only the first seconds of each trial; None = whole trial.
@@ -205,8 +213,10 @@ class MagBlendEnv(gym.Env):
             return self._recording
         from magenv import scenarios
 
-        seed = int(self.np_random.integers(0, 2**31 - 1))
-        return scenarios.make_trial(self._source, seed, **self.scenario_kwargs)
+        names = self._source
+        name = names[0] if len(names) == 1 else names[int(self.np_random.integers(len(names)))]
+        seed = draw_training_seed(self.np_random)  # never a held-out evaluation seed
+        return scenarios.make_trial(name, seed, **self.scenario_kwargs)
 
     def _cut(self, trial: Trial) -> Trial:
         if self.episode_seconds is None:
