@@ -1,0 +1,691 @@
+"""Named scenarios: a scenario + a seed → one simulated Trial, always the same.
+
+Public API::
+
+    make_trial(name, seed, **overrides) -> Trial
+    scenario_names() -> list[str]
+    get_scenario(name) -> config (a frozen dataclass)
+
+Scenarios (Fan et al. 2017 §3; the randomised family for training):
+
+* ``stationary_magnet`` — protocol 1 (§3.1, Figure 8): gimbal still, a
+  hand-held magnet approaches from 70 cm to 10 cm above the MIMU three times
+  for a few seconds and once for ~60 s; ~110 s.
+* ``dynamic_clean`` — protocol 2 (§3.2): intermittent slow rotations with
+  pauses, no magnet; 70 s (the paper: 60–80 s).
+* ``dynamic_magnet`` — protocol 3 (§3.3, Figure 10): all frames turning at
+  about 40, 70, 360 °/s (Z, Y, X) with the sliding magnet in its tube; 60 s.
+* ``random`` — the training family: random rate profiles with pauses, no
+  magnet / tube magnet / hand-held magnet with random strength and placement,
+  random Earth field (magnitude, dip) and sensor noise levels.
+* ``manual_routines`` — survey (issue 4, item 7): short tasks separated by
+  2 s pauses, and one ~10 s reach of the whole gimbal (moving base) to a
+  small magnet lying in the world: a very large disturbance (hundreds of µT).
+* ``gait_field`` — survey: ~3 minutes of continuous motion without pauses,
+  the gimbal on a base walking a figure-eight (with gait bounce and sway)
+  through an indoor field made of several distant sources, so the field
+  changes smoothly with position.
+
+Overrides are field names of the scenario's config or of its
+:class:`~magenv.sim.sensors.SensorConfig` (e.g. ``duration=5.0``,
+``field_dip=69.0``, ``mag_noise_ut=0.3``).
+
+Each trial draws from four independent random streams (motion, magnet,
+Earth field, sensor) spawned from ``numpy.random.SeedSequence(seed)``, so
+changing e.g. a noise level does not change the motion.
+
+Adding a scenario: write a config dataclass (subclass :class:`ScenarioConfig`)
+and a planner ``(cfg, rngs) -> Plan``, and register both in ``_REGISTRY``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable
+
+import numpy as np
+
+from magenv import quaternion as quat
+from magenv.sim import base_paths, earth, indoor, profiles
+from magenv.sim.gimbal import PHYSICS_RATE, Tube, simulate_gimbal
+from magenv.sim.hand import Approach, hand_path
+from magenv.sim.magnet import DiscMagnet, dipole_field
+from magenv.sim.rowops import norms, to_sensor
+from magenv.sim.sensors import SensorConfig, apply_sensor_model
+from magenv.trial import Trial
+
+#: A sample counts as truly stationary when the gimbal turns slower than this, rad/s.
+STATIONARY_RATE = 1e-3
+#: ...and its sensor moves slower than this, m/s.
+STATIONARY_SPEED = 1e-3
+
+
+# ------------------------------------------------------------------ configs
+
+
+def _check_range(name: str, value, lo=-math.inf, hi=math.inf) -> None:
+    if not (isinstance(value, (tuple, list)) and len(value) == 2 and all(isinstance(v, (int, float)) for v in value)):
+        raise ValueError(f"{name} must be a (low, high) pair of numbers, got {value!r}")
+    if not (lo <= value[0] <= value[1] <= hi):
+        raise ValueError(f"{name} must satisfy {lo} ≤ low ≤ high ≤ {hi}, got {value!r}")
+
+
+def _check_number(name: str, value, lo=-math.inf, hi=math.inf, lo_open=False) -> None:
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < lo or value > hi or (lo_open and value == lo):
+        raise ValueError(f"{name} must be a number in {'(' if lo_open else '['}{lo}, {hi}], got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ScenarioConfig:
+    """Parameters every scenario has.
+
+    Attributes:
+        duration: trial length, s.
+        rate: sensor sample rate, Hz (paper: 256).
+        physics_rate: MuJoCo step rate, Hz (see ``magenv.sim.gimbal``).
+        field_norm: undisturbed Earth field magnitude m0, µT (paper: 46).
+        field_dip: undisturbed dip angle θ0, degrees, positive down (paper: 49.6).
+        sensor: MIMU error model.
+    """
+
+    duration: float = 60.0
+    rate: float = 256.0
+    physics_rate: float = PHYSICS_RATE
+    field_norm: float = earth.PAPER[0]
+    field_dip: float = earth.PAPER[1]
+    sensor: SensorConfig = SensorConfig()
+
+    def __post_init__(self) -> None:
+        _check_number("duration", self.duration, 0.0, 3600.0, lo_open=True)
+        _check_number("rate", self.rate, 1.0, 10000.0)
+        _check_number("physics_rate", self.physics_rate, 100.0, 20000.0)
+        _check_number("field_norm", self.field_norm, 0.0, 1000.0, lo_open=True)
+        _check_number("field_dip", self.field_dip, -90.0, 90.0)
+        if not isinstance(self.sensor, SensorConfig):
+            raise ValueError(f"sensor must be a SensorConfig, got {type(self.sensor).__name__}")
+        if self.duration * self.rate < 2:
+            raise ValueError(f"duration × rate must give at least 2 samples, got {self.duration} s × {self.rate} Hz")
+
+
+@dataclasses.dataclass(frozen=True)
+class StationaryMagnetConfig(ScenarioConfig):
+    """Protocol 1 (§3.1). Approach times are jittered by ±``jitter_s`` per seed.
+
+    Attributes:
+        approaches: (start s, hold s) of each approach (Figure 8: A, B, C short, D ~60 s).
+        far, near: magnet height above the MIMU, m (paper: 0.70 → 0.10).
+        travel: duration of each descent and rise, s.
+        jitter_s: random shift of each approach start, s.
+        magnet: the hand-held disc magnet.
+        max_tilt_deg: the still gimbal's random roll/pitch, degrees.
+    """
+
+    duration: float = 110.0
+    approaches: tuple = ((10.0, 4.0), (21.0, 4.0), (32.0, 4.0), (44.0, 60.0))
+    far: float = 0.70
+    near: float = 0.10
+    travel: float = 2.0
+    jitter_s: float = 1.0
+    magnet: DiscMagnet = DiscMagnet()
+    max_tilt_deg: float = 5.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_number("near", self.near, 0.01, 5.0)
+        _check_number("far", self.far, self.near, 5.0)
+        _check_number("travel", self.travel, 0.0, 60.0, lo_open=True)
+        _check_number("jitter_s", self.jitter_s, 0.0, 60.0)
+        _check_number("max_tilt_deg", self.max_tilt_deg, 0.0, 80.0)
+        for i, a in enumerate(self.approaches):
+            if len(a) != 2 or a[0] < 0 or a[1] < 0:
+                raise ValueError(f"approaches[{i}] must be (start s ≥ 0, hold s ≥ 0), got {a!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicCleanConfig(ScenarioConfig):
+    """Protocol 2 (§3.2): intermittent slow rotations, no magnet.
+
+    Attributes:
+        start_rest: initial rest, s (filters converge).
+        pause_s, move_s: ranges of pause and move durations, s.
+        amplitude_deg: range of each frame's turn per move, degrees.
+    """
+
+    duration: float = 70.0
+    start_rest: float = 5.0
+    pause_s: tuple = (1.5, 5.0)
+    move_s: tuple = (1.5, 4.0)
+    amplitude_deg: tuple = (10.0, 60.0)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_number("start_rest", self.start_rest, 0.0, 3600.0)
+        _check_range("pause_s", self.pause_s, 0.0)
+        _check_range("move_s", self.move_s, 0.05)
+        _check_range("amplitude_deg", self.amplitude_deg, 0.0, 720.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicMagnetConfig(ScenarioConfig):
+    """Protocol 3 (§3.3): all frames spin, the magnet slides in its tube.
+
+    Attributes:
+        rates_dps: nominal rates of frames Z, Y, X, °/s (paper: 40, 70, 360).
+        rate_jitter: relative random deviation of each rate per seed.
+        start_rest: the gimbal holds still at a fixed orientation first, s.
+        ramp: spin-up and spin-down time, s.
+        end_rest: rest at the end, s.
+        tube: the disturbance generator.
+    """
+
+    rates_dps: tuple = (40.0, 70.0, 360.0)
+    rate_jitter: float = 0.1
+    start_rest: float = 3.0
+    ramp: float = 0.5
+    end_rest: float = 1.0
+    tube: Tube = Tube()
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if len(self.rates_dps) != 3:
+            raise ValueError(f"rates_dps must be 3 rates (Z, Y, X) in °/s, got {self.rates_dps!r}")
+        for i, r in enumerate(self.rates_dps):
+            _check_number(f"rates_dps[{i}]", r, -2000.0, 2000.0)
+        _check_number("rate_jitter", self.rate_jitter, 0.0, 0.9)
+        _check_number("start_rest", self.start_rest, 0.0, 3600.0)
+        _check_number("ramp", self.ramp, 0.01, 60.0)
+        _check_number("end_rest", self.end_rest, 0.0, 3600.0)
+        if not isinstance(self.tube, Tube):
+            raise ValueError(f"tube must be a magenv.sim.gimbal.Tube, got {type(self.tube).__name__}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RandomConfig(ScenarioConfig):
+    """The training family. Every range is sampled uniformly per seed.
+
+    Attributes:
+        magnet_probs: probabilities of (no magnet, tube magnet, hand-held magnet).
+        remanence_t: magnet remanence Br, T.
+        diameter_m: disc diameter, m (thickness scales with it, paper 15:2).
+        tube_x_m: |distance| along x from the sensor to the tube's near end, m
+            (either side); tube_yz_m: lateral offset of the tube (y and z), m;
+        tube_length_m: travel of the magnet, m.
+        near_m: closest height of a hand-held magnet, m (it starts at 0.7 m).
+        field_norm_ut, field_dip_deg: Earth field by location (overrides
+            ``field_norm``/``field_dip``, which are ignored here).
+        noise_scale: factor on all white-noise levels of ``sensor``.
+        pause_s, move_s, amplitude_deg: intermittent moves as in protocol 2.
+        spin_prob: probability that a motion segment is a spin (protocol 3 like).
+        spin_dps: range of |rate| of each spinning frame, °/s.
+        spin_s: duration of a spin segment, s.
+        start_rest: initial rest, s.
+    """
+
+    magnet_probs: tuple = (0.3, 0.5, 0.2)
+    remanence_t: tuple = (1.0, 1.4)
+    diameter_m: tuple = (0.008, 0.02)
+    tube_x_m: tuple = (0.035, 0.08)
+    tube_yz_m: tuple = (-0.03, 0.03)
+    tube_length_m: tuple = (0.05, 0.12)
+    near_m: tuple = (0.06, 0.2)
+    field_norm_ut: tuple = earth.NORM_RANGE_UT
+    field_dip_deg: tuple = earth.DIP_RANGE_DEG
+    noise_scale: tuple = (0.5, 2.0)
+    pause_s: tuple = (0.5, 6.0)
+    move_s: tuple = (0.5, 4.0)
+    amplitude_deg: tuple = (10.0, 180.0)
+    spin_prob: float = 0.3
+    spin_dps: tuple = (20.0, 400.0)
+    spin_s: tuple = (3.0, 15.0)
+    start_rest: float = 3.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        p = self.magnet_probs
+        if len(p) != 3 or min(p) < 0 or not math.isclose(sum(p), 1.0, abs_tol=1e-9):
+            raise ValueError(f"magnet_probs must be 3 probabilities (none, tube, hand) summing to 1, got {p!r}")
+        _check_range("remanence_t", self.remanence_t, 0.0, 2.0)
+        _check_range("diameter_m", self.diameter_m, 0.001, 0.1)
+        _check_range("tube_x_m", self.tube_x_m, 0.015, 0.5)
+        _check_range("tube_yz_m", self.tube_yz_m, -0.5, 0.5)
+        _check_range("tube_length_m", self.tube_length_m, 0.005, 0.5)
+        _check_range("near_m", self.near_m, 0.02, 0.7)
+        _check_range("field_norm_ut", self.field_norm_ut, 1.0, 1000.0)
+        _check_range("field_dip_deg", self.field_dip_deg, -90.0, 90.0)
+        _check_range("noise_scale", self.noise_scale, 0.0, 100.0)
+        _check_range("pause_s", self.pause_s, 0.0)
+        _check_range("move_s", self.move_s, 0.05)
+        _check_range("amplitude_deg", self.amplitude_deg, 0.0, 720.0)
+        _check_number("spin_prob", self.spin_prob, 0.0, 1.0)
+        _check_range("spin_dps", self.spin_dps, 0.0, 2000.0)
+        _check_range("spin_s", self.spin_s, 1.5)
+        _check_number("start_rest", self.start_rest, 0.0, 3600.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ManualRoutinesConfig(ScenarioConfig):
+    """Survey: short manual tasks with 2 s pauses and one ~10 s reach to a small magnet.
+
+    Attributes:
+        start_rest: initial rest, s.
+        pause: rest between tasks, s.
+        task_s: duration range of one task (a smooth turn of 1–3 frames), s.
+        amplitude_deg: range of each frame's turn per task, degrees.
+        reach_at: when the reach starts, as a fraction range of the duration.
+        reach_travel: time to move to the magnet (and back), s.
+        reach_hold: time spent at the magnet, s.
+        reach_distance_m: how far the base travels for the reach, m.
+        near_m: distance from sensor to magnet at the reach, m (approximate:
+            the sensor sits 5 mm from the gimbal centre).
+        magnet: the small magnet (default Ø6 × 3 mm, Br 1.3 T: 0.09 A·m²).
+    """
+
+    duration: float = 60.0
+    start_rest: float = 3.0
+    pause: float = 2.0
+    task_s: tuple = (1.0, 3.0)
+    amplitude_deg: tuple = (15.0, 90.0)
+    reach_at: tuple = (0.3, 0.55)
+    reach_travel: float = 1.5
+    reach_hold: float = 10.0
+    reach_distance_m: float = 0.35
+    near_m: tuple = (0.03, 0.05)
+    magnet: DiscMagnet = DiscMagnet(diameter=0.006, thickness=0.003, remanence=1.3)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_number("start_rest", self.start_rest, 0.0, 3600.0)
+        _check_number("pause", self.pause, 0.0, 3600.0)
+        _check_range("task_s", self.task_s, 0.1)
+        _check_range("amplitude_deg", self.amplitude_deg, 0.0, 720.0)
+        _check_range("reach_at", self.reach_at, 0.0, 1.0)
+        _check_number("reach_travel", self.reach_travel, 0.1, 60.0)
+        _check_number("reach_hold", self.reach_hold, 0.0, 3600.0)
+        _check_number("reach_distance_m", self.reach_distance_m, 0.05, 5.0)
+        _check_range("near_m", self.near_m, 0.015, self.reach_distance_m)
+
+
+@dataclasses.dataclass(frozen=True)
+class GaitFieldConfig(ScenarioConfig):
+    """Survey: continuous motion on a walking base through a spatially varying field.
+
+    Attributes:
+        half_length, half_width: figure-eight extent, m.
+        period_s: time for one figure-eight, s (range).
+        step_hz: gait step frequency, Hz (range); bounce_m, sway_m: vertical
+            bob and sideways sway of the base, m.
+        n_sources: number of distant field sources (range, inclusive).
+        source_distance_m: horizontal distance of the sources from the
+            centre of the path, m (range).
+        source_field_ut: each source's field at the centre of the path, µT (range).
+        pitch_deg, roll_deg: amplitude of the continuous sway of frames Y and X, degrees (range).
+    """
+
+    duration: float = 180.0
+    half_length: float = 1.5
+    half_width: float = 1.0
+    period_s: tuple = (14.0, 20.0)
+    step_hz: tuple = (1.6, 2.0)
+    bounce_m: float = 0.02
+    sway_m: float = 0.02
+    n_sources: tuple = (3, 6)
+    source_distance_m: tuple = (4.0, 6.0)
+    source_field_ut: tuple = (1.0, 5.0)
+    pitch_deg: tuple = (5.0, 20.0)
+    roll_deg: tuple = (5.0, 25.0)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_number("half_length", self.half_length, 0.0, 50.0)
+        _check_number("half_width", self.half_width, 0.0, 50.0)
+        _check_range("period_s", self.period_s, 1.0)
+        _check_range("step_hz", self.step_hz, 0.0, 5.0)
+        _check_number("bounce_m", self.bounce_m, 0.0, 0.2)
+        _check_number("sway_m", self.sway_m, 0.0, 0.5)
+        _check_range("n_sources", self.n_sources, 0, 50)
+        _check_range("source_distance_m", self.source_distance_m, 0.5, 100.0)
+        _check_range("source_field_ut", self.source_field_ut, 0.0, 100.0)
+        _check_range("pitch_deg", self.pitch_deg, 0.0, 80.0)
+        _check_range("roll_deg", self.roll_deg, 0.0, 180.0)
+
+
+# ------------------------------------------------------------------ plans
+
+
+@dataclasses.dataclass(eq=False)
+class Plan:
+    """What a planner decides for one trial, before simulation.
+
+    Attributes:
+        profile: gimbal drive profile on the physics grid.
+        magnet: "none", "tube", "hand" or "world" (dipoles fixed in the world).
+        tube: tube placement (simulated always; its field counts only if magnet == "tube").
+        hand: for a hand-held magnet, a function t (N,) → (offset (N,3) world m, axis (N,3) world).
+        moment: dipole moment magnitude, A·m² (0 without magnet).
+        field: (norm µT, dip °) of the undisturbed Earth field.
+        sensor: the sensor error model.
+        meta: drawn values worth keeping (JSON-serialisable).
+        base: optional (n, 6) base motion on the physics grid (mobile model).
+        sources: for "world": (positions (k, 3) m, moments (k, 3) A·m²), world.
+    """
+
+    profile: profiles.DriveProfile
+    magnet: str
+    tube: Tube
+    hand: Callable | None
+    moment: float
+    field: tuple[float, float]
+    sensor: SensorConfig
+    meta: dict
+    base: np.ndarray | None = None
+    sources: tuple | None = None
+
+
+def _span(cfg: ScenarioConfig) -> float:
+    """Length of the drive profile, s: the trial plus the steps the cubic resampling reads past its end."""
+    return cfg.duration + 3.0 / cfg.physics_rate
+
+
+def _random_tilt(rng: np.random.Generator, max_deg: float) -> tuple[float, float, float]:
+    return (float(rng.uniform(-np.pi, np.pi)), float(np.deg2rad(rng.uniform(-max_deg, max_deg))),
+            float(np.deg2rad(rng.uniform(-max_deg, max_deg))))
+
+
+def _plan_stationary_magnet(cfg: StationaryMagnetConfig, rngs) -> Plan:
+    r_motion, r_magnet, _, _ = rngs
+    prof = profiles.empty_profile(_span(cfg), cfg.physics_rate, _random_tilt(r_motion, cfg.max_tilt_deg))
+    apps = [Approach(start=max(0.0, s + r_magnet.uniform(-cfg.jitter_s, cfg.jitter_s)), hold=h, travel=cfg.travel)
+            for s, h in cfg.approaches]
+    path_rng_seed = int(r_magnet.integers(2**63))
+    hand = lambda t: hand_path(t, apps, cfg.far, cfg.near, np.random.default_rng(path_rng_seed))
+    meta = {"approach_starts_s": [a.start for a in apps]}
+    return Plan(prof, "hand", Tube(), hand, cfg.magnet.moment, (cfg.field_norm, cfg.field_dip), cfg.sensor, meta)
+
+
+def _plan_dynamic_clean(cfg: DynamicCleanConfig, rngs) -> Plan:
+    r_motion = rngs[0]
+    prof = profiles.intermittent_moves(
+        r_motion, _span(cfg), cfg.physics_rate, _random_tilt(r_motion, 10.0), cfg.pause_s, cfg.move_s,
+        cfg.amplitude_deg, cfg.start_rest)
+    return Plan(prof, "none", Tube(), None, 0.0, (cfg.field_norm, cfg.field_dip), cfg.sensor, {})
+
+
+def _plan_dynamic_magnet(cfg: DynamicMagnetConfig, rngs) -> Plan:
+    r_motion = rngs[0]
+    angle0 = (float(r_motion.uniform(-np.pi, np.pi)), 0.0, 0.0)  # fixed orientation at the start (§3.3)
+    prof = profiles.empty_profile(_span(cfg), cfg.physics_rate, angle0)
+    rates = [r * (1.0 + r_motion.uniform(-cfg.rate_jitter, cfg.rate_jitter)) for r in cfg.rates_dps]
+    stop = max(cfg.start_rest + 2 * cfg.ramp, cfg.duration - cfg.end_rest)
+    for axis, r in enumerate(rates):
+        profiles.add_spin(prof, axis, cfg.start_rest, stop, np.deg2rad(r), cfg.ramp)
+    meta = {"rates_dps": [float(r) for r in rates]}
+    return Plan(prof, "tube", cfg.tube, None, cfg.tube.magnet.moment, (cfg.field_norm, cfg.field_dip), cfg.sensor, meta)
+
+
+def _pitch_at(prof: profiles.DriveProfile, t: float) -> float:
+    """Commanded frame-Y angle (rad) at time t (sum of the rates so far)."""
+    return float(prof.angle0[1] + np.sum(prof.omega[: int(t * prof.rate), 1]) / prof.rate)
+
+
+def _bounded_pitch_move(prof, t: float, length: float, amp: float, limit: float = np.deg2rad(80.0)) -> float:
+    """A frame-Y move that keeps the pitch within ±limit (flips or shrinks ``amp``)."""
+    p = _pitch_at(prof, t)
+    if abs(p + amp) > limit:
+        amp = -amp
+    amp = float(np.clip(p + amp, -limit, limit) - p)
+    profiles.add_move(prof, 1, t, length, amp)
+    return amp
+
+
+def _random_profile(cfg: RandomConfig, rng: np.random.Generator) -> profiles.DriveProfile:
+    """Segments of pauses, smooth multi-axis moves and spins (protocols 2 and 3 mixed).
+
+    Frame Y never spins: it sways back and forth (so a tube magnet
+    reciprocates, §2.5.3) and its angle stays within ±80° so the ZYX Euler
+    angles stay meaningful.
+    """
+    prof = profiles.empty_profile(_span(cfg), cfg.physics_rate, _random_tilt(rng, 20.0))
+    t, end = cfg.start_rest, cfg.duration - 0.5
+    while t < end:
+        if rng.uniform() < cfg.spin_prob:
+            length = min(rng.uniform(*cfg.spin_s), end - t)
+            if length >= 1.5:
+                ramp = min(0.5, length / 3)
+                for axis in (0, 2):
+                    if rng.uniform() < 0.8:
+                        w = np.deg2rad(rng.uniform(*cfg.spin_dps)) * rng.choice((-1.0, 1.0))
+                        profiles.add_spin(prof, axis, t, t + length, w, ramp)
+                k = 2 * max(1, int(length // rng.uniform(3.0, 8.0)))  # even: back where it started
+                amp = np.deg2rad(rng.uniform(20.0, 70.0)) * rng.choice((-1.0, 1.0))
+                for j in range(0, k, 2):  # out by a, back by −a
+                    a = _bounded_pitch_move(prof, t + j * length / k, length / k, amp)
+                    profiles.add_move(prof, 1, t + (j + 1) * length / k, length / k, -a)
+        else:
+            length = min(rng.uniform(*cfg.move_s), end - t)
+            if length >= cfg.move_s[0]:
+                for axis in rng.choice(3, size=int(rng.integers(1, 4)), replace=False):
+                    amp = np.deg2rad(rng.uniform(*cfg.amplitude_deg)) * rng.choice((-1.0, 1.0))
+                    if axis == 1:
+                        _bounded_pitch_move(prof, t, length, float(np.clip(amp, -np.deg2rad(70), np.deg2rad(70))))
+                    else:
+                        profiles.add_move(prof, int(axis), t, length, amp)
+        t += length + rng.uniform(*cfg.pause_s)
+    return prof
+
+
+def _plan_random(cfg: RandomConfig, rngs) -> Plan:
+    r_motion, r_magnet, r_field, r_sensor = rngs
+    prof = _random_profile(cfg, r_motion)
+    kind = ("none", "tube", "hand")[int(r_magnet.choice(3, p=cfg.magnet_probs))]
+    diameter = float(r_magnet.uniform(*cfg.diameter_m))
+    magnet = DiscMagnet(diameter=diameter, thickness=diameter * 2 / 15, remanence=float(r_magnet.uniform(*cfg.remanence_t)))
+    side = float(r_magnet.choice((-1.0, 1.0)))
+    length = float(r_magnet.uniform(*cfg.tube_length_m))
+    x_near = float(r_magnet.uniform(*cfg.tube_x_m))
+    start = (x_near if side > 0 else -x_near - length, float(r_magnet.uniform(*cfg.tube_yz_m)),
+             0.005 + float(r_magnet.uniform(*cfg.tube_yz_m)))
+    dip_dir = r_magnet.normal(size=3)
+    dip_dir[0] = 0.0  # the disc stands on edge in the tube: moment across the tube
+    if np.linalg.norm(dip_dir) < 1e-6:
+        dip_dir = np.array([0.0, 0.0, 1.0])
+    tube = Tube(start=start, length=length, dipole=tuple(float(v) for v in dip_dir / np.linalg.norm(dip_dir)),
+                friction=float(r_magnet.uniform(0.3, 1.5) * 0.3 * magnet.mass * 9.81), magnet=magnet,
+                start_at=float(r_magnet.uniform()))
+    hand = None
+    meta = {"magnet": kind}
+    if kind == "hand":
+        near = float(r_magnet.uniform(*cfg.near_m))
+        apps, t = [], float(r_magnet.uniform(2.0, 15.0))
+        while t < cfg.duration - 4.0:
+            hold = float(r_magnet.uniform(1.0, 20.0))
+            apps.append(Approach(t, hold, travel=float(r_magnet.uniform(1.0, 3.0))))
+            t += hold + 6.0 + float(r_magnet.uniform(2.0, 20.0))
+        seed = int(r_magnet.integers(2**63))
+        hand = lambda tt: hand_path(tt, apps, 0.7, near, np.random.default_rng(seed))
+        meta.update(near_m=near, approach_starts_s=[a.start for a in apps])
+    if kind != "none":
+        meta.update(remanence_t=magnet.remanence, diameter_m=diameter)
+    if kind == "tube":
+        meta.update(tube_start_m=list(start), tube_length_m=length, tube_dipole=list(tube.dipole))
+    field = earth.random_location(r_field, cfg.field_norm_ut, cfg.field_dip_deg)
+    scale = float(r_sensor.uniform(*cfg.noise_scale))
+    meta.update(noise_scale=scale)
+    moment = magnet.moment if kind != "none" else 0.0
+    return Plan(prof, kind, tube, hand, moment, field, cfg.sensor.scaled(scale), meta)
+
+
+def _plan_manual_routines(cfg: ManualRoutinesConfig, rngs) -> Plan:
+    r_motion, r_magnet, _, _ = rngs
+    prof = profiles.empty_profile(_span(cfg), cfg.physics_rate, _random_tilt(r_motion, 10.0))
+    reach_start = float(r_motion.uniform(*cfg.reach_at) * cfg.duration)
+    reach_len = 2 * cfg.reach_travel + cfg.reach_hold
+    t, reached = cfg.start_rest, False
+    while t < cfg.duration - 1.0:
+        if not reached and t >= reach_start:
+            reach_start, reached = t, True
+            t += reach_len + cfg.pause
+            continue
+        length = float(r_motion.uniform(*cfg.task_s))
+        if t + length > cfg.duration - 0.5:
+            break
+        for axis in r_motion.choice(3, size=int(r_motion.integers(1, 4)), replace=False):
+            amp = np.deg2rad(r_motion.uniform(*cfg.amplitude_deg)) * r_motion.choice((-1.0, 1.0))
+            if axis == 1:
+                _bounded_pitch_move(prof, t, length, float(np.clip(amp, -np.deg2rad(70), np.deg2rad(70))))
+            else:
+                profiles.add_move(prof, int(axis), t, length, amp)
+        t += length + cfg.pause
+    if not reached:  # the tasks ended before reach_at: reach at the end instead
+        reach_start = max(cfg.start_rest, cfg.duration - reach_len - 1.0)
+    # The magnet lies at the sensor's initial height, reach_distance_m away at a random bearing.
+    bearing = float(r_magnet.uniform(0, 2 * np.pi))
+    u = np.array([np.cos(bearing), np.sin(bearing), 0.0])
+    near = float(r_magnet.uniform(*cfg.near_m))
+    p_sensor0 = quat.rotate(quat.from_euler_zyx(*prof.angle0), np.array([0.0, 0.0, 0.005]))
+    p_magnet = p_sensor0 + cfg.reach_distance_m * u
+    axis = r_magnet.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    t_phys = np.arange(prof.n) / prof.rate
+    base = base_paths.reach(t_phys, reach_start, cfg.reach_travel, cfg.reach_hold,
+                            (cfg.reach_distance_m - near) * u, r_magnet)
+    meta = {"reach_start_s": reach_start, "near_m": near, "magnet_position_m": list(p_magnet),
+            "magnet_axis": list(axis)}
+    return Plan(prof, "world", Tube(), None, cfg.magnet.moment, (cfg.field_norm, cfg.field_dip), cfg.sensor, meta,
+                base=base, sources=(p_magnet[None], (cfg.magnet.moment * axis)[None]))
+
+
+def _plan_gait_field(cfg: GaitFieldConfig, rngs) -> Plan:
+    r_motion, r_magnet, _, _ = rngs
+    n = int(round(_span(cfg) * cfg.physics_rate))
+    t = np.arange(n) / cfg.physics_rate
+    step_hz = float(r_motion.uniform(*cfg.step_hz))
+    base = base_paths.figure_eight(t, cfg.half_length, cfg.half_width, float(r_motion.uniform(*cfg.period_s)),
+                                   cfg.bounce_m, step_hz, cfg.sway_m)
+    psi, psi_rate = base_paths.heading(base, cfg.physics_rate)
+    prof = profiles.DriveProfile(rate=cfg.physics_rate, omega=np.zeros((n, 3)), angle0=np.array([psi[0], 0.0, 0.0]))
+    prof.omega[:, 0] = psi_rate
+    # Frames Y and X sway continuously: two sinusoids each, one at the gait's
+    # half step frequency (arm/trunk swing), one slow; zero mean, bounded angles.
+    env, warped = base_paths.start_envelope(t, 2.0)  # start from rest, like the walk
+    for axis, amp_range in ((1, cfg.pitch_deg), (2, cfg.roll_deg)):
+        for f in (0.5 * step_hz, float(r_motion.uniform(0.05, 0.3))):
+            amp = np.deg2rad(r_motion.uniform(*amp_range)) / 2
+            ph = float(r_motion.uniform(0, 2 * np.pi))
+            # angle = amp·(sin(2πfφ + ph) − sin ph), φ the warped time: starts at 0, at rest.
+            prof.omega[:, axis] += amp * 2 * np.pi * f * np.cos(2 * np.pi * f * warped + ph) * env
+    k = int(r_magnet.integers(cfg.n_sources[0], cfg.n_sources[1] + 1))
+    pos, mom = indoor.random_sources(r_magnet, k, cfg.source_distance_m, cfg.source_field_ut)
+    meta = {"step_hz": step_hz, "source_positions_m": pos.tolist(), "source_moments_am2": mom.tolist()}
+    return Plan(prof, "world", Tube(), None, float(np.abs(mom).sum()), (cfg.field_norm, cfg.field_dip), cfg.sensor,
+                meta, base=base, sources=(pos, mom))
+
+
+# ------------------------------------------------------------------ registry
+
+_REGISTRY: dict[str, tuple[ScenarioConfig, Callable]] = {
+    "stationary_magnet": (StationaryMagnetConfig(), _plan_stationary_magnet),
+    "dynamic_clean": (DynamicCleanConfig(), _plan_dynamic_clean),
+    "dynamic_magnet": (DynamicMagnetConfig(), _plan_dynamic_magnet),
+    "random": (RandomConfig(), _plan_random),
+    # Survey scenarios (issue 4, item 7).
+    "manual_routines": (ManualRoutinesConfig(), _plan_manual_routines),
+    "gait_field": (GaitFieldConfig(), _plan_gait_field),
+}
+
+
+def scenario_names() -> list[str]:
+    """Names of all scenarios, in a stable order."""
+    return list(_REGISTRY)
+
+
+def get_scenario(name: str) -> ScenarioConfig:
+    """The default config of scenario ``name``; ValueError lists the known names."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown scenario {name!r}; known scenarios: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name][0]
+
+
+def configure(name: str, **overrides) -> ScenarioConfig:
+    """Scenario ``name``'s config with ``overrides`` applied (config or sensor fields)."""
+    cfg = get_scenario(name)
+    own = {f.name for f in dataclasses.fields(cfg)}
+    sensor_fields = {f.name for f in dataclasses.fields(SensorConfig)}
+    unknown = sorted(k for k in overrides if k not in own and k not in sensor_fields)
+    if unknown:
+        raise ValueError(
+            f"unknown parameter(s) {', '.join(map(repr, unknown))} for scenario {name!r}; "
+            f"known: {', '.join(sorted(own))}; sensor: {', '.join(sorted(sensor_fields))}")
+    sensor_over = {k: v for k, v in overrides.items() if k in sensor_fields and k not in own}
+    cfg_over = {k: v for k, v in overrides.items() if k in own}
+    try:
+        if sensor_over:
+            cfg_over["sensor"] = dataclasses.replace(cfg_over.get("sensor", cfg.sensor), **sensor_over)
+        return dataclasses.replace(cfg, **cfg_over)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"scenario {name!r}: bad parameter value: {exc}") from None
+
+
+def make_trial(name: str, seed: int, **overrides) -> Trial:
+    """Simulate scenario ``name`` with ``seed`` (int ≥ 0): the same Trial bit for bit every time."""
+    cfg = configure(name, **overrides)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an integer ≥ 0, got {seed!r}")
+    rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(4)]
+    plan = _REGISTRY[name][1](cfg, rngs)
+    return _simulate(plan, cfg, f"{name}#{int(seed)}", name, int(seed), rngs[3])
+
+
+def _json(value):
+    if dataclasses.is_dataclass(value):
+        return {k: _json(v) for k, v in dataclasses.asdict(value).items()}
+    if isinstance(value, dict):
+        return {k: _json(v) for k, v in value.items()}
+    if isinstance(value, (tuple, list, np.ndarray)):
+        return [_json(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value)
+    if isinstance(value, (np.integer, int)) and not isinstance(value, bool):
+        return int(value)
+    return value
+
+
+def _simulate(plan: Plan, cfg: ScenarioConfig, trial_name: str, scenario: str, seed: int, r_sensor) -> Trial:
+    """Run the gimbal, add the fields (paper §2.5.3) and the sensor model."""
+    n = int(round(cfg.duration * cfg.rate))
+    run = simulate_gimbal(plan.profile, plan.tube, cfg.rate, n, base=plan.base)
+    t = np.arange(n) / cfg.rate
+    b_earth = to_sensor(run.q, np.broadcast_to(quat.earth_field(*plan.field), (n, 3)))
+    if plan.magnet == "tube":
+        b_mag = dipole_field(-run.p_magnet, plan.moment * run.m_axis)
+        dist = norms(run.p_magnet)
+    elif plan.magnet == "hand":
+        offset, axis = plan.hand(t)
+        b_mag = to_sensor(run.q, dipole_field(-offset, plan.moment * axis))
+        dist = norms(offset)
+    elif plan.magnet == "world":
+        pos, mom = plan.sources
+        b_mag = to_sensor(run.q, indoor.sources_field(run.p_imu, pos, mom))
+        dist = indoor.nearest_distance(run.p_imu, pos)
+    else:
+        b_mag = np.zeros((n, 3))
+        dist = np.full(n, np.inf)
+    gyr, acc, mag = apply_sensor_model(run.gyr, run.acc, b_earth + b_mag, cfg.rate, plan.sensor, r_sensor)
+    # At rest: not turning and (on a moving base) not travelling.
+    step = np.diff(run.p_imu, axis=0, prepend=run.p_imu[:1])
+    stationary = (norms(run.gyr) < STATIONARY_RATE) & (norms(step) * cfg.rate < STATIONARY_SPEED)
+    meta = {"scenario": scenario, "seed": seed, "magnet": plan.magnet, "moment_am2": float(plan.moment),
+            "physics_steps": run.physics_steps, **_json(plan.meta), "config": _json(cfg)}
+    return Trial(
+        name=trial_name, rate=cfg.rate, gyr=gyr, acc=acc, mag=mag, q_true=run.q,
+        field_norm=plan.field[0], field_dip=plan.field[1],
+        truth={
+            "mag_disturbance": b_mag,
+            "stationary": stationary,
+            "magnet_distance": dist,
+            "joint_angles": run.joints,
+            "magnet_slide": run.slide,
+        },
+        meta=meta,
+    )

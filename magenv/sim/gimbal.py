@@ -1,0 +1,382 @@
+"""MuJoCo simulation of the instrumented gimbal with its sliding magnet.
+
+``simulate_gimbal(profile, tube, sample_rate, n_samples, base=None)`` rolls
+the model in ``gimbal.xml`` out open-loop with ``mujoco.rollout`` (servo
+commands = the drive profile) and returns MuJoCo's own sensor readings at
+the sensor sample times: gyro (rad/s) and accelerometer (specific force,
+m/s²) in the sensor frame, the sensor's orientation (sensor → world = ENU)
+and position, and the tube magnet's position and dipole axis in the sensor
+frame. With ``base`` the gimbal stands on a base that travels (a variant of
+the model with three servo-driven slide joints, built with ``MjSpec``).
+
+Time alignment: row k of MuJoCo's sensor data belongs to the state before
+step k (t_k = k·h). MuJoCo's semi-implicit Euler moves positions with the
+new velocity, so its gyro (read with v_k) is half a step behind its own
+orientation; :func:`_centre_gyro` puts it at t_k (see there).
+
+Speed design (a trial is made at every environment reset):
+
+* physics runs at ``profile.rate`` (default 100 Hz, :data:`PHYSICS_RATE`),
+  the rate the dynamics need, not the sensor rate: the gimbal's motion is
+  smooth (servo bandwidth ~10 Hz, frame rates ≤ 1 Hz in the body frame) and
+  the sensor channels are resampled to the sample times with a cubic
+  (Catmull–Rom) interpolation, exact where the grids coincide. Against
+  physics at 1024 Hz (tests/test_sim_gimbal.py): orientation within 0.2°,
+  gyro within 0.05 °/s at constant rates (within ~1 °/s during spin-ups,
+  where the servos' lag depends on the timestep), magnet within 1 mm;
+* settled pauses cost nothing: where the commanded rates are zero for a
+  while, the model is stepped until it is at rest (servos settled, magnet
+  stopped), and the rest of the pause repeats that state (a test checks
+  this changes nothing beyond 1e-6);
+* one ``mujoco.rollout`` call per stretch of motion, no Python per step;
+  post-processing in numba kernels.
+
+The model is loaded once per process and is not thread-safe (one MjData):
+run parallel environments in processes. Every per-trial parameter (tube
+placement and length, dipole direction, magnet mass, friction, timestep) is
+written before each rollout, so a trial does not depend on earlier ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from functools import lru_cache
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+from numba import njit
+
+from magenv.sim.magnet import DiscMagnet
+from magenv.sim.profiles import DriveProfile
+from magenv.sim.rowops import norms
+
+MODEL_PATH = Path(__file__).with_name("gimbal.xml")
+
+#: Default physics rate, Hz (see module docstring).
+PHYSICS_RATE = 100.0
+#: A pause must last this long (s) before it is skipped; the first
+#: ``SETTLE_S`` of it are simulated so the servos and the magnet come to rest.
+SETTLE_S = 0.6
+#: Initial settling (discarded) before t = 0, s.
+INITIAL_SETTLE_S = 0.6
+#: A settled state may not move more than this (rad or m) over the pause.
+SETTLE_TOL = 1e-4
+
+_STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
+
+
+@dataclasses.dataclass(frozen=True)
+class Tube:
+    """The disturbance generator: a tube on frame X with a sliding disc magnet.
+
+    Coordinates are in frame X (= sensor axes; the sensor sits at
+    (0, 0, 0.005) m). The tube runs along +x from ``start`` for ``length`` m,
+    so the magnet moves when frame Y tilts the x axis (paper §2.5.3: "when
+    frame Y rotated, the magnet would reciprocate in the paper tube due to the
+    gravity").
+
+    Attributes:
+        start: near end of the tube (position of the magnet's centre at the
+            stop), m, frame X.
+        length: travel of the magnet along the tube, m.
+        dipole: direction of the magnet's moment, frame X (the disc stands on
+            edge in the square tube, so its axis is across the tube).
+        friction: dry (Coulomb) friction force of magnet on tube, N.
+        magnet: the magnet (size and remanence).
+        start_at: where the magnet rests at t = 0, as a fraction of the
+            travel (0 = near end, 1 = far end).
+    """
+
+    start: tuple[float, float, float] = (0.05, 0.015, 0.005)
+    length: float = 0.10
+    dipole: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    friction: float = 0.008
+    magnet: DiscMagnet = DiscMagnet()
+    start_at: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.start_at) and 0.0 <= self.start_at <= 1.0):
+            raise ValueError(f"Tube.start_at must be in [0, 1], got {self.start_at!r}")
+        if not (np.isfinite(self.length) and 0.005 <= self.length <= 0.5):
+            raise ValueError(f"Tube.length must be in [0.005, 0.5] m, got {self.length!r}")
+        if len(self.start) != 3 or not np.all(np.isfinite(self.start)):
+            raise ValueError(f"Tube.start must be 3 finite numbers (m), got {self.start!r}")
+        if len(self.dipole) != 3 or not np.linalg.norm(self.dipole) > 0:
+            raise ValueError(f"Tube.dipole must be a nonzero 3-vector, got {self.dipole!r}")
+        if not (np.isfinite(self.friction) and self.friction >= 0):
+            raise ValueError(f"Tube.friction must be ≥ 0 N, got {self.friction!r}")
+
+
+@dataclasses.dataclass(eq=False)
+class GimbalRun:
+    """MuJoCo's readings at the sample times (N rows), noise-free.
+
+    Attributes:
+        gyr: (N, 3) angular rate, rad/s, sensor frame.
+        acc: (N, 3) specific force, m/s², sensor frame.
+        q: (N, 4) orientation sensor → world (ENU), [w, x, y, z].
+        p_imu: (N, 3) sensor position in the world, m.
+        p_magnet: (N, 3) tube magnet's centre in the sensor frame, m.
+        m_axis: (N, 3) tube magnet's moment direction in the sensor frame.
+        joints: (N, 3) joint angles (Z, Y, X), rad.
+        slide: (N,) magnet position along the tube, m, clamped to [0, length].
+        physics_steps: MuJoCo steps actually taken.
+    """
+
+    gyr: np.ndarray
+    acc: np.ndarray
+    q: np.ndarray
+    p_imu: np.ndarray
+    p_magnet: np.ndarray
+    m_axis: np.ndarray
+    joints: np.ndarray
+    slide: np.ndarray
+    physics_steps: int
+
+
+class SimulationError(RuntimeError):
+    """MuJoCo reported an instability (a warning counter rose or the state is not finite)."""
+
+
+#: Base servos of the mobile variant (gait_field): ω_n ≈ 55 rad/s, ζ ≈ 0.7 for ~5 kg.
+BASE_KP, BASE_KV = 15000.0, 380.0
+
+
+@lru_cache(maxsize=2)
+def _model(mobile: bool = False) -> tuple[mujoco.MjModel, mujoco.MjData, dict]:
+    """The model, its data and sensor/object indices. ``mobile`` adds three
+    slide joints (x, y, z, world axes) under the base, each with a
+    position-velocity servo, so the whole gimbal can travel (``gait_field``)."""
+    spec = mujoco.MjSpec.from_file(str(MODEL_PATH))
+    if mobile:
+        base = spec.body("base")
+        for k, axis in enumerate(("x", "y", "z")):
+            j = base.add_joint()
+            j.name, j.type = f"base_{axis}", mujoco.mjtJoint.mjJNT_SLIDE
+            j.axis = np.eye(3)[k]
+        for kind in ("pos", "vel"):
+            for axis in ("x", "y", "z"):
+                a = spec.add_actuator()
+                a.name, a.trntype, a.target = f"base_{axis}_{kind}", mujoco.mjtTrn.mjTRN_JOINT, f"base_{axis}"
+                if kind == "pos":
+                    a.set_to_position(kp=BASE_KP)
+                else:
+                    a.set_to_velocity(kv=BASE_KV)
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    adr = {}
+    for i in range(model.nsensor):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SENSOR, i)
+        adr[name] = slice(model.sensor_adr[i], model.sensor_adr[i] + model.sensor_dim[i])
+    ids = {
+        "tube": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "tube"),
+        "magnet_body": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "magnet"),
+        "magnet_site": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "magnet"),
+        "slide": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "slide"),
+    }
+    qadr = {name: int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)])
+            for name in ("z", "y", "x", "slide") + (("base_x", "base_y", "base_z") if mobile else ())}
+    return model, data, {"adr": adr, "ids": ids, "qadr": qadr}
+
+
+def load_model(mobile: bool = False) -> mujoco.MjModel:
+    """The gimbal's MjModel (shared within the process; configured per run)."""
+    return _model(mobile)[0]
+
+
+def _configure(model: mujoco.MjModel, ids: dict, tube: Tube, physics_rate: float) -> None:
+    model.opt.timestep = 1.0 / physics_rate
+    model.body_pos[ids["tube"]] = tube.start
+    model.jnt_range[ids["slide"]] = (0.0, tube.length)
+    model.dof_frictionloss[model.jnt_dofadr[ids["slide"]]] = tube.friction
+    mass = tube.magnet.mass
+    r, h = 0.5 * tube.magnet.diameter, tube.magnet.thickness
+    model.body_mass[ids["magnet_body"]] = mass
+    # Solid cylinder; its axis (local z) does not matter for a slide joint.
+    model.body_inertia[ids["magnet_body"]] = (mass * (3 * r * r + h * h) / 12,) * 2 + (mass * r * r / 2,)
+    # Site orientation: local z along the dipole direction (frame X coordinates).
+    z = np.asarray(tube.dipole, float) / np.linalg.norm(tube.dipole)
+    quat = np.empty(4)
+    mujoco.mju_quatZ2Vec(quat, z)
+    model.site_quat[ids["magnet_site"]] = quat
+
+
+def _segments(still: np.ndarray, min_len: int) -> list[tuple[int, int, bool]]:
+    """Split step indices into (start, stop, skippable) runs; a run is skippable
+    when all commanded rates are zero over at least ``min_len`` steps."""
+    segs = []
+    n = len(still)
+    edges = np.flatnonzero(np.diff(still.astype(np.int8))) + 1
+    bounds = np.concatenate([[0], edges, [n]])
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        skippable = bool(still[a]) and (b - a) >= min_len
+        if segs and not skippable and not segs[-1][2]:
+            segs[-1] = (segs[-1][0], int(b), False)
+        else:
+            segs.append((int(a), int(b), skippable))
+    return segs
+
+
+def simulate_gimbal(profile: DriveProfile, tube: Tube, sample_rate: float, n_samples: int,
+                    base: np.ndarray | None = None) -> GimbalRun:
+    """Roll the gimbal out along ``profile`` and read its sensors at ``sample_rate``.
+
+    Args:
+        profile: commanded joint rates on the physics grid (its ``rate`` is
+            the physics rate); must cover the last sample time plus two steps.
+        tube: disturbance generator placement (always simulated; whether its
+            magnet's field counts is the caller's choice).
+        sample_rate: sensor rate, Hz.
+        n_samples: number of sensor samples N.
+        base: optional (n, 6) base motion on the physics grid: commanded
+            position (m, world) and velocity (m/s) of the gimbal's base; uses
+            the mobile variant of the model.
+
+    Raises SimulationError if MuJoCo flags an instability.
+    """
+    model, data, info = _model(base is not None)
+    adr, qadr = info["adr"], info["qadr"]
+    phys_rate = profile.rate
+    need = int(math.floor((n_samples - 1) * phys_rate / sample_rate)) + 3
+    if profile.n < need:
+        raise ValueError(f"drive profile has {profile.n} steps, needs {need} for {n_samples} samples at {sample_rate} Hz")
+    _configure(model, info["ids"], tube, phys_rate)
+
+    angles = profile.angles
+    ctrl = np.concatenate([angles, profile.omega], axis=1)  # actuators: z,y,x position then z,y,x velocity
+    still = profile.still()
+    if base is not None:
+        if base.shape != (profile.n, 6):
+            raise ValueError(f"base motion must have shape ({profile.n}, 6), got {base.shape}")
+        ctrl = np.concatenate([ctrl, base], axis=1)  # then base x,y,z position, x,y,z velocity
+        still &= ~np.any(base[:, 3:] != 0.0, axis=1)
+    n = profile.n
+    sens = np.empty((n, model.nsensordata))
+
+    mujoco.mj_resetData(model, data)
+    for k, name in enumerate(("z", "y", "x")):
+        data.qpos[qadr[name]] = profile.angle0[k]
+    data.qpos[qadr["slide"]] = tube.start_at * tube.length
+    if base is not None:
+        for k, name in enumerate(("base_x", "base_y", "base_z")):
+            data.qpos[qadr[name]] = base[0, k]
+    mujoco.mj_forward(model, data)
+    state = np.empty(mujoco.mj_stateSize(model, _STATE))
+    mujoco.mj_getState(model, data, state, _STATE)
+    warmstart = np.zeros(model.nv)
+    data.warning.number[:] = 0
+    # Let the servos take up the load (gravity on the frames and the magnet)
+    # holding the initial command, so the trial starts at rest in equilibrium.
+    settle = int(round(INITIAL_SETTLE_S * phys_rate))
+    hold = ctrl[0].copy()
+    hold[3:6] = 0.0
+    if base is not None:
+        hold[9:12] = 0.0
+    st, _ = mj_rollout.rollout(model, data, state[None], np.tile(hold, (1, settle, 1)), initial_warmstart=warmstart[None])
+    state = st[0, -1].copy()
+    state[0] = 0.0
+    steps = settle
+    settle = int(round(SETTLE_S * phys_rate))
+
+    for a, b, skippable in _segments(still, settle + int(round(0.5 * phys_rate))):
+        stop = a + settle if skippable else b
+        st, sd = mj_rollout.rollout(model, data, state[None], ctrl[None, a:stop], initial_warmstart=warmstart[None])
+        sens[a:stop] = sd[0]
+        state = st[0, -1].copy()
+        steps += stop - a
+        if skippable:
+            qvel = state[1 + model.nq: 1 + model.nq + model.nv]
+            if np.max(np.abs(qvel)) * (b - stop) / phys_rate < SETTLE_TOL:
+                sens[stop:b] = sd[0, -1]
+                state[0] = b / phys_rate
+            else:  # not at rest yet: simulate the whole pause
+                st, sd = mj_rollout.rollout(model, data, state[None], ctrl[None, stop:b], initial_warmstart=warmstart[None])
+                sens[stop:b] = sd[0]
+                state = st[0, -1].copy()
+                steps += b - stop
+    bad = [mujoco.mjtWarning(int(i)).name for i in np.flatnonzero(data.warning.number)]
+    if bad or not np.all(np.isfinite(sens)):
+        raise SimulationError(f"MuJoCo instability in the gimbal model: warnings {bad or 'none'}, finite={np.all(np.isfinite(sens))}")
+
+    # MuJoCo's quaternion may change sign between steps; make it continuous.
+    q = sens[:, adr["q_imu"]]
+    flip = np.cumprod(np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0))
+    q[1:] *= flip[:, None]
+
+    _centre_gyro(sens, adr, phys_rate)
+    out = resample_cubic(sens, phys_rate, sample_rate, n_samples, 0.0)
+    col = lambda key: np.ascontiguousarray(out[:, adr[key]])
+    qs = col("q_imu")
+    qs /= norms(qs)[:, None]
+    qs *= np.where(qs[:, :1] < 0, -1.0, 1.0)
+    # The end stops are soft constraints: at an impact the magnet's centre
+    # passes the stop by a few mm (more at coarse timesteps). A real stop is
+    # rigid, so the reported magnet position is clamped to the tube (along
+    # the tube axis = frame X's x axis = sensor x axis).
+    slide = out[:, adr["s_magnet"].start].copy()
+    clamped = np.clip(slide, 0.0, tube.length)
+    p_magnet = col("p_magnet")
+    p_magnet[:, 0] -= slide - clamped
+    axis = col("m_axis")
+    axis /= norms(axis)[:, None]
+    return GimbalRun(
+        gyr=col("gyro"), acc=col("accel"), q=qs, p_imu=col("p_imu"), p_magnet=p_magnet, m_axis=axis,
+        joints=np.stack([out[:, adr[k].start] for k in ("q_z", "q_y", "q_x")], axis=1),
+        slide=clamped, physics_steps=steps,
+    )
+
+
+def _centre_gyro(sens: np.ndarray, adr: dict, phys_rate: float) -> None:
+    """Put MuJoCo's gyro reading at the same instant as its positions (in place).
+
+    MuJoCo's integrators advance positions with the *new* velocity,
+    q_{k+1} = q_k + h·v_{k+1}, so the joint velocity v_k stored at step k is
+    the mean rate over [t_k − h, t_k], half a step behind the positions. The
+    gyro (= Σ_j a_j·v_j, a_j the joint axes in the sensor frame) is therefore
+    read with v_k while the orientation is at t_k: integrating the gyro
+    would lag MuJoCo's own orientation by h/2 times each change of rate
+    (1.4° after a spin-up to 360 °/s at 128 Hz). The rate at t_k is the
+    central difference of the positions, v̄_k = (q_{k+1} − q_{k−1})/(2h); add
+    Σ_j a_j·(v̄_j − v_j) to the gyro, with MuJoCo's joint axes a_j.
+    """
+    pos = np.concatenate([sens[:, adr[k]] for k in ("q_z", "q_y", "q_x")], axis=1)
+    vel = np.concatenate([sens[:, adr[k]] for k in ("v_z", "v_y", "v_x")], axis=1)
+    vbar = vel.copy()
+    vbar[1:-1] = (pos[2:] - pos[:-2]) * (0.5 * phys_rate)
+    dv = vbar - vel
+    gyro = sens[:, adr["gyro"]]
+    for j, key in enumerate(("axis_z", "axis_y", "axis_x")):
+        gyro += sens[:, adr[key]] * dv[:, j: j + 1]
+    sens[:, adr["gyro"]] = gyro
+
+
+@njit(cache=True)
+def resample_cubic(x, rate_in, rate_out, n_out, offset):
+    """Catmull–Rom resampling of rows ``x`` (n, k) from ``rate_in`` to ``rate_out`` Hz.
+
+    Row i of the result is x at grid position i·rate_in/rate_out + ``offset``
+    (input rows are at positions 0, 1, 2, …); exact copies where that
+    position falls on the grid (equal rates or integer ratios, offset 0).
+    """
+    n, k = x.shape
+    out = np.empty((n_out, k))
+    ratio = rate_in / rate_out
+    for i in range(n_out):
+        pos = i * ratio + offset
+        j = int(np.floor(pos + 1e-9))
+        u = pos - j
+        if u < 1e-9:
+            out[i] = x[min(j, n - 1)]
+            continue
+        j0, j2, j3 = max(j - 1, 0), min(j + 1, n - 1), min(j + 2, n - 1)
+        u2, u3 = u * u, u * u * u
+        c0 = -0.5 * u3 + u2 - 0.5 * u
+        c1 = 1.5 * u3 - 2.5 * u2 + 1.0
+        c2 = -1.5 * u3 + 2.0 * u2 + 0.5 * u
+        c3 = 0.5 * u3 - 0.5 * u2
+        for c in range(k):
+            out[i, c] = c0 * x[j0, c] + c1 * x[j, c] + c2 * x[j2, c] + c3 * x[j3, c]
+    return out

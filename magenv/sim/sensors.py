@@ -1,0 +1,137 @@
+"""The MIMU sensor model: ideal readings → what a real unit reports (seeded).
+
+Gyroscope: constant bias (drawn per trial) + slow random-walk drift + white
+noise. Accelerometer: constant bias + white noise. Magnetometer: residual
+hard/soft iron after calibration, white noise, saturation, and the two timing
+artefacts seen in the real BROAD recordings (``shared/data/broad/README.md``):
+a lag of ~4 samples behind the gyroscope, and sample-and-hold (~29 % of the
+samples repeat the previous one, i.e. the magnetometer updates at ~71 % of
+the output rate). Frames: sensor frame throughout; units rad/s, m/s², µT.
+
+All parameters live in :class:`SensorConfig`; randomness comes only from the
+``numpy.random.Generator`` passed in.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from numba import njit
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorConfig:
+    """MIMU error model. Noise values are white-noise std per sample.
+
+    Attributes:
+        gyr_noise_dps: gyroscope white noise, °/s.
+        gyr_bias_dps: std of the constant gyroscope bias drawn per trial and axis, °/s.
+        gyr_drift_dps: random-walk drift of the gyroscope bias, °/s per √s.
+        acc_noise: accelerometer white noise, m/s².
+        acc_bias: std of the constant accelerometer bias per axis, m/s².
+        mag_noise_ut: magnetometer white noise, µT.
+        mag_hard_iron_ut: std of the residual hard-iron offset per axis, µT.
+        mag_soft_iron: std of the residual soft-iron matrix entries (symmetric,
+            added to the identity), dimensionless.
+        mag_range_ut: magnetometer saturation, ±µT per axis.
+        mag_lag_samples: magnetometer delay behind the other channels, samples.
+        mag_hold_fraction: fraction of magnetometer samples that repeat the
+            previous one (sample-and-hold), in [0, 1).
+    """
+
+    gyr_noise_dps: float = 0.5
+    gyr_bias_dps: float = 0.1
+    gyr_drift_dps: float = 0.005
+    acc_noise: float = 0.02
+    acc_bias: float = 0.02
+    mag_noise_ut: float = 0.15
+    mag_hard_iron_ut: float = 0.3
+    mag_soft_iron: float = 0.005
+    mag_range_ut: float = 800.0
+    mag_lag_samples: int = 4
+    mag_hold_fraction: float = 0.29
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"SensorConfig.{f.name} must be a finite number ≥ 0, got {v!r}")
+        if int(self.mag_lag_samples) != self.mag_lag_samples:
+            raise ValueError(f"SensorConfig.mag_lag_samples must be a whole number of samples, got {self.mag_lag_samples!r}")
+        if not self.mag_hold_fraction < 1.0:
+            raise ValueError(f"SensorConfig.mag_hold_fraction must be < 1, got {self.mag_hold_fraction!r}")
+        if self.mag_range_ut <= 0:
+            raise ValueError(f"SensorConfig.mag_range_ut must be > 0 µT, got {self.mag_range_ut!r}")
+
+    def scaled(self, noise_scale: float) -> "SensorConfig":
+        """This config with all white-noise levels multiplied by ``noise_scale``."""
+        return dataclasses.replace(
+            self, gyr_noise_dps=self.gyr_noise_dps * noise_scale, acc_noise=self.acc_noise * noise_scale,
+            mag_noise_ut=self.mag_noise_ut * noise_scale,
+        )
+
+
+def apply_sensor_model(
+    gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray, rate: float, cfg: SensorConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Measured (gyr, acc, mag) from ideal readings, all (N, 3) sensor frame.
+
+    Args:
+        gyr: ideal angular rate, rad/s.
+        acc: ideal specific force, m/s².
+        mag: ideal magnetic field at the sensor, µT (Earth + magnet).
+        rate: sample rate, Hz.
+        cfg: error model.
+        rng: the trial's generator (draws in a fixed order: determinism).
+    """
+    n = len(gyr)
+    d2r = np.pi / 180.0
+    bias_g = rng.normal(0.0, cfg.gyr_bias_dps * d2r, 3)
+    bias_a = rng.normal(0.0, cfg.acc_bias, 3)
+    s = rng.normal(0.0, cfg.mag_soft_iron, (3, 3))
+    soft = np.eye(3) + 0.5 * (s + s.T)  # residual soft iron: I + S, S symmetric
+    hard = rng.normal(0.0, cfg.mag_hard_iron_ut, 3)
+    phase = rng.uniform(0.0, 1.0)
+    z = rng.standard_normal((4, n, 3))  # walk, gyro, accelerometer, magnetometer
+    sig = np.array([cfg.gyr_drift_dps * d2r * math.sqrt(1.0 / rate), cfg.gyr_noise_dps * d2r, cfg.acc_noise, cfg.mag_noise_ut])
+    return _measure(np.ascontiguousarray(gyr), np.ascontiguousarray(acc), np.ascontiguousarray(mag), z, sig,
+                    bias_g, bias_a, soft, hard, int(cfg.mag_lag_samples), 1.0 - cfg.mag_hold_fraction, phase,
+                    float(cfg.mag_range_ut))
+
+
+@njit(cache=True)
+def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, lag, f_ratio, phase, mag_range):
+    """Kernel of :func:`apply_sensor_model`.
+
+    Gyro: ω + b + Σ walk + noise (walk std grows as drift·√t).
+    Magnetometer: the reading at sample i reports conversion k(i) =
+    ⌊i·f + phase⌋, f = 1 − hold fraction conversions per sample
+    (sample-and-hold, ~29 % repeats); conversion k is made at the first
+    sample i_k that reports it, of the field at sample i_k − lag, through
+    the residual iron (I + S)·B + h, plus noise; then clipped to ±range.
+    """
+    n = gyr.shape[0]
+    gyr_m = np.empty((n, 3))
+    acc_m = np.empty((n, 3))
+    mag_m = np.empty((n, 3))
+    walk = np.zeros(3)
+    last_k = -1
+    held = np.zeros(3)
+    for i in range(n):
+        for j in range(3):
+            walk[j] += sig[0] * z[0, i, j]
+            gyr_m[i, j] = gyr[i, j] + bias_g[j] + walk[j] + sig[1] * z[1, i, j]
+            acc_m[i, j] = acc[i, j] + bias_a[j] + sig[2] * z[2, i, j]
+        k = int(np.floor(i * f_ratio + phase))
+        if k != last_k:  # a new conversion
+            last_k = k
+            src = max(i - lag, 0)
+            for j in range(3):
+                b = hard[j] + soft[j, 0] * mag[src, 0] + soft[j, 1] * mag[src, 1] + soft[j, 2] * mag[src, 2]
+                b += sig[3] * z[3, i, j]
+                held[j] = min(max(b, -mag_range), mag_range)
+        for j in range(3):
+            mag_m[i, j] = held[j]
+    return gyr_m, acc_m, mag_m
