@@ -51,14 +51,17 @@ class AgentPolicy:
     """A trained SB3 agent acting on observations (deterministic actions).
 
     Follows ``baselines.protocol.Policy``; recurrent agents keep their LSTM
-    state between calls until ``reset()``.
+    state between calls until ``reset()``. Agents act in [-1, 1] (see
+    ``agents.wrappers.normalized_actions``); ``action_bounds`` = (low, high)
+    of the env's action space maps their actions back.
     """
 
-    def __init__(self, model, env_id: str, env_kwargs: dict, name: str):
+    def __init__(self, model, env_id: str, env_kwargs: dict, name: str, action_bounds=None):
         self.model = model
         self.env_id = env_id
         self.env_kwargs = dict(env_kwargs)
         self.name = name
+        self._bounds = None if action_bounds is None else tuple(np.asarray(b, np.float32) for b in action_bounds)
         self.reset()
 
     def reset(self) -> None:
@@ -70,6 +73,9 @@ class AgentPolicy:
             obs, state=self._state, episode_start=self._episode_start, deterministic=True
         )
         self._episode_start = np.zeros((1,), dtype=bool)
+        if self._bounds is not None:
+            low, high = self._bounds
+            action = low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
         return action
 
 
@@ -98,4 +104,5 @@ def load_agent(run_dir: str | Path, env_id: str | None = None, which: str = "bes
         model = cls.load(path, device="cpu")
     except (zipfile.BadZipFile, EOFError, KeyError, ValueError, RuntimeError) as exc:
         raise RunError(f"{path}: corrupt model file ({type(exc).__name__}: {exc})") from None
-    return AgentPolicy(model, run["env_id"], run["env_kwargs"], name=f"agent:{run_dir.name}")
+    bounds = run.get("action_bounds")
+    return AgentPolicy(model, run["env_id"], run["env_kwargs"], name=f"agent:{run_dir.name}", action_bounds=bounds)

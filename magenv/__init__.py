@@ -5,6 +5,10 @@ namespace, e.g. ``gymnasium.make("magenv/MagBlend-v0")``:
 
 * ``magenv/MagBlend-v0`` — ``magenv.envs.blend.MagBlendEnv``: the action is the
   weight λ of the IMU filter in Fan et al.'s IMU/MIMU Madgwick blend.
+* ``magenv/MagKalman-v0`` — ``magenv.envs.kalman.MagKalmanEnv``: the gain γ of the
+  magnetometer update in a quaternion Kalman filter.
+* ``magenv/MagConstraint-v0`` — ``magenv.envs.constraint.MagConstraintEnv``: the weight w
+  of the magnetometer against a two-link kinematic constraint (Jung & Lee 2019).
 """
 
 __version__ = "0.1.0"
@@ -16,6 +20,13 @@ def _register_envs() -> None:
     if "magenv/MagBlend-v0" not in registry:
         register(id="magenv/MagBlend-v0", entry_point="magenv.envs.blend:MagBlendEnv",
                  vector_entry_point="magenv.envs.blend:MagBlendVectorEnv")
+    if "magenv/MagKalman-v0" not in registry:
+        register(id="magenv/MagKalman-v0", entry_point="magenv.envs.kalman:MagKalmanEnv",
+                 vector_entry_point="magenv.envs.kalman:MagKalmanVectorEnv")
+
+    if "magenv/MagConstraint-v0" not in registry:
+        register(id="magenv/MagConstraint-v0", entry_point="magenv.envs.constraint:MagConstraintEnv",
+                 vector_entry_point="magenv.envs.constraint:MagConstraintVectorEnv")
 
 
 _register_envs()

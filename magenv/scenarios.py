@@ -595,20 +595,44 @@ _REGISTRY: dict[str, tuple[ScenarioConfig, Callable]] = {
 }
 
 
+#: Modules holding further scenario families (other worlds than the gimbal), each with
+#: ``SCENARIOS`` (name → config), ``get_scenario``, ``configure`` and ``make_trial``.
+FAMILY_MODULES = ("magenv.constraint_scenarios",)
+
+
+def family_of(name: str):
+    """The family module that owns scenario ``name``, or None for the gimbal's own."""
+    import importlib
+
+    for module in FAMILY_MODULES:
+        family = importlib.import_module(module)
+        if name in family.SCENARIOS:
+            return family
+    return None
+
+
 def scenario_names() -> list[str]:
     """Names of all scenarios, in a stable order."""
-    return list(_REGISTRY)
+    import importlib
+
+    return list(_REGISTRY) + [n for m in FAMILY_MODULES for n in importlib.import_module(m).SCENARIOS]
 
 
 def get_scenario(name: str) -> ScenarioConfig:
     """The default config of scenario ``name``; ValueError lists the known names."""
     if name not in _REGISTRY:
-        raise ValueError(f"unknown scenario {name!r}; known scenarios: {', '.join(_REGISTRY)}")
+        family = family_of(name)
+        if family is not None:
+            return family.get_scenario(name)
+        raise ValueError(f"unknown scenario {name!r}; known scenarios: {', '.join(scenario_names())}")
     return _REGISTRY[name][0]
 
 
 def configure(name: str, **overrides) -> ScenarioConfig:
     """Scenario ``name``'s config with ``overrides`` applied (config or sensor fields)."""
+    family = family_of(name) if name not in _REGISTRY else None
+    if family is not None:
+        return family.configure(name, **overrides)
     cfg = get_scenario(name)
     own = {f.name for f in dataclasses.fields(cfg)}
     sensor_fields = {f.name for f in dataclasses.fields(SensorConfig)}
@@ -629,6 +653,9 @@ def configure(name: str, **overrides) -> ScenarioConfig:
 
 def make_trial(name: str, seed: int, **overrides) -> Trial:
     """Simulate scenario ``name`` with ``seed`` (int ≥ 0): the same Trial bit for bit every time."""
+    family = family_of(name) if name not in _REGISTRY else None
+    if family is not None:
+        return family.make_trial(name, seed, **overrides)
     cfg = configure(name, **overrides)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be an integer ≥ 0, got {seed!r}")
@@ -689,3 +716,8 @@ def _simulate(plan: Plan, cfg: ScenarioConfig, trial_name: str, scenario: str, s
         },
         meta=meta,
     )
+
+
+#: The mixture learned agents train on and rules are tuned on (trial seeds at
+#: or above ``magenv.seeding.HELD_OUT_BELOW``); evaluation uses lower seeds.
+TRAINING_MIX = "random,dynamic_magnet,dynamic_clean,stationary_magnet"

@@ -25,14 +25,20 @@ def _run(cfg, seed=0, **kw):
     return apply_sensor_model(*_ideal(**kw), RATE, cfg, np.random.default_rng(seed))
 
 
-def test_white_noise_levels_match_the_config():
-    cfg = SensorConfig(gyr_bias_dps=0, gyr_drift_dps=0, acc_bias=0, mag_hard_iron_ut=0, mag_soft_iron=0,
-                       mag_lag_samples=0, mag_hold_fraction=0)
+@pytest.mark.parametrize("preset", [SensorConfig(), SensorConfig.papers()], ids=["broad_measured", "papers"])
+def test_white_noise_levels_match_the_config(preset):
+    cfg = dataclasses.replace(preset, gyr_bias_dps=0, gyr_drift_dps=0, acc_bias=0, mag_hard_iron_ut=0,
+                              mag_soft_iron=0, mag_lag_samples=0, mag_hold_fraction=0)
     gyr, acc, mag = _run(cfg)
     g, a, m = _ideal()
-    assert np.rad2deg(np.std(gyr - g)) == pytest.approx(0.5, rel=0.03)
-    assert np.std(acc - a) == pytest.approx(0.02, rel=0.03)
-    assert np.std(mag - m) == pytest.approx(0.15, rel=0.03)
+    assert np.rad2deg(np.std(gyr - g)) == pytest.approx(cfg.gyr_noise_dps, rel=0.03)
+    assert np.std(acc - a) == pytest.approx(cfg.acc_noise, rel=0.03)
+    assert np.std(mag - m) == pytest.approx(cfg.mag_noise_ut, rel=0.03)
+
+
+def test_papers_preset_quotes_the_papers():
+    cfg = SensorConfig.papers()
+    assert (cfg.gyr_noise_dps, cfg.acc_noise, cfg.mag_noise_ut) == (0.5, 0.02, 0.15)
 
 
 def test_gyro_bias_is_constant_and_drift_grows_like_a_random_walk():

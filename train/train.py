@@ -26,6 +26,7 @@ from stable_baselines3.common.env_util import make_vec_env
 import magenv  # noqa: F401  (registers the environments)
 from agents.hyperparams import ConfigError, algorithm_class, constructor_kwargs, load_hyperparams
 from agents.loading import RUN_FILE, AgentPolicy, RunError, read_run
+from agents.wrappers import action_bounds, normalized_actions
 from train.cli import CommandError
 from train.seeds import parse_seeds
 
@@ -42,8 +43,10 @@ class HeldOutEvaluation(BaseCallback):
     interrupted run resumes from its last evaluation.
     """
 
-    def __init__(self, run_dir: Path, trials: list, env_id: str, env_kwargs: dict, every: int, state: dict):
+    def __init__(self, run_dir: Path, trials: list, env_id: str, env_kwargs: dict, every: int, state: dict,
+                 bounds):
         super().__init__()
+        self.bounds = bounds
         self.run_dir, self.trials, self.env_id, self.env_kwargs = run_dir, trials, env_id, env_kwargs
         self.every, self.state = every, state
         self._next = state["timesteps"] + every
@@ -57,7 +60,7 @@ class HeldOutEvaluation(BaseCallback):
     def evaluate_and_checkpoint(self) -> float:
         from magenv.evaluation import run_policy_on_trials
 
-        policy = AgentPolicy(self.model, self.env_id, self.env_kwargs, name="candidate")
+        policy = AgentPolicy(self.model, self.env_id, self.env_kwargs, name="candidate", action_bounds=self.bounds)
         scores = run_policy_on_trials(policy, self.trials, self.env_id, self.env_kwargs)
         score = float(sum(s.total for s in scores) / len(scores))
         self.logger.record("heldout/total_rmse_deg", score)
@@ -117,6 +120,7 @@ def train(
         steps = steps or int(section.get("n_timesteps", 100_000))
         run = {
             "env_id": env_id, "algo": algo, "env_kwargs": section["env_kwargs"], "hyperparams": section,
+            "action_bounds": action_bounds(env_id, section["env_kwargs"]),
             "seed": seed, "steps": steps, "eval_scenarios": list(eval_scenarios), "eval_seeds": list(eval_seeds),
             "magenv_version": magenv.__version__,
         }
@@ -126,7 +130,7 @@ def train(
     (out / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
 
     vec_env = make_vec_env(env_id, n_envs=section["n_envs"], seed=seed + state["timesteps"],
-                           env_kwargs=section["env_kwargs"])
+                           env_kwargs=section["env_kwargs"], wrapper_class=normalized_actions)
     cls = algorithm_class(algo)
     if state["timesteps"] > 0 and (out / "last_model.zip").is_file():
         model = cls.load(out / "last_model.zip", env=vec_env, device="cpu", tensorboard_log=str(out / "tb"))
@@ -142,7 +146,7 @@ def train(
         return out
 
     trials = held_out_trials(run["eval_scenarios"], run["eval_seeds"])
-    evaluation = HeldOutEvaluation(out, trials, env_id, section["env_kwargs"], eval_every, state)
+    evaluation = HeldOutEvaluation(out, trials, env_id, section["env_kwargs"], eval_every, state, run["action_bounds"])
 
     def _stop(signum, frame):  # SIGTERM behaves like Ctrl-C: checkpoint, then exit
         raise KeyboardInterrupt

@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from train.cli import CommandError
+from magenv.scenarios import TRAINING_MIX
 from magenv.seeding import HELD_OUT_BELOW as TRAIN_SEED_START
 from train.seeds import parse_seeds
 
@@ -83,7 +84,7 @@ def tune_rule(rule: str, trials: list, iterations: int = 30, popsize: int = 8, s
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rule", required=True, help="rule to tune (e.g. fan_lambda, threshold)")
-    p.add_argument("--scenarios", default="random", help="comma list of training scenarios (default %(default)s)")
+    p.add_argument("--scenarios", default=TRAINING_MIX, help="comma list of training scenarios (default %(default)s)")
     p.add_argument("--seeds", default=f"{TRAIN_SEED_START}:{TRAIN_SEED_START + 12}",
                    help=f"training trial seeds, all >= {TRAIN_SEED_START} (default %(default)s)")
     p.add_argument("--iterations", type=int, default=30, help="CMA-ES generations")

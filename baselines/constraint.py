@@ -1,0 +1,245 @@
+"""Jung & Lee 2019's three methods as Estimators, and its eq. 16 rule as a Policy.
+
+Estimators (``run(trial) -> Estimate``; a two-link trial, ``magenv.constraint_scenarios``):
+
+* ``strapdown`` — gyroscope integration only (eq. 17 with k = 0);
+* ``cf_conventional`` — the conventional CF (Bachmann 1999): one Gauss–Newton
+  step on gravity and magnetometer per sample, constant gain k (eq. 17 with
+  w = 0; default k = k_max = 0.2);
+* ``cf_constraint`` — the proposed constraint-combined adaptive CF (eqs. 4–18,
+  published th1 = 0.15, th2 = 0.25, th3 = 0.2, k_min = 0.01, k_max = 0.2).
+  Its five parameters are constructor arguments, listed with search bounds
+  in ``PARAM_BOUNDS`` and read back by ``params`` (for CMA-ES tuning);
+* ``cf_gated`` — ablation, not in the paper: ``cf_constraint`` with the
+  constraint block removed from W (eqs. 16–18 still drop the magnetometer
+  and schedule k), to measure what the constraint itself contributes.
+
+All start from the e-compass of the first sample (never truth) and take the
+lever arms r_i, r_j from ``trial.meta`` unless given. ``trust`` is the
+magnetometer's weight 1 − w (eq. 15; 1 for the conventional CF, NaN-free).
+
+Policy: ``ConstraintWeightRule`` acts in ``magenv/MagConstraint-v0`` on the
+observation alone: w by eq. 16 from the ``mag_dev`` feature; the env applies
+eq. 18 for k. With one decision per sample (``decision_every=1``) it is the
+``cf_constraint`` estimator up to float32 rounding of the observation.
+
+Paper check (Table 2)::
+
+    .venv/bin/python -m baselines.constraint --seeds 0:5
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Sequence
+
+import numpy as np
+
+from baselines.protocol import Estimate
+from magenv.filters import constraint as cf
+from magenv.trial import Trial
+
+ENV_ID = "magenv/MagConstraint-v0"
+
+
+class _Base:
+    """Shared: lever arms and initial orientation; subclasses set ``_modes``."""
+
+    name = "constraint"
+
+    def __init__(self, lever_i=None, lever_j=None, q0=None):
+        self.lever_i, self.lever_j, self.q0 = lever_i, lever_j, q0
+
+    def _runner(self, trial: Trial, **kw) -> cf.ConstraintRunner:
+        return cf.ConstraintRunner(trial, self.lever_i, self.lever_j, q0=self.q0, **kw)
+
+
+class Strapdown(_Base):
+    """Gyroscope integration from the e-compass start (eq. 17, k = 0)."""
+
+    name = "strapdown"
+
+    def run(self, trial: Trial) -> Estimate:
+        r = self._runner(trial)
+        return Estimate(q=r.run_all(0.0, 0.0).copy(), trust=np.zeros(trial.n))
+
+
+class ConventionalCF(_Base):
+    """Gravity + magnetometer Gauss–Newton CF without the constraint (w = 0), constant gain k."""
+
+    name = "cf_conventional"
+    PARAM_BOUNDS = {"k": (0.001, 2.0)}
+
+    def __init__(self, k: float = cf.K_MAX, lever_i=None, lever_j=None, q0=None):
+        super().__init__(lever_i, lever_j, q0)
+        if not k >= 0:
+            raise ValueError(f"gain k must be ≥ 0, got {k!r}")
+        self.k = float(k)
+
+    @property
+    def params(self) -> dict[str, float]:
+        return {"k": self.k}
+
+    def run(self, trial: Trial) -> Estimate:
+        r = self._runner(trial)
+        return Estimate(q=r.run_all(0.0, self.k).copy(), trust=np.ones(trial.n))
+
+
+class ConstraintCF(_Base):
+    """The constraint-combined adaptive CF (eqs. 4–18); defaults are the published parameters."""
+
+    name = "cf_constraint"
+    PARAM_BOUNDS = {"th1": (0.02, 1.0), "th2": (0.0, 1.0), "th3": (0.01, 2.0), "k_min": (0.0, 0.2),
+                    "k_max": (0.02, 1.0)}
+
+    def __init__(self, th1: float = cf.TH1, th2: float = cf.TH2, th3: float = cf.TH3, k_min: float = cf.K_MIN,
+                 k_max: float = cf.K_MAX, lever_i=None, lever_j=None, q0=None, use_constraint: bool = True):
+        super().__init__(lever_i, lever_j, q0)
+        self.use_constraint = bool(use_constraint)
+        if not (th1 > 0 and th3 > 0 and 0 <= th2 <= 1 and 0 <= k_min):
+            raise ValueError(f"need th1 > 0, th3 > 0, 0 ≤ th2 ≤ 1, k_min ≥ 0; got th1={th1}, th2={th2}, "
+                             f"th3={th3}, k_min={k_min}")
+        # CMA-ES may propose k_min > k_max: eq. 18 then needs k_max ≥ k_min, so the larger one is k_max.
+        self.th1, self.th2, self.th3 = float(th1), float(th2), float(th3)
+        self.k_min, self.k_max = float(min(k_min, k_max)), float(max(k_min, k_max))
+
+    @property
+    def params(self) -> dict[str, float]:
+        """The five parameters by name (constructor arguments)."""
+        return {k: float(getattr(self, k)) for k in self.PARAM_BOUNDS}
+
+    @classmethod
+    def from_params(cls, params: dict[str, float], **kwargs) -> "ConstraintCF":
+        unknown = set(params) - set(cls.PARAM_BOUNDS)
+        if unknown:
+            raise ValueError(f"ConstraintCF has no parameter(s) {sorted(unknown)}; known: {list(cls.PARAM_BOUNDS)}")
+        return cls(**params, **kwargs)
+
+    def run(self, trial: Trial) -> Estimate:
+        r = self._runner(trial, use_constraint=self.use_constraint, **self.params)
+        est = r.run_all(cf.BY_RULE, cf.BY_RULE)
+        return Estimate(q=est.copy(), trust=1.0 - r.w)
+
+    def __repr__(self) -> str:
+        extra = "" if self.use_constraint else ", use_constraint=False"
+        return f"ConstraintCF({', '.join(f'{k}={v:g}' for k, v in self.params.items())}{extra})"
+
+
+def gated(**kw) -> ConstraintCF:
+    """Ablation: the proposed filter without its constraint block (eqs. 16–18 gating only)."""
+    est = ConstraintCF(use_constraint=False, **kw)
+    est.name = "cf_gated"
+    return est
+
+
+class ConstraintWeightRule:
+    """eq. 16 as a policy of ``magenv/MagConstraint-v0``: w = min(mag_dev/th1, 1).
+
+    With the env's ``control_gain`` option the action also carries k by eq. 18,
+    using ‖Δq‖ interpolated between the observed steps at w = 0 and w = 1
+    (``step_mag``, ``step_con``), an approximation: the filter's own step at w
+    is only known once w is chosen. ``gain_max`` must match the env's.
+    """
+
+    env_id = ENV_ID
+    name = "constraint_rule"
+    PARAM_BOUNDS = {"th1": (0.02, 1.0)}
+
+    def __init__(self, th1: float = cf.TH1, control_gain: bool = False, gain_max: float = 1.0,
+                 features: Sequence[str] | None = None, th2: float = cf.TH2, th3: float = cf.TH3,
+                 k_min: float = cf.K_MIN, k_max: float = cf.K_MAX):
+        if not th1 > 0:
+            raise ValueError(f"th1 must be > 0, got {th1!r}")
+        self.th1 = float(th1)
+        self.control_gain = bool(control_gain)
+        self.gain_max = float(gain_max)
+        self.gain_params = (float(th2), float(th3), float(k_min), float(k_max))
+        self.features = tuple(cf.FEATURE_NAMES if features is None else features)
+        need = ("mag_dev", "step_mag", "step_con") if control_gain else ("mag_dev",)
+        missing = [f for f in need if f not in self.features]
+        if missing:
+            raise ValueError(f"ConstraintWeightRule needs observation feature(s) {missing}; "
+                             f"the env's features are {list(self.features)}")
+        self._ix = {f: self.features.index(f) for f in need}
+        self.env_kwargs = {} if features is None else {"features": list(self.features)}
+        if control_gain:
+            self.env_kwargs.update(control_gain=True, gain_max=self.gain_max)
+
+    @property
+    def params(self) -> dict[str, float]:
+        return {"th1": self.th1}
+
+    def reset(self) -> None:
+        """Memoryless."""
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        w = float(cf.weight_rule(float(obs[self._ix["mag_dev"]]), self.th1))  # eq. 16
+        if not self.control_gain:
+            return np.array([w], dtype=np.float32)
+        step = (1.0 - w) * float(obs[self._ix["step_mag"]]) + w * float(obs[self._ix["step_con"]])
+        k = float(cf.gain_rule(w, step, *self.gain_params))  # eq. 18
+        return np.array([w, min(k / self.gain_max, 1.0)], dtype=np.float32)
+
+
+def methods() -> dict:
+    """Name → factory for ``magenv compare`` (picked up by ``baselines.registry``)."""
+    return {"strapdown": Strapdown, "cf_conventional": ConventionalCF, "cf_constraint": ConstraintCF,
+            "cf_gated": gated, "constraint_rule": ConstraintWeightRule}
+
+
+# ------------------------------------------------------------------ paper check
+
+#: Jung & Lee 2019 Table 2, RMSE in degrees: test → method → (roll, pitch, yaw).
+PAPER_TABLE2 = {
+    "constraint_test1": {"strapdown": (9.01, 8.30, 8.27), "cf_conventional": (3.27, 3.28, 6.69),
+                         "cf_constraint": (0.81, 1.25, 1.16)},
+    "constraint_test2": {"strapdown": (9.39, 7.42, 8.49), "cf_conventional": (2.65, 4.06, 5.23),
+                         "cf_constraint": (0.95, 1.20, 1.29)},
+    "constraint_test3": {"strapdown": (5.28, 5.85, 5.96), "cf_conventional": (1.69, 1.72, 14.73),
+                         "cf_constraint": (1.53, 0.76, 1.65)},
+}
+
+
+TABLE2_METHODS = ("strapdown", "cf_conventional", "cf_constraint", "cf_gated")
+
+
+def table2(seeds: Sequence[int], methods_: Sequence[str] = TABLE2_METHODS) -> list[dict]:
+    """Roll / pitch / yaw RMSE (°, ZYX Euler angles of the earth-frame error quaternion,
+    ``magenv.metrics.euler_error``) of the methods on the three tests, mean over seeds
+    (``paper`` is NaN for the ablation ``cf_gated``)."""
+    from magenv import metrics
+    from magenv.constraint_scenarios import make_trial
+
+    rows = []
+    for test in PAPER_TABLE2:
+        trials = [make_trial(test, s) for s in seeds]
+        for name in methods_:
+            rms = []
+            for tr in trials:
+                e = metrics.euler_error(methods()[name]().run(tr).q, tr.q_true)  # [yaw, pitch, roll]
+                rms.append([metrics.rmse(e[:, 2], tr.score_mask), metrics.rmse(e[:, 1], tr.score_mask),
+                            metrics.rmse(e[:, 0], tr.score_mask)])
+            rms = np.array(rms)
+            rows.append({"test": test, "method": name, "sim": rms.mean(0), "sim_std": rms.std(0),
+                         "paper": np.array(PAPER_TABLE2[test].get(name, (np.nan,) * 3)),
+                         "ext_acc": float(np.mean([t.meta["mean_ext_acc"] for t in trials]))})
+    return rows
+
+
+def _main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description="Jung & Lee 2019 Table 2 on simulated trials")
+    ap.add_argument("--seeds", default="0:5", help="START:STOP (default %(default)s)")
+    args = ap.parse_args(argv)
+    a, b = (int(x) for x in args.seeds.split(":"))
+    rows = table2(range(a, b))
+    print(f"Table 2 reproduced on seeds {a}..{b - 1} (RMSE °, simulation mean ± std over seeds | paper)")
+    print(f"{'test':<17} {'method':<16} {'roll':>16} {'pitch':>16} {'yaw':>16} {'avg':>13}")
+    for r in rows:
+        cells = [f"{m:5.2f}±{s:4.2f} |{p:5.2f}" for m, s, p in zip(r["sim"], r["sim_std"], r["paper"])]
+        print(f"{r['test']:<17} {r['method']:<16} {cells[0]:>16} {cells[1]:>16} {cells[2]:>16} "
+              f"{r['sim'].mean():5.2f} |{r['paper'].mean():5.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main())

@@ -1,0 +1,343 @@
+"""``magenv/MagConstraint-v0``: weigh a kinematic constraint against the magnetometer (Jung & Lee 2019)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from magenv.filters import constraint as cf
+from magenv.seeding import draw_training_seed
+from magenv.trial import Trial
+
+
+def _trial_source(scenario) -> tuple[str, Any]:
+    """("trials", [Trial…]) or ("scenario", [names]) — trials are checked for link j's channels.
+
+    A comma list of scenario names is a mixture: each reset picks one at random.
+    """
+    if isinstance(scenario, Trial):
+        scenario = [scenario]
+    if isinstance(scenario, (list, tuple)):
+        if not scenario or not all(isinstance(t, Trial) for t in scenario):
+            raise TypeError("scenario as a sequence must be a non-empty list of magenv.trial.Trial objects")
+        for t in scenario:
+            cf.require_two_link(t)
+        return "trials", list(scenario)
+    if not isinstance(scenario, str):
+        raise TypeError(f"scenario must be a two-link scenario name, a Trial or a list of Trials, "
+                        f"got {type(scenario).__name__}")
+    from magenv import constraint_scenarios
+
+    names = [s.strip() for s in scenario.split(",")]
+    bad = [n for n in names if n not in constraint_scenarios.SCENARIOS]
+    if bad:
+        raise ValueError(f"unknown two-link scenario(s) {', '.join(map(repr, bad))}; known: "
+                         f"{', '.join(constraint_scenarios.scenario_names())} (MagConstraint-v0 needs link j's "
+                         f"sensor and orientation, which only these scenarios simulate)")
+    return "scenario", names
+
+
+class MagConstraintEnv(gym.Env):
+    """
+    ## Description
+
+    Two links joined by a spherical joint each carry a MIMU; link j's
+    orientation is known (Jung & Lee 2019 §3.1: from motion capture), link i's
+    is estimated. A magnetised tool comes near link i's sensor now and then,
+    and the lab's field is itself slightly inhomogeneous. Link i's filter is
+    the paper's complementary filter: per sample, one Gauss–Newton step over
+    three direction pairs — gravity, the Earth field, and the kinematic
+    constraint C(q_i)h_i = C(q_j)h_j (the joint centre's acceleration is the
+    same seen from either link, eq. 9) — weighted by
+    W = diag(I, (1 − w)I, wI) (eq. 15), applied with gain k (eq. 17).
+
+    The agent sets the constraint weight w once every ``decision_every``
+    samples (and, with ``control_gain``, the gain k). The paper sets w by
+    eq. 16 from the field deviation and k by eq. 18; its rule is the baseline
+    ``baselines.constraint.ConstraintWeightRule``. w = 1 ignores the
+    magnetometer (the heading then rests on the constraint, which only
+    informs while the joint centre accelerates); w = 0 is the conventional CF.
+    The world is fixed at ``reset()``; the policy changes only the estimate.
+
+    ## Action Space
+
+    `Box(0, 1, (1,), float32)`: w. With ``control_gain=True``:
+    `Box(0, 1, (2,), float32)`: [w, k/gain_max]. Without it, k follows eq. 18
+    (th2, th3, k_min, k_max) from w and the step size. Finite values outside
+    [0, 1] are **clipped** (``info["action_clipped"]``); NaN/inf or a wrong
+    shape raise `ValueError`.
+
+    ## Observation Space
+
+    `Box(float32)`, one entry per selected feature (default all, this order).
+    Truth never enters it. "Sample j" is the next sample to be fused, read
+    before fusing; q is the current estimate q_{j−1}; m0, m_E the trial's
+    undisturbed field norm and vector; g = 9.81 m/s²; h_i, h_j the joint
+    vectors of eq. 9 (sensor frames), q_j link j's given orientation.
+    "Step" is ‖Δq‖ of eq. 14 at q for sample j. Values are clipped to range.
+
+    | Num | Name           | Meaning                                                              | Unit / scale      | Min | Max |
+    |-----|----------------|----------------------------------------------------------------------|-------------------|-----|-----|
+    | 0   | `mag_dev`      | ‖C(q)y_M − m_E‖/m0: eq. 16's field deviation                         | fraction of m0    | 0   | 10  |
+    | 1   | `norm_dev`     | (‖y_M‖ − m0)/m0                                                      | fraction of m0    | -1  | 10  |
+    | 2   | `dip_dev`      | dip of C(q)y_M minus the undisturbed dip                             | units of 90°      | -2  | 2   |
+    | 3   | `con_mismatch` | ‖C(q)h_i − C(q_j)h_j‖: joint-centre acceleration mismatch (eq. 9)   | units of g        | 0   | 10  |
+    | 4   | `joint_acc`    | ‖C(q_j)h_j − g·up‖: joint-centre free acceleration seen from link j | units of g        | 0   | 10  |
+    | 5   | `gyro_norm`    | ‖ω_i‖ of link i's gyroscope                                          | units of 2π rad/s | 0   | 10  |
+    | 6   | `acc_dev`      | (‖y_A‖ − g)/g of link i's accelerometer                              | fraction of g     | -1  | 10  |
+    | 7   | `step_mag`     | step with w = 0 (gravity + magnetometer)                             | quaternion units  | 0   | 10  |
+    | 8   | `step_con`     | step with w = 1 (gravity + constraint)                               | quaternion units  | 0   | 10  |
+    | 9   | `con_heading`  | heading of C(q)h_i minus heading of C(q_j)h_j (about ENU up)         | units of 180°     | -1  | 1   |
+    | 10  | `w_prev`       | w applied in the last step (0 after reset)                           | –                 | 0   | 1   |
+    | 11  | `k_prev`       | k applied to the last fused sample (0 after reset)                   | –                 | 0   | 1   |
+    | 12  | `mag_dev_mean` | mean `mag_dev` over the samples fused in the last step and sample j | fraction of m0    | 0   | 10  |
+
+    ## Rewards
+
+    Minus the mean total orientation error of link i (2·acos|q_e,0|, degrees)
+    over the samples fused in the step (0 if none has truth).
+
+    ## Starting State
+
+    A trial is drawn at ``reset``: simulated from the scenario with a seed
+    drawn from ``self.np_random`` (``reset(seed=s)`` → the same episode bit for
+    bit), or at random from the given Trials, or ``options={"trial": trial}``.
+    The filter starts from the e-compass of the first sample (never truth).
+
+    ## Episode End
+
+    Never terminated; truncated when the trial (or its first
+    ``episode_seconds``) is used up.
+
+    ## Arguments
+
+    - `scenario` (default `"constraint_random"`): a name from
+      ``magenv.constraint_scenarios.scenario_names()`` or a comma list of them
+      (a mixture: each reset picks one), trial seeds drawn at or above
+      ``magenv.seeding.HELD_OUT_BELOW``; or a Trial or a list of Trials —
+      each must carry link j's channels (``extra`` ``gyr_j``, ``acc_j``,
+      ``q_j``) and lever arms (``meta`` ``lever_i_m``, ``lever_j_m``).
+    - `decision_every` (default 4): samples fused per step (at 100 Hz: 40 ms).
+    - `episode_seconds` (default None): only the first seconds of each trial.
+    - `control_gain` (default False): the action also sets k.
+    - `gain_max` (default 1.0): k = action[1]·gain_max with ``control_gain``.
+    - `th2`, `th3`, `k_min`, `k_max` (defaults 0.25, 0.2, 0.01, 0.2): eq. 18 when k is not controlled.
+    - `features` (default None = all): names of the observation features to keep, in order.
+    - `scenario_kwargs` (default None): overrides for ``constraint_scenarios.make_trial``.
+
+    `info` of each step: `t` (s), `sample`, `w`, `k` (mean over the step), `action_clipped`,
+    `error_total` / `error_heading` / `error_inclination` (means over the step, °), `disturbance_norm`
+    (mean true ‖lab + tool field‖ at link i's sensor, µT; NaN if unknown), `q_est`, `q_true`.
+    Per-sample histories of the episode so far: ``env.unwrapped.estimate`` (N, 4),
+    ``weights`` (N,) w, ``gains`` (N,) k (NaN where not fused yet); ``lambdas`` is ``weights``
+    (for ``magenv.evaluation``: its "trust" 1 − λ is then the magnetometer's weight 1 − w).
+
+    ## Version History
+
+    - v0: initial version.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, scenario="constraint_random", decision_every: int = 4, episode_seconds: float | None = None,
+                 control_gain: bool = False, gain_max: float = 1.0, th2: float = cf.TH2, th3: float = cf.TH3,
+                 k_min: float = cf.K_MIN, k_max: float = cf.K_MAX, features: Sequence[str] | None = None,
+                 scenario_kwargs: dict | None = None, render_mode: str | None = None):
+        if isinstance(decision_every, bool) or int(decision_every) != decision_every or decision_every < 1:
+            raise ValueError(f"decision_every must be a positive integer, got {decision_every!r}")
+        if episode_seconds is not None and not episode_seconds > 0:
+            raise ValueError(f"episode_seconds must be positive or None, got {episode_seconds!r}")
+        if not (math.isfinite(gain_max) and gain_max > 0):
+            raise ValueError(f"gain_max must be a positive number, got {gain_max!r}")
+        if render_mode is not None:  # TypeError like MagBlend-v0 (make_vec_env falls back to none)
+            raise TypeError(f"MagConstraint-v0 has no render modes, got render_mode={render_mode!r}")
+        self._source_kind, self._source = _trial_source(scenario)
+        self.scenario = scenario if isinstance(scenario, str) else "trials"
+        self.k_steps = int(decision_every)
+        self.episode_seconds = episode_seconds
+        self.control_gain = bool(control_gain)
+        self.gain_max = float(gain_max)
+        self.filter_kwargs = dict(th2=float(th2), th3=float(th3), k_min=float(k_min), k_max=float(k_max))
+        self.scenario_kwargs = dict(scenario_kwargs or {})
+        names = cf.FEATURE_NAMES if features is None else tuple(features)
+        unknown = [f for f in names if f not in cf.FEATURE_NAMES]
+        if unknown or not names:
+            raise ValueError(f"unknown observation feature(s) {unknown or '(none selected)'}; "
+                             f"known: {', '.join(cf.FEATURE_NAMES)}")
+        self.features = names
+        self._idx = np.array([cf.FEATURE_NAMES.index(f) for f in names])
+        self._all = names == cf.FEATURE_NAMES
+        self.observation_space = spaces.Box(cf.FEATURE_LOW[self._idx], cf.FEATURE_HIGH[self._idx], dtype=np.float32)
+        self.action_space = spaces.Box(0.0, 1.0, (2 if self.control_gain else 1,), dtype=np.float32)
+        self.render_mode = None
+        self._runner: cf.ConstraintRunner | None = None
+        self.trial: Trial | None = None
+
+    # ------------------------------------------------------------ trials
+
+    def _draw_trial(self) -> Trial:
+        if self._source_kind == "trials":
+            return self._source[int(self.np_random.integers(len(self._source)))]
+        from magenv import constraint_scenarios
+
+        names = self._source
+        name = names[0] if len(names) == 1 else names[int(self.np_random.integers(len(names)))]
+        seed = draw_training_seed(self.np_random)  # never a held-out evaluation seed
+        return constraint_scenarios.make_trial(name, seed, **self.scenario_kwargs)
+
+    def _cut(self, trial: Trial) -> Trial:
+        if self.episode_seconds is None:
+            return trial
+        n = min(trial.n, max(2, int(round(self.episode_seconds * trial.rate))))
+        return trial if n == trial.n else trial.slice(0, n)
+
+    # ------------------------------------------------------------ API
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        options = options or {}
+        trial = options.get("trial")
+        if trial is None:
+            trial = self._draw_trial()
+        elif not isinstance(trial, Trial):
+            raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
+        self.trial = self._cut(trial)
+        self._runner = cf.ConstraintRunner(self.trial, **self.filter_kwargs)  # checks link j's channels
+        info = {"trial": self.trial.name, "rate": self.trial.rate, "n_samples": self.trial.n,
+                "field_norm": self.trial.field_norm, "field_dip": self.trial.field_dip, "sample": 0}
+        return self._obs(), info
+
+    def _obs(self) -> np.ndarray:
+        feat = self._runner.feat
+        return (feat if self._all else feat[self._idx]).astype(np.float32)
+
+    def _action(self, action) -> tuple[float, float, bool]:
+        dim = self.action_space.shape[0]
+        a = np.asarray(action, dtype=float)
+        if a.shape != (dim,) and not (dim == 1 and a.shape == ()):
+            what = "[w, k/gain_max]" if self.control_gain else "w"
+            raise ValueError(f"action must have shape ({dim},) holding {what} in [0, 1], got shape {a.shape}")
+        a = a.reshape(-1)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be finite numbers in [0, 1], got {a.tolist()}")
+        c = np.clip(a, 0.0, 1.0)
+        clipped = bool(np.any(c != a))
+        w = float(c[0])
+        k = float(c[1]) * self.gain_max if self.control_gain else cf.BY_RULE
+        return w, k, clipped
+
+    def step(self, action):
+        runner = self._runner
+        if runner is None:
+            raise RuntimeError("MagConstraintEnv.step() called before reset(); call env.reset() first")
+        if runner.done:
+            raise RuntimeError("MagConstraintEnv.step() called after the episode was truncated; call env.reset()")
+        w, k, clipped = self._action(action)
+        start = runner.pos
+        runner.advance(self.k_steps, w, k)
+        err = runner.err
+        cnt = err[cf.E_COUNT]
+        if cnt > 0:
+            total, heading, incl = err[cf.E_TOTAL] / cnt, err[cf.E_HEADING] / cnt, err[cf.E_INCL] / cnt
+            reward = -total
+        else:
+            total = heading = incl = math.nan
+            reward = 0.0
+        last = runner.pos - 1
+        info = {
+            "t": last / self.trial.rate, "sample": runner.pos, "w": w,
+            "k": float(np.mean(runner.k[start:runner.pos])), "action_clipped": clipped,
+            "error_total": total, "error_heading": heading, "error_inclination": incl,
+            "disturbance_norm": (err[cf.E_DIST] / runner.last_count) if runner.has_dist else math.nan,
+            "q_est": runner.est[last].copy(), "q_true": runner.trial.q_true[last].copy(),
+        }
+        return self._obs(), float(reward), False, runner.done, info
+
+    # ------------------------------------------------------------ evaluation access
+
+    def _need_reset(self) -> cf.ConstraintRunner:
+        if self._runner is None:
+            raise RuntimeError("no episode yet; call env.reset() first")
+        return self._runner
+
+    @property
+    def estimate(self) -> np.ndarray:
+        """(N, 4) per-sample estimate of link i (NaN rows not fused yet)."""
+        return self._need_reset().est
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(N,) constraint weight w per sample (NaN where not fused yet)."""
+        return self._need_reset().w
+
+    @property
+    def gains(self) -> np.ndarray:
+        """(N,) gain k per sample (NaN where not fused yet)."""
+        return self._need_reset().k
+
+    @property
+    def lambdas(self) -> np.ndarray:
+        """Alias of ``weights`` for ``magenv.evaluation`` (trust 1 − w = the magnetometer's weight)."""
+        return self.weights
+
+
+class MagConstraintVectorEnv(gym.vector.VectorEnv):
+    """``num_envs`` copies of ``MagConstraintEnv`` in one process, batched arrays in and out.
+
+    The ``vector_entry_point`` of ``magenv/MagConstraint-v0``, with the
+    conventions of ``magenv.envs.blend.MagBlendVectorEnv``: ``reset(seed=s)``
+    seeds sub-env i with s + i; next-step autoreset (the step after a
+    truncation resets that sub-env, ignores its action, reward 0); ``infos``
+    carries ``error_total`` (N,) (NaN on autoreset steps).
+    """
+
+    metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP, "render_modes": []}
+
+    def __init__(self, num_envs: int = 1, **kwargs):
+        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        self.num_envs = int(num_envs)
+        self.envs = [MagConstraintEnv(**kwargs) for _ in range(self.num_envs)]
+        self.single_observation_space = self.envs[0].observation_space
+        self.single_action_space = self.envs[0].action_space
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
+        self.render_mode = None
+        self._needs_reset = np.zeros(self.num_envs, bool)
+
+    def reset(self, *, seed=None, options=None):
+        if seed is None or isinstance(seed, (int, np.integer)):
+            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} envs")
+        obs = np.stack([env.reset(seed=s, options=options)[0] for env, s in zip(self.envs, seeds)])
+        self._needs_reset[:] = False
+        return obs, {}
+
+    def step(self, actions):
+        dim = self.single_action_space.shape[0]
+        actions = np.asarray(actions, dtype=np.float32)
+        if actions.shape not in ((self.num_envs, dim),) + (((self.num_envs,),) if dim == 1 else ()):
+            raise ValueError(f"actions must have shape ({self.num_envs}, {dim}), got {actions.shape}")
+        actions = actions.reshape(self.num_envs, dim)
+        n, f = self.num_envs, self.single_observation_space.shape[0]
+        obs = np.empty((n, f), np.float32)
+        rewards = np.zeros(n)
+        terminated = np.zeros(n, bool)
+        truncated = np.zeros(n, bool)
+        error = np.full(n, np.nan)
+        for i, env in enumerate(self.envs):
+            if self._needs_reset[i]:
+                obs[i] = env.reset()[0]
+                self._needs_reset[i] = False
+                continue
+            obs[i], rewards[i], terminated[i], truncated[i], info = env.step(actions[i])
+            error[i] = info["error_total"]
+            self._needs_reset[i] = terminated[i] or truncated[i]
+        return obs, rewards, terminated, truncated, {"error_total": error}
