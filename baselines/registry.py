@@ -43,12 +43,20 @@ def register(name: str, factory: Callable[[], Any], description: str = "", overw
     _REGISTERED[name] = (factory, description)
 
 
+def tunable_rules() -> dict[str, type[rules.RulePolicy]]:
+    """Every rule with tunable parameters, by name: the λ rules and the Kalman-trust rules."""
+    from baselines import kalman_policies
+
+    return {**rules.RULES, **kalman_policies.RULES}
+
+
 def rule_class(name: str) -> type[rules.RulePolicy]:
-    """The rule class of a tunable rule name (``fan_lambda``, ``threshold``, ``constant``)."""
+    """The rule class of a tunable rule name (``fan_lambda``, ``threshold``, ``kf_gate``, …)."""
+    table = tunable_rules()
     try:
-        return rules.RULES[name]
+        return table[name]
     except KeyError:
-        raise ValueError(f"unknown rule {name!r}; known rules: {', '.join(rules.RULES)}") from None
+        raise ValueError(f"unknown rule {name!r}; known rules: {', '.join(table)}") from None
 
 
 def _builtin() -> dict[str, tuple[Callable[[], Any], str]]:
@@ -62,15 +70,16 @@ def _builtin() -> dict[str, tuple[Callable[[], Any], str]]:
 
 def _tuned() -> dict[str, tuple[Callable[[], Any], str]]:
     out = {}
+    table = tunable_rules()
     if TUNED_DIR.is_dir():
         for path in sorted(TUNED_DIR.glob("*.json")):
             rule = path.stem
-            if rule not in rules.RULES:
+            if rule not in table:
                 continue
 
             def factory(path=path, rule=rule):
                 record = json.loads(path.read_text())
-                policy = rules.RULES[rule].from_params(record["params"])
+                policy = table[rule].from_params(record["params"])
                 policy.name = f"{rule}_tuned"
                 return policy
 

@@ -109,7 +109,7 @@ class FanLambda(RulePolicy):
     """
 
     name = "fan_lambda"
-    PARAM_BOUNDS = {"norm_tol": (0.02, 2.0), "th_dip_deg": (1.0, 90.0)}
+    PARAM_BOUNDS = {"norm_tol": (0.02, 5.0), "th_dip_deg": (0.1, 90.0)}
     NEEDS = ("norm_dev", "dip_dev")
 
     def __init__(self, norm_tol: float = 1.0, th_dip_deg: float = 20.0, features: Sequence[str] | None = None,

@@ -89,8 +89,8 @@ class PolicyRunner:
             self._envs[key] = gym.make(env_id, disable_env_checker=True, **kwargs).unwrapped
         return self._envs[key]
 
-    def run(self, policy, trial: Trial) -> tuple[np.ndarray, np.ndarray | None]:
-        """Run ``policy`` over the whole ``trial``; returns (estimate (N, 4), λ (N,) or None)."""
+    def run(self, policy, trial: Trial) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Run ``policy`` over the whole ``trial``; returns (estimate (N, 4), λ (N,) or None, trust (N,) or None)."""
         env = self._env(policy, trial)
         policy.reset()
         obs, _ = env.reset(seed=0, options={"trial": trial})
@@ -98,14 +98,16 @@ class PolicyRunner:
         while not (truncated or terminated):
             obs, _, terminated, truncated, _ = env.step(policy(obs))
         lam = getattr(env, "lambdas", None)
-        return env.estimate.copy(), None if lam is None else np.array(lam, copy=True)
+        lam = None if lam is None else np.array(lam, copy=True)
+        trust = getattr(env, "trust", None)  # the env's own trust history, else 1 − λ
+        trust = np.array(trust, copy=True) if trust is not None else (None if lam is None else 1.0 - lam)
+        return env.estimate.copy(), lam, trust
 
 
 def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = None, label: str | None = None) -> Run:
     """Run one Policy or Estimator on one trial and score it."""
     if is_policy(method):
-        q, lam = (runner or PolicyRunner()).run(method, trial)
-        trust = None if lam is None else 1.0 - lam
+        q, lam, trust = (runner or PolicyRunner()).run(method, trial)
     else:
         est = method.run(trial)
         q, lam, trust = np.asarray(est.q, float), None, est.trust

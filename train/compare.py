@@ -32,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--recordings", nargs="+", default=[], metavar="FILE", help="real recordings to add")
     p.add_argument("--every", type=int, default=None,
                    help="decision interval k (samples) for policies (default: the env's, 8)")
-    p.add_argument("--no-hold", action="store_true", help="turn the stationary hold off for policies")
+    p.add_argument("--no-hold", action="store_true", help="turn the stationary hold off for MagBlend-v0 policies")
     p.add_argument("--csv", default=None, metavar="FILE", help="write the table as CSV")
     p.add_argument("--plot", default=None, metavar="FILE", help="PNG of error and λ over time, first trial")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -137,8 +137,10 @@ def run(args: argparse.Namespace) -> int:
     env_kwargs = {}
     if args.every is not None:
         env_kwargs["decision_every"] = args.every
-    if args.no_hold:
-        env_kwargs["stationary_hold"] = False
+    if args.no_hold:  # an option of the blend env only
+        for method in methods.values():
+            if getattr(method, "env_id", None) == "magenv/MagBlend-v0":
+                method.env_kwargs = {**method.env_kwargs, "stationary_hold": False}
     scenarios = args.scenario if args.scenario is not None else ("" if args.recordings else "dynamic_magnet")
     trials, labels = make_trials(scenarios, args.seeds, args.recordings)
     runs = run_comparison(methods, trials, labels, env_kwargs, progress=not args.no_progress)

@@ -45,7 +45,8 @@ def _to_unit(params: dict[str, float], bounds: dict[str, tuple[float, float]]) -
 
 def tune_rule(rule: str, trials: list, iterations: int = 30, popsize: int = 8, seed: int = 0,
               progress: bool = True) -> dict:
-    """CMA-ES over the rule's parameters; returns the record saved as ``baselines/tuned/RULE.json``."""
+    """CMA-ES over the rule's parameters (a bounded scalar search for one parameter); returns the
+    record saved as ``baselines/tuned/RULE.json``."""
     import cma
     from tqdm import tqdm
 
@@ -62,20 +63,28 @@ def tune_rule(rule: str, trials: list, iterations: int = 30, popsize: int = 8, s
         return float(np.mean([s.total for s in scores]))
 
     x0 = _to_unit(published.params, bounds)
-    es = cma.CMAEvolutionStrategy(
-        np.clip(x0, 0.05, 0.95), 0.25,
-        {"bounds": [0, 1], "popsize": popsize, "seed": seed + 1, "verbose": -9, "maxiter": iterations},
-    )
-    bar = tqdm(total=iterations, desc=f"tune {rule}", disable=not progress)
-    while not es.stop():
-        xs = es.ask()
-        es.tell(xs, [objective(_to_params(x, bounds)) for x in xs])
-        bar.update(1)
-        bar.set_postfix(best=f"{es.result.fbest:.3f}°")
-    bar.close()
-    best = _to_params(es.result.xbest, bounds)
+    if len(bounds) == 1:  # CMA-ES needs two dimensions or more: bounded scalar search instead
+        from scipy.optimize import minimize_scalar
+
+        res = minimize_scalar(lambda x: objective(_to_params(np.array([x]), bounds)), bounds=(0.0, 1.0),
+                              method="bounded", options={"maxiter": iterations * popsize})
+        xbest, fbest = np.array([res.x]), float(res.fun)
+    else:
+        es = cma.CMAEvolutionStrategy(
+            np.clip(x0, 0.05, 0.95), 0.25,
+            {"bounds": [0, 1], "popsize": popsize, "seed": seed + 1, "verbose": -9, "maxiter": iterations},
+        )
+        bar = tqdm(total=iterations, desc=f"tune {rule}", disable=not progress)
+        while not es.stop():
+            xs = es.ask()
+            es.tell(xs, [objective(_to_params(x, bounds)) for x in xs])
+            bar.update(1)
+            bar.set_postfix(best=f"{es.result.fbest:.3f}°")
+        bar.close()
+        xbest, fbest = es.result.xbest, float(es.result.fbest)
+    best = _to_params(xbest, bounds)
     return {
-        "rule": rule, "params": best, "objective_deg": float(es.result.fbest),
+        "rule": rule, "params": best, "objective_deg": fbest,
         "published_params": published.params, "published_objective_deg": objective(published.params),
         "trials": [t.name for t in trials], "cma": {"iterations": iterations, "popsize": popsize, "seed": seed},
         "date": time.strftime("%Y-%m-%d"),

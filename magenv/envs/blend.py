@@ -3,50 +3,22 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Sequence
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from magenv.envs.common import (  # noqa: F401  (RECORDING_PREFIX, trial_source: re-exported)
+    RECORDING_PREFIX, LoopVectorEnv, TrialSource, check_env_args, cut_trial, scalar_action, select_features,
+    trial_source,
+)
 from magenv.filters import stationary as stat
 from magenv.filters.blend import (
     E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, BlendRunner,
 )
 from magenv.filters.madgwick import BETA_DEFAULT
-from magenv.seeding import draw_training_seed
 from magenv.trial import Trial
-
-RECORDING_PREFIX = "recording:"
-
-
-def _trial_source(scenario) -> tuple[str, Any]:
-    """Classify the ``scenario`` argument: ("trials", [Trial…]), ("recording", path) or ("scenario", [names]).
-
-    A comma list of scenario names is a mixture: each reset picks one at random.
-    """
-    if isinstance(scenario, Trial):
-        return "trials", [scenario]
-    if isinstance(scenario, (list, tuple)):
-        if not scenario or not all(isinstance(t, Trial) for t in scenario):
-            raise TypeError("scenario as a sequence must be a non-empty list of magenv.trial.Trial objects")
-        return "trials", list(scenario)
-    if not isinstance(scenario, str):
-        raise TypeError(f"scenario must be a scenario name, 'recording:PATH', a Trial or a list of Trials, "
-                        f"got {type(scenario).__name__}")
-    if scenario.startswith(RECORDING_PREFIX):
-        return "recording", scenario[len(RECORDING_PREFIX):]
-    try:
-        from magenv import scenarios
-    except ImportError as exc:  # the simulator module is missing
-        raise RuntimeError(f"scenario {scenario!r} needs magenv.scenarios, which cannot be imported ({exc}); "
-                           "pass a list of Trials or 'recording:PATH' instead") from None
-    known = list(scenarios.scenario_names())
-    names = [s.strip() for s in scenario.split(",")]
-    bad = [n for n in names if n not in known]
-    if bad:
-        raise ValueError(f"unknown scenario(s) {', '.join(map(repr, bad))}; known scenarios: {', '.join(known)}")
-    return "scenario", names
 
 
 class MagBlendEnv(gym.Env):
@@ -167,62 +139,19 @@ class MagBlendEnv(gym.Env):
                  beta: float = BETA_DEFAULT, t0: float = stat.T0_S, th_acc_g: float = stat.TH_ACC_G,
                  th_gyro_dps: float = stat.TH_GYRO_DPS, scenario_kwargs: dict | None = None,
                  render_mode: str | None = None):
-        if int(decision_every) != decision_every or decision_every < 1:
-            raise ValueError(f"decision_every must be a positive integer, got {decision_every!r}")
-        if episode_seconds is not None and not episode_seconds > 0:
-            raise ValueError(f"episode_seconds must be positive or None, got {episode_seconds!r}")
-        if render_mode is not None:
-            # TypeError, like an unknown keyword: wrappers that try a render mode first
-            # (stable-baselines3's make_vec_env) fall back to none.
-            raise TypeError(f"MagBlend-v0 has no render modes, got render_mode={render_mode!r}")
-        self._source_kind, self._source = _trial_source(scenario)
-        self._recording: Trial | None = None
-        self.scenario = scenario if isinstance(scenario, str) else "trials"
-        self.k = int(decision_every)
+        self.k = check_env_args("MagBlend-v0", decision_every, episode_seconds, render_mode)
+        self.trials = TrialSource(scenario, scenario_kwargs)
+        self.scenario = self.trials.label
         self.episode_seconds = episode_seconds
         self.stationary_hold = bool(stationary_hold)
         self.filter_kwargs = dict(beta=float(beta), hold=self.stationary_hold, t0=float(t0),
                                   th_acc_g=float(th_acc_g), th_gyro_dps=float(th_gyro_dps))
-        self.scenario_kwargs = dict(scenario_kwargs or {})
-        names = FEATURE_NAMES if features is None else tuple(features)
-        unknown = [f for f in names if f not in FEATURE_NAMES]
-        if unknown or not names:
-            raise ValueError(f"unknown observation feature(s) {unknown or '(none selected)'}; "
-                             f"known: {', '.join(FEATURE_NAMES)}")
-        self.features = names
-        self._idx = np.array([FEATURE_NAMES.index(f) for f in names])
-        self._all = names == FEATURE_NAMES
-        self.observation_space = spaces.Box(FEATURE_LOW[self._idx], FEATURE_HIGH[self._idx], dtype=np.float32)
+        self.features, self._idx, self._all, self.observation_space = select_features(
+            features, FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH)
         self.action_space = spaces.Box(0.0, 1.0, (1,), dtype=np.float32)
         self.render_mode = None
         self._runner: BlendRunner | None = None
         self.trial: Trial | None = None
-
-    # ------------------------------------------------------------ trials
-
-    def _draw_trial(self) -> Trial:
-        if self._source_kind == "trials":
-            return self._source[int(self.np_random.integers(len(self._source)))]
-        if self._source_kind == "recording":
-            if self._recording is None:
-                try:
-                    from magenv.recordings import load_recording
-                except ImportError as exc:
-                    raise RuntimeError(f"'recording:' needs magenv.recordings ({exc})") from None
-                self._recording = load_recording(self._source)
-            return self._recording
-        from magenv import scenarios
-
-        names = self._source
-        name = names[0] if len(names) == 1 else names[int(self.np_random.integers(len(names)))]
-        seed = draw_training_seed(self.np_random)  # never a held-out evaluation seed
-        return scenarios.make_trial(name, seed, **self.scenario_kwargs)
-
-    def _cut(self, trial: Trial) -> Trial:
-        if self.episode_seconds is None:
-            return trial
-        n = min(trial.n, max(2, int(round(self.episode_seconds * trial.rate))))
-        return trial if n == trial.n else trial.slice(0, n)
 
     # ------------------------------------------------------------ API
 
@@ -231,10 +160,10 @@ class MagBlendEnv(gym.Env):
         options = options or {}
         trial = options.get("trial")
         if trial is None:
-            trial = self._draw_trial()
+            trial = self.trials.draw(self.np_random)
         elif not isinstance(trial, Trial):
             raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
-        self.trial = self._cut(trial)
+        self.trial = cut_trial(trial, self.episode_seconds)
         self._runner = BlendRunner(self.trial, **self.filter_kwargs)
         self._has_truth_dist = self._runner.has_dist
         info = {"trial": self.trial.name, "rate": self.trial.rate, "n_samples": self.trial.n,
@@ -245,27 +174,13 @@ class MagBlendEnv(gym.Env):
         feat = self._runner.feat
         return (feat if self._all else feat[self._idx]).astype(np.float32)
 
-    def _lambda(self, action) -> tuple[float, bool]:
-        if isinstance(action, np.ndarray) and action.shape == (1,):
-            lam = float(action[0])
-        else:
-            a = np.asarray(action, dtype=float)
-            if a.shape not in ((1,), ()):
-                raise ValueError(f"action must have shape (1,) holding λ in [0, 1], got shape {a.shape}")
-            lam = float(a.reshape(-1)[0])
-        if not math.isfinite(lam):
-            raise ValueError(f"action λ must be a finite number in [0, 1], got {lam}")
-        if lam < 0.0 or lam > 1.0:
-            return min(1.0, max(0.0, lam)), True
-        return lam, False
-
     def step(self, action):
         runner = self._runner
         if runner is None:
             raise RuntimeError("MagBlendEnv.step() called before reset(); call env.reset() first")
         if runner.done:
             raise RuntimeError("MagBlendEnv.step() called after the episode was truncated; call env.reset()")
-        lam, clipped = self._lambda(action)
+        lam, clipped = scalar_action(action, "λ")
         runner.advance(self.k, lam)
         err = runner.err
         cnt = err[E_COUNT]
@@ -309,61 +224,12 @@ class MagBlendEnv(gym.Env):
             raise RuntimeError("no episode yet; call env.reset() first")
 
 
-class MagBlendVectorEnv(gym.vector.VectorEnv):
+class MagBlendVectorEnv(LoopVectorEnv):
     """``num_envs`` copies of ``MagBlendEnv`` in one process, batched arrays in and out.
 
     Registered as the ``vector_entry_point`` of ``magenv/MagBlend-v0``:
     ``gymnasium.make_vec("magenv/MagBlend-v0", num_envs=8, vectorization_mode="vector_entry_point")``.
-    Each sub-env keeps its own ``np_random`` (``reset(seed=s)`` seeds sub-env
-    i with s + i), so sub-env i replays exactly the single env seeded s + i.
-    Autoreset: next-step (the step after a truncation resets that sub-env,
-    ignoring its action, and returns its first observation with reward 0).
-    Steps the sub-envs in one Python loop (each one numba call); ``infos``
-    carries ``error_total`` (N,) (NaN on autoreset steps).
+    Seeding, next-step autoreset and ``infos["error_total"]``: see ``magenv.envs.common.LoopVectorEnv``.
     """
 
-    metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP, "render_modes": []}
-
-    def __init__(self, num_envs: int = 1, **kwargs):
-        if int(num_envs) != num_envs or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        self.num_envs = int(num_envs)
-        self.envs = [MagBlendEnv(**kwargs) for _ in range(self.num_envs)]
-        self.single_observation_space = self.envs[0].observation_space
-        self.single_action_space = self.envs[0].action_space
-        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
-        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
-        self.render_mode = None
-        self._needs_reset = np.zeros(self.num_envs, bool)
-
-    def reset(self, *, seed=None, options=None):
-        if seed is None or isinstance(seed, (int, np.integer)):
-            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != self.num_envs:
-                raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} envs")
-        obs = np.stack([env.reset(seed=s, options=options)[0] for env, s in zip(self.envs, seeds)])
-        self._needs_reset[:] = False
-        return obs, {}
-
-    def step(self, actions):
-        actions = np.asarray(actions, dtype=np.float32)
-        if actions.shape not in ((self.num_envs, 1), (self.num_envs,)):
-            raise ValueError(f"actions must have shape ({self.num_envs}, 1), got {actions.shape}")
-        actions = actions.reshape(self.num_envs, 1)
-        n, f = self.num_envs, self.single_observation_space.shape[0]
-        obs = np.empty((n, f), np.float32)
-        rewards = np.zeros(n)
-        terminated = np.zeros(n, bool)
-        truncated = np.zeros(n, bool)
-        error = np.full(n, np.nan)
-        for i, env in enumerate(self.envs):
-            if self._needs_reset[i]:
-                obs[i] = env.reset()[0]
-                self._needs_reset[i] = False
-                continue
-            obs[i], rewards[i], terminated[i], truncated[i], info = env.step(actions[i])
-            error[i] = info["error_total"]
-            self._needs_reset[i] = terminated[i] or truncated[i]
-        return obs, rewards, terminated, truncated, {"error_total": error}
+    env_class = MagBlendEnv

@@ -1,0 +1,157 @@
+"""Hand-crafted trust rules as policies of ``magenv/MagKalman-v0``, acting on the observation alone.
+
+Each rule returns the magnetometer trust γ ∈ [0, 1] (the Kalman-gain
+multiplier of ``magenv.filters.kalman_trust``) and follows
+``baselines.rules.RulePolicy``: parameters as constructor arguments,
+``params``, ``PARAM_BOUNDS`` (for ``magenv tune``), ``from_params``. Physical
+values are read back from the observation through the env's fixed scales
+(``magenv.filters.kalman_env``): ‖m‖ − m0 = m0·norm_dev µT, dip deviation =
+90·dip_dev degrees, ‖d̂‖ = m0·model_dist µT, with the site's m0 =
+50·field_ref µT (also an observation, so rules in µT are exact at any site).
+
+* ``kf_nominal`` — :class:`ConstantTrust` (γ = 1): the plain Kalman filter.
+* ``kf_gate`` — :class:`GateTrust`: the vector selector of Lee & Park 2009
+  (survey A8, Table A1) as a policy:
+  γ = 0 if | ‖m‖ − m0 | ≥ th_mag or |θ − θ0| ≥ th_α, else 1
+  (th_mag = 1.20 µT, th_α = 5°). The accelerometer half of the selector (A7,
+  th_acc = 0.08 m/s²) is the filter's own gate, active in every rule.
+  The dip θ is taken below the filter's a-priori horizontal (after the
+  accelerometer update of the same sample) — the survey's dip below the
+  selected gravity up to the accelerometer noise. One difference is not a
+  matter of γ: the survey's filter still runs its update with a replaced
+  sample (innovation ≈ 0), which keeps P at its steady state, whereas γ = 0
+  leaves P growing honestly (from P0 = (5°)² at the start), so the first
+  sample accepted after a rejection spell moves the heading with a large
+  gain. Where a disturbance turns the horizontal field while its norm and dip
+  pass the tests (e.g. ``dynamic_magnet``), kf_gate therefore does worse than
+  th_triad although both gates agree sample for sample.
+* ``kf_adaptive`` — :class:`AdaptiveTrust`: measurement noise that grows with
+  the measured deviation (Harada et al. 2007, survey ref. [38]):
+  R_m ← R_m·(1 + (Δm/σ_m)² + (Δθ/σ_θ)²) with Δm = ‖m‖ − m0 (µT), Δθ = θ − θ0
+  (°). When the measurement noise dominates S (the filter's steady state),
+  scaling R by r scales the gain by ≈ 1/r, so
+      γ = 1 / (1 + (Δm/σ_m)² + (Δθ/σ_θ)²).
+  Default scales σ_m = 1.20 µT, σ_θ = 5° (Table A1's thresholds: γ = ½ at a
+  threshold); [38]'s own constants are not in the survey.
+* ``kf_model`` — :class:`ModelTrust`: trust from the model-based filter's
+  disturbance estimate (Ligorio & Sabatini 2015, survey A.9–A.10). The env
+  runs the Gauss–Markov split of the magnetometer causally and shows ‖d̂_j‖
+  as ``model_dist``; the rule treats it as the adaptive rule treats the
+  measured deviation:  γ = 1 / (1 + (‖d̂‖/σ_d)²),  σ_d = 1.20 µT by default.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from baselines.rules import RulePolicy
+from magenv.filters.kalman_env import DIP_SCALE_DEG, FEATURE_NAMES, FIELD_SCALE_UT
+from magenv.filters.kalman_threshold import TH_DIP, TH_MAG
+
+ENV_ID = "magenv/MagKalman-v0"
+
+
+class KalmanRule(RulePolicy):
+    """Base of the trust rules: MagKalman-v0 features; ``weight(obs)`` returns γ."""
+
+    env_id = ENV_ID
+    name = "kf_rule"
+
+    def __init__(self, features: Sequence[str] | None = None):
+        super().__init__(tuple(FEATURE_NAMES if features is None else features))
+        self.env_kwargs = {} if features is None else {"features": list(self.features)}
+        if self.NEEDS and "field_ref" not in self.features:
+            raise ValueError(f"{type(self).__name__} needs observation feature 'field_ref' (m0) to read µT")
+        self._i_m0 = self.features.index("field_ref") if "field_ref" in self.features else None
+
+    def _ut(self, obs: np.ndarray, feature: str) -> float:
+        """A fraction-of-m0 feature in µT (m0 = 50 µT·field_ref)."""
+        return FIELD_SCALE_UT * float(obs[self._i_m0]) * float(obs[self._ix[feature]])
+
+    def _deg(self, obs: np.ndarray, feature: str) -> float:
+        """A units-of-90° feature in degrees."""
+        return DIP_SCALE_DEG * float(obs[self._ix[feature]])
+
+
+class ConstantTrust(KalmanRule):
+    """γ fixed (1 = the nominal Kalman filter, 0 = gyro-only heading)."""
+
+    name = "kf_constant"
+    PARAM_BOUNDS = {"gamma": (0.0, 1.0)}
+
+    def __init__(self, gamma: float = 1.0, features: Sequence[str] | None = None):
+        super().__init__(features)
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"γ must lie in [0, 1], got {gamma}")
+        self.gamma = float(gamma)
+
+    def weight(self, obs: np.ndarray) -> float:
+        return self.gamma
+
+
+class GateTrust(KalmanRule):
+    """Vector selector (survey A8): γ = 0 if |‖m‖ − m0| ≥ th_mag_ut or |θ − θ0| ≥ th_dip_deg, else 1."""
+
+    name = "kf_gate"
+    PARAM_BOUNDS = {"th_mag_ut": (0.1, 20.0), "th_dip_deg": (0.5, 45.0)}
+    NEEDS = ("norm_dev", "dip_dev")
+
+    def __init__(self, th_mag_ut: float = TH_MAG, th_dip_deg: float = TH_DIP, features: Sequence[str] | None = None):
+        super().__init__(features)
+        if not (th_mag_ut > 0 and th_dip_deg > 0):
+            raise ValueError(f"th_mag_ut and th_dip_deg must be positive, got {th_mag_ut}, {th_dip_deg}")
+        self.th_mag_ut, self.th_dip_deg = float(th_mag_ut), float(th_dip_deg)
+
+    def weight(self, obs: np.ndarray) -> float:
+        ok = (abs(self._ut(obs, "norm_dev")) < self.th_mag_ut  # A8, norm test
+              and abs(self._deg(obs, "dip_dev")) < self.th_dip_deg)  # A8, dip test
+        return 1.0 if ok else 0.0
+
+
+class AdaptiveTrust(KalmanRule):
+    """Adaptive R (survey ref. [38]): γ = 1 / (1 + (Δm/σ_m)² + (Δθ/σ_θ)²), Δm µT, Δθ degrees."""
+
+    name = "kf_adaptive"
+    PARAM_BOUNDS = {"sigma_mag_ut": (0.1, 20.0), "sigma_dip_deg": (0.5, 45.0)}
+    NEEDS = ("norm_dev", "dip_dev")
+
+    def __init__(self, sigma_mag_ut: float = TH_MAG, sigma_dip_deg: float = TH_DIP,
+                 features: Sequence[str] | None = None):
+        super().__init__(features)
+        if not (sigma_mag_ut > 0 and sigma_dip_deg > 0):
+            raise ValueError(f"sigma_mag_ut and sigma_dip_deg must be positive, got {sigma_mag_ut}, {sigma_dip_deg}")
+        self.sigma_mag_ut, self.sigma_dip_deg = float(sigma_mag_ut), float(sigma_dip_deg)
+
+    def weight(self, obs: np.ndarray) -> float:
+        a = self._ut(obs, "norm_dev") / self.sigma_mag_ut
+        b = self._deg(obs, "dip_dev") / self.sigma_dip_deg
+        return 1.0 / (1.0 + a * a + b * b)
+
+
+class ModelTrust(KalmanRule):
+    """Trust from the model-based disturbance estimate: γ = 1 / (1 + (‖d̂‖/σ_d)²), ‖d̂‖ µT."""
+
+    name = "kf_model"
+    PARAM_BOUNDS = {"sigma_dist_ut": (0.1, 20.0)}
+    NEEDS = ("model_dist",)
+
+    def __init__(self, sigma_dist_ut: float = TH_MAG, features: Sequence[str] | None = None):
+        super().__init__(features)
+        if not sigma_dist_ut > 0:
+            raise ValueError(f"sigma_dist_ut must be positive, got {sigma_dist_ut}")
+        self.sigma_dist_ut = float(sigma_dist_ut)
+
+    def weight(self, obs: np.ndarray) -> float:
+        a = self._ut(obs, "model_dist") / self.sigma_dist_ut
+        return 1.0 / (1.0 + a * a)
+
+
+RULES: dict[str, type[KalmanRule]] = {"kf_constant": ConstantTrust, "kf_gate": GateTrust,
+                                      "kf_adaptive": AdaptiveTrust, "kf_model": ModelTrust}
+
+
+def methods() -> dict:
+    """Name → factory of the trust rules at their published / default values, for ``compare``."""
+    return {"kf_nominal": ConstantTrust, "kf_gate": GateTrust, "kf_adaptive": AdaptiveTrust, "kf_model": ModelTrust}
