@@ -14,7 +14,9 @@ def normalized_actions(env: gym.Env) -> gym.Env:
     it starts in the middle (λ = 0.5). Stable-Baselines3 recommends this
     normalisation for every algorithm. ``AgentPolicy`` maps actions back.
     """
-    return gym.wrappers.RescaleAction(env, min_action=-1.0, max_action=1.0)
+    shape = env.action_space.shape
+    return gym.wrappers.RescaleAction(env, min_action=np.full(shape, -1.0, np.float32),
+                                      max_action=np.full(shape, 1.0, np.float32))
 
 
 def action_bounds(env_id: str, env_kwargs: dict) -> list[list[float]]:

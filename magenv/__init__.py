@@ -9,6 +9,9 @@ namespace, e.g. ``gymnasium.make("magenv/MagBlend-v0")``:
   magnetometer update in a quaternion Kalman filter.
 * ``magenv/MagConstraint-v0`` — ``magenv.envs.constraint.MagConstraintEnv``: the weight w
   of the magnetometer against a two-link kinematic constraint (Jung & Lee 2019).
+* ``magenv/MagQSF-v0`` — ``magenv.envs.qsf.MagQSFEnv``: when to start a quasi-static-field
+  period, keep its reference or skip the magnetic update, and how much to trust it
+  (Combettes & Renaudin 2016).
 """
 
 __version__ = "0.1.0"
@@ -27,6 +30,9 @@ def _register_envs() -> None:
     if "magenv/MagConstraint-v0" not in registry:
         register(id="magenv/MagConstraint-v0", entry_point="magenv.envs.constraint:MagConstraintEnv",
                  vector_entry_point="magenv.envs.constraint:MagConstraintVectorEnv")
+    if "magenv/MagQSF-v0" not in registry:
+        register(id="magenv/MagQSF-v0", entry_point="magenv.envs.qsf:MagQSFEnv",
+                 vector_entry_point="magenv.envs.qsf:MagQSFVectorEnv")
 
 
 _register_envs()

@@ -597,7 +597,7 @@ _REGISTRY: dict[str, tuple[ScenarioConfig, Callable]] = {
 
 #: Modules holding further scenario families (other worlds than the gimbal), each with
 #: ``SCENARIOS`` (name → config), ``get_scenario``, ``configure`` and ``make_trial``.
-FAMILY_MODULES = ("magenv.constraint_scenarios",)
+FAMILY_MODULES = ("magenv.constraint_scenarios", "magenv.handheld_scenarios")
 
 
 def family_of(name: str):

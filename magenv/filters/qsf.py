@@ -1,0 +1,610 @@
+"""AEKF, MAGYQ and Delay MAGYQ (Combettes & Renaudin 2016) and a quasi-static-field (QSF) detector.
+
+One numba step kernel serves the three filters (``MODE_AEKF``, ``MODE_MAGYQ``,
+``MODE_DELAY``); they share the state, the prediction and the accelerometer
+update and differ only in the magnetic update, so a comparison isolates the
+magnetic hypothesis.
+
+Reading of the paper in magenv's conventions
+--------------------------------------------
+The paper's ``q_b^n`` maps body → navigation frame with ``v^n = q ⊗ v^b ⊗ q̄``
+and its navigation frame is ENU (§3.2): that *is* magenv's convention
+(scalar-first Hamilton, sensor → ENU), so nothing is converted.
+
+* State (eq. 16): ``x = [q (4), b_q (4), b_a (3)]`` — the orientation, the
+  gyroscope *quaternion* bias of eq. 5 and the accelerometer bias of eq. 2.
+* Prediction (eqs. 17–18): ``q_yg = exp(½ T_s ω̄)`` with ω̄ the trapezoidal
+  mean of two causal gyro samples (eq. 17 as printed lacks the ``Δt/2`` that
+  eq. 5's definition gives), ``q̂_ω = normalise(q_yg − b_q)``,
+  ``q ← q ⊗ q̂_ω``; biases are random walks.
+* Covariance (eqs. 19–20): ``F = [[C(q̂_ω), −M(q), 0], [0, I, 0], [0, 0, I]]``
+  with ``q1 ⊗ q2 = M(q1) q2 = C(q2) q1``; ``G Q Gᵀ`` = ``(σ_g T_s/2)² M Mᵀ``
+  for the gyro quaternion noise and ``σ_b² T_s`` per bias component (eq. 19's
+  G prints ``T_s I`` twice; we read the bias blocks as random walks with
+  densities σ_bq, σ_ba per √s).
+* Accelerometer update (same in all three filters; not detailed in the
+  paper): ``z = g_ENU``, ``h(x) = q ⊗ (y_a − b_a) ⊗ q̄``, R = σ_a² I, skipped
+  when ``| |y_a| − g | ≥ th_acc``. The gate is off by default, as in the
+  paper ("the linear acceleration sensed by the MIMU perturbs the
+  orientation estimation for all filters", §6): in simulated arm swinging a
+  norm gate keeps exactly the samples whose acceleration is *tangential*
+  (norm ≈ g, direction wrong), and the accelerometer and gyro bias states
+  then run away (tilt errors > 90° observed), while ungated updates average
+  out over the swing. ``acc_adaptive`` = k inflates R_a by (k·(|y_a| − g))²
+  (off by default; in simulated swinging it makes the tilt worse).
+  Sensitivity found in simulation: with the paper's σ_a = 0.1 g, arm-swing
+  accelerations corrupt the gyro-bias states of MAGYQ when few QSF periods
+  are found (yaw errors of tens of degrees); σ_a ≈ 3 m/s² avoids it
+  (``python -m baselines.qsf paper sigma_acc=3.0``).
+* AEKF magnetic update: ``z = m_Earth`` (hypothesis H0), ``h = q ⊗ y_m ⊗ q̄``,
+  R = σ_m² I. (Bar-Itzhack & Oshman's AEKF has no bias states; ours shares
+  MAGYQ's 11 states so that only the magnetic hypothesis differs.)
+* MAGYQ QSF update (eqs. 6–9): at the period start t0 the reference
+  ``m_ref = q̂_t0 ⊗ y_m(t0) ⊗ q̄̂_t0`` (eq. 8); afterwards the innovation
+  ``δz = m_ref − q̂ ⊗ y_m ⊗ q̄̂`` (eq. 9), gain eq. 27 with R = σ_m² I (the
+  reference is treated as exact).
+* Delay MAGYQ (eqs. 13–15, 21–28): the covariance is augmented with the
+  estimate at t0 (stochastic cloning, ref. [10]): ``P̆ = [[P, Cov(δx, δq_t0)],
+  [·, P_q,t0]]`` with ``Cov(δx_k, δq_t0) = Γ_{t0,k} [P_q,t0 P_(q,b),t0]ᵀ``
+  (eq. 22) — propagated as ``C ← F C``; ``H̆ = [H_k 0 −H_t0]`` (eq. 13/23) with
+  ``H_t0`` the Jacobian of eq. 8 at (q̂_t0, y_m(t0)); noise
+  ``C_k R_m C_kᵀ + C_t0 R_m C_t0ᵀ = 2σ_m² I`` (eq. 15's ``M R_m Mᵀ`` read as
+  the two independent magnetometer noises it combines); full augmented gain
+  (eq. 23 ≡ eq. 28) and Joseph-form update of P̆ (eq. 25 ≡ eq. 26). The
+  paper says the measurement error is "distributed not only on the estimate
+  at the current time but also on the orientation at the first epoch"
+  (§5.4.2): the t0 estimate is corrected by ``K_q,t0 δz`` too, and the
+  reference recomputed from it (``update_reference``; off = eq. 24 read
+  literally, only x_k corrected). While a period is active every update,
+  the accelerometer's included, runs on the augmented system.
+* The Jacobian of ``h(q) = q ⊗ v ⊗ q̄`` (eq. 12/14's ``2[A a·I − [A×]]``) is
+  written here directly in q = [w, u]:
+  ``∂h/∂w = 2(w v + u × v)``, ``∂h/∂u = 2((u·v) I + u vᵀ − v uᵀ − w [v×])``.
+* After every update q (and q̂_t0) is renormalised and the covariance
+  projected on the unit sphere's tangent (``(I − q qᵀ)``) plus a tiny radial
+  variance ``eps`` keeping it positive definite; then
+  ``kalman_threshold.repair_cov1`` symmetrises it and floors its eigenvalues
+  if needed. A non-finite sample or covariance makes the kernel return −1
+  and the Python wrappers raise ``FilterError`` — never a silent NaN.
+
+Defaults (§5.3): accelerometer and magnetometer noise "10 % of the signal":
+σ_a = 0.1 g, σ_m = 0.1 m0; gyro noise from the sensor.
+
+QSF detector (the paper leaves the rule open; §7 says it should be improved)
+------------------------------------------------------------------------------
+Magnetometer/gyro consistency, independent of the filter: the field is
+rotated into a *gyro-only* frame ``m_g = q_g ⊗ y_m ⊗ q̄_g`` (``q_g`` integrates
+the raw gyro from the identity, so within seconds it differs from the earth
+frame by a constant rotation plus bias drift). A steady field gives a steady
+m_g whatever the motion. Per sample: ``spread`` = RMS distance of the last
+``window`` samples of m_g from their mean (µT). Sample i is *steady* when the
+window is full and ``spread < th_spread``. A period starts at the first
+steady sample (code 1) and continues (code 2) while samples stay steady,
+``|m_g(i) − m_g(t0)| < th_drift`` (slow drifts that pass the window test),
+and the period is younger than ``max_period`` s; otherwise a new period
+starts (code 1) or, if not steady, none (code 0). Codes depend only on
+samples ≤ i (causal) and not on the filter, so they can be computed for a
+whole trial up front.
+
+Per-sample signals (``SIGNALS``; truth-free, for the §5.5 test and a policy)
+are listed in ``SIGNALS`` below.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from magenv import quaternion as quat
+from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_cov1, right_matrix1
+from magenv.filters.solvers import triad1
+from magenv.quaternion import GRAVITY, from_rotvec1, mul1, normalize1, rotate1
+
+MODE_AEKF, MODE_MAGYQ, MODE_DELAY = 0, 1, 2
+MODES = {"aekf": MODE_AEKF, "magyq": MODE_MAGYQ, "delay_magyq": MODE_DELAY}
+# magnetic actions of a sample (detector code / policy decision)
+MAG_NONE, MAG_START, MAG_KEEP = 0, 1, 2
+
+NX = 11  # [q(4), b_q(4), b_a(3)]
+NA = 15  # + clone of q at t0
+NREF = 12  # [active, age_s, y0(3), m_ref(3), spare(4)]
+SIGNALS = (
+    "qsf_active",  # 0  1 while a QSF period is active after this sample (MAGYQ/Delay), else 0
+    "innov_norm",  # 1  |δz| of the magnetic update (or of the reference mismatch if gated off), µT
+    "nis",  # 2  δzᵀ S⁻¹ δz of the magnetic update (0 without one)
+    "corr_norm",  # 3  |K_q δz|: norm of the quaternion correction by the magnetic update (§5.5, Fig. 10)
+    "age",  # 4  time since the period's start, s (0 without period)
+    "trust",  # 5  gain multiplier applied to the magnetic update (0 if none ran)
+    "heading_std",  # 6  sqrt of the heading (earth z) variance from P, rad
+    "acc_used",  # 7  1 if the accelerometer update ran
+    "mag_updated",  # 8  1 if a magnetic update ran
+)
+NSIG = len(SIGNALS)
+
+# parameter vector layout
+P_SG, P_SBQ, P_SBA, P_SA, P_SM, P_THACC = 0, 1, 2, 3, 4, 5
+P_G, P_H = 6, 9  # g_ref (3), h_earth (3)
+P_MODE, P_FLOOR, P_EPS, P_UPDREF, P_MAXAGE, P_ACCAD = 12, 13, 14, 15, 16, 17
+NPARAM = 18
+
+SIGMA_GYR = np.deg2rad(0.3)  # rad/s per sample, a smartphone-grade default
+SIGMA_BIAS_WALK = np.deg2rad(0.01)  # rad/s per √s
+SIGMA_ACC_BIAS_WALK = 1e-4  # m/s² per √s
+TH_ACC = np.inf  # m/s², accelerometer norm gate: off by default (the paper gates nothing, §6)
+P0_ANGLE = np.deg2rad(2.0)  # rad, initial orientation std (per error angle)
+P0_GYR_BIAS = np.deg2rad(0.5)  # rad/s, initial gyro bias std
+P0_ACC_BIAS = 0.01  # m/s², initial accelerometer bias std (small: with little rotation, e.g. walking on a
+#                     treadmill, a loose b_a absorbs linear acceleration and drags the tilt off)
+RADIAL_EPS = 1e-12  # variance kept along q after the tangent projection
+CLONE_JITTER = 1e-10  # variance added to the clone at t0 (quaternion units², ~1e-5 rad)
+MAX_AGE_S = 60.0  # a period older than this is restarted whatever the action
+
+
+def make_params(field_norm: float, field_dip: float, mode="delay_magyq", sigma_gyr: float = SIGMA_GYR,
+                sigma_acc: float | None = None, sigma_mag: float | None = None, th_acc: float = TH_ACC,
+                sigma_bias_walk: float = SIGMA_BIAS_WALK, sigma_acc_bias_walk: float = SIGMA_ACC_BIAS_WALK,
+                update_reference: bool = True, max_age_s: float = MAX_AGE_S,
+                acc_adaptive: float = 0.0) -> np.ndarray:
+    """Parameter vector of the kernels.
+
+    Args:
+        field_norm: Earth field m0, µT; field_dip: ° down (used by the AEKF reference and TRIAD init).
+        mode: "aekf", "magyq" or "delay_magyq".
+        sigma_gyr: gyro white noise, rad/s. sigma_acc: m/s² (default 0.1 g, §5.3).
+        sigma_mag: µT (default 0.1·m0, §5.3). th_acc: accelerometer norm gate, m/s² (inf = never gated).
+        sigma_bias_walk: gyro bias random walk, rad/s per √s. sigma_acc_bias_walk: m/s² per √s.
+        update_reference: Delay MAGYQ corrects the t0 estimate (and the reference) too.
+        max_age_s: a QSF period is restarted once older than this, s.
+        acc_adaptive: k ≥ 0; the accelerometer variance becomes σ_a² + (k·(|y_a| − g))² (0 = the paper's
+            constant R_a).
+    """
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
+    sigma_acc = 0.1 * GRAVITY if sigma_acc is None else sigma_acc
+    sigma_mag = 0.1 * field_norm if sigma_mag is None else sigma_mag
+    for name, v in (("sigma_gyr", sigma_gyr), ("sigma_acc", sigma_acc), ("sigma_mag", sigma_mag),
+                    ("sigma_bias_walk", sigma_bias_walk), ("sigma_acc_bias_walk", sigma_acc_bias_walk),
+                    ("max_age_s", max_age_s), ("field_norm", field_norm)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+    if not th_acc > 0:
+        raise ValueError(f"th_acc must be > 0 m/s² (inf disables the gate), got {th_acc!r}")
+    p = np.zeros(NPARAM)
+    p[P_SG], p[P_SBQ], p[P_SBA], p[P_SA], p[P_SM], p[P_THACC] = (
+        sigma_gyr, sigma_bias_walk, sigma_acc_bias_walk, sigma_acc, sigma_mag, th_acc)
+    p[P_G:P_G + 3] = quat.gravity_up()
+    p[P_H:P_H + 3] = quat.earth_field(field_norm, field_dip)
+    p[P_MODE], p[P_FLOOR], p[P_EPS] = MODES[mode], COV_FLOOR, RADIAL_EPS
+    p[P_UPDREF], p[P_MAXAGE] = 1.0 if update_reference else 0.0, max_age_s
+    if not (np.isfinite(acc_adaptive) and acc_adaptive >= 0):
+        raise ValueError(f"acc_adaptive must be a finite number ≥ 0, got {acc_adaptive!r}")
+    p[P_ACCAD] = acc_adaptive
+    return p
+
+
+# ------------------------------------------------------------ small matrices
+
+
+@njit(cache=True)
+def left_matrix1(q):
+    """4×4 M(q) with ``q ⊗ p = M(q) p`` (eq. 20)."""
+    m = np.empty((4, 4))
+    m[0, 0], m[0, 1], m[0, 2], m[0, 3] = q[0], -q[1], -q[2], -q[3]
+    m[1, 0], m[1, 1], m[1, 2], m[1, 3] = q[1], q[0], -q[3], q[2]
+    m[2, 0], m[2, 1], m[2, 2], m[2, 3] = q[2], q[3], q[0], -q[1]
+    m[3, 0], m[3, 1], m[3, 2], m[3, 3] = q[3], -q[2], q[1], q[0]
+    return m
+
+
+@njit(cache=True)
+def rot_jacobian1(q, v):
+    """3×4 Jacobian of ``h(q) = q ⊗ v ⊗ q̄`` with respect to q = [w, u] (eqs. 12, 14)."""
+    w, ux, uy, uz = q[0], q[1], q[2], q[3]
+    j = np.empty((3, 4))
+    cx = uy * v[2] - uz * v[1]
+    cy = uz * v[0] - ux * v[2]
+    cz = ux * v[1] - uy * v[0]
+    j[0, 0] = 2.0 * (w * v[0] + cx)
+    j[1, 0] = 2.0 * (w * v[1] + cy)
+    j[2, 0] = 2.0 * (w * v[2] + cz)
+    uv = ux * v[0] + uy * v[1] + uz * v[2]
+    u = (ux, uy, uz)
+    for r in range(3):
+        for c in range(3):
+            val = u[r] * v[c] - v[r] * u[c]
+            if r == c:
+                val += uv
+            j[r, 1 + c] = 2.0 * val
+    # − w [v×]
+    j[0, 2] += 2.0 * w * v[2]
+    j[0, 3] -= 2.0 * w * v[1]
+    j[1, 1] -= 2.0 * w * v[2]
+    j[1, 3] += 2.0 * w * v[0]
+    j[2, 1] += 2.0 * w * v[1]
+    j[2, 2] -= 2.0 * w * v[0]
+    return j
+
+
+@njit(cache=True)
+def heading_row1(q):
+    """Row e (4,) with earth-frame heading error ≈ e · δq (δθ_E = 2 vec(δq ⊗ q̄))."""
+    m = right_matrix1(np.array([q[0], -q[1], -q[2], -q[3]]))
+    return 2.0 * m[3]
+
+
+# ------------------------------------------------------------ kernel pieces
+
+
+@njit(cache=True)
+def _kalman_update(x, pa, na, nu, h, r_diag, gain_scale):
+    """Joseph-form EKF update of the first ``na`` states, in place; returns (K (na, m), S⁻¹)."""
+    m = nu.shape[0]
+    p = pa[:na, :na].copy()
+    pht = p @ h.T
+    s = h @ pht
+    for i in range(m):
+        s[i, i] += r_diag
+    s_inv = np.linalg.inv(s)
+    k = gain_scale * (pht @ s_inv)
+    dx = k @ nu
+    for i in range(na):
+        x[i] += dx[i]
+    ikh = np.eye(na) - k @ h
+    p = ikh @ p @ ikh.T + r_diag * (k @ k.T)
+    pa[:na, :na] = p
+    return k, s_inv
+
+
+@njit(cache=True)
+def _renormalise(x, pa, na, eps):
+    """Normalise q (and the clone) and project the covariance on the unit-sphere tangent."""
+    t = np.eye(na)
+    for off in (0, NX):
+        if off + 4 > na:
+            continue
+        qn = np.sqrt(x[off] ** 2 + x[off + 1] ** 2 + x[off + 2] ** 2 + x[off + 3] ** 2)
+        for i in range(4):
+            x[off + i] /= qn
+        for i in range(4):
+            for j in range(4):
+                t[off + i, off + j] = (1.0 if i == j else 0.0) - x[off + i] * x[off + j]
+    p = t @ pa[:na, :na].copy() @ t.T
+    for off in (0, NX):
+        if off + 4 > na:
+            continue
+        for i in range(4):
+            for j in range(4):
+                p[off + i, off + j] += eps * x[off + i] * x[off + j]
+    pa[:na, :na] = p
+
+
+@njit(cache=True)
+def step1(x, pa, ref, gyr_prev, gyr, acc, mag, dt, predict, action, trust, params, sig):
+    """One sample in place on ``x`` (15,), ``pa`` (15, 15), ``ref`` (NREF,); writes ``sig`` (NSIG,).
+
+    ``x[:11]`` = [q, b_q, b_a], ``x[11:15]`` the clone q̂_t0 (Delay MAGYQ);
+    ``ref`` = [active, age s, y_m(t0) (3), m_ref (3), …]. ``action`` is
+    MAG_NONE / MAG_START / MAG_KEEP (ignored by the AEKF, which always
+    updates), ``trust`` ∈ [0, 1] scales the magnetic gain. Returns 0 ok,
+    1 covariance repaired, −1 non-finite input or covariance (state unchanged).
+    """
+    if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
+        return -1
+    for i in range(NA):
+        if not np.isfinite(x[i]):
+            return -1
+        for j in range(NA):
+            if not np.isfinite(pa[i, j]):
+                return -1
+    mode = int(params[P_MODE])
+    xs = x.copy()
+    ps = pa.copy()
+    rs = ref.copy()
+    active = rs[0] > 0.5 and mode != MODE_AEKF
+    keep_clone = mode == MODE_DELAY and active and params[P_UPDREF] < 0.5  # eq. 24 literally
+    na = NA if (mode == MODE_DELAY and active) else NX
+    # 1. prediction, eqs. 17–19
+    if predict:
+        q = xs[0:4].copy()
+        q_yg = from_rotvec1(0.5 * (gyr_prev + gyr) * dt)
+        q_w = normalize1(q_yg - xs[4:8])
+        xs[0:4] = mul1(q, q_w)
+        f = np.eye(na)
+        f[0:4, 0:4] = right_matrix1(q_w)
+        f[0:4, 4:8] = -left_matrix1(q)
+        p = f @ ps[:na, :na].copy() @ f.T
+        qg = (0.5 * params[P_SG] * dt) ** 2
+        for i in range(4):
+            p[i, i] += qg
+            p[4 + i, 4 + i] += (0.5 * dt * params[P_SBQ]) ** 2 * dt
+        for i in range(3):
+            p[8 + i, 8 + i] += params[P_SBA] ** 2 * dt
+        ps[:na, :na] = p
+        if active:
+            rs[1] += dt
+    # 2. accelerometer update (gated)
+    g = params[P_G:P_G + 3]
+    na_ = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
+    acc_used = abs(na_ - np.sqrt(g @ g)) < params[P_THACC]
+    if acc_used:
+        q = xs[0:4].copy()
+        v = acc - xs[8:11]
+        h = np.zeros((3, na))
+        h[:, 0:4] = rot_jacobian1(q, v)
+        for j in range(3):  # ∂/∂b_a of q ⊗ (y_a − b_a) ⊗ q̄ = −R(q), column j = −R e_j
+            e = np.zeros(3)
+            e[j] = 1.0
+            h[:, 8 + j] = -rotate1(q, e)
+        dev = params[P_ACCAD] * (na_ - np.sqrt(g @ g))
+        _kalman_update(xs, ps, na, g - rotate1(q, v), h, params[P_SA] ** 2 + dev * dev, 1.0)
+        _renormalise(xs, ps, na, params[P_EPS])
+        if active and mode == MODE_DELAY and params[P_UPDREF] > 0.5:
+            rs[6:9] = rotate1(xs[NX:NA], rs[3:6])
+    # 3. magnetic update
+    sm2 = params[P_SM] ** 2
+    innov = 0.0
+    nis = 0.0
+    corr = 0.0
+    updated = False
+    if mode == MODE_AEKF:
+        z = params[P_H:P_H + 3].copy()
+        do = trust > 0.0
+        r_diag = sm2
+    else:
+        if action == MAG_START or (action == MAG_KEEP and active and rs[1] > params[P_MAXAGE]):
+            # eq. 8: the reference is the field at t0 rotated by the estimate at t0
+            rs[0], rs[1] = 1.0, 0.0
+            rs[3:6] = mag
+            rs[6:9] = rotate1(xs[0:4], mag)
+            if mode == MODE_DELAY:  # clone: Cov(δq_t0) = P_qq, Cov(δx, δq_t0) = P[:, q]
+                na = NA
+                xs[NX:NA] = xs[0:4]
+                ps[NX:NA, :NX] = ps[0:4, :NX]
+                ps[:NX, NX:NA] = ps[:NX, 0:4]
+                ps[NX:NA, NX:NA] = ps[0:4, 0:4]
+                for i in range(NX, NA):  # the exact clone is singular; a tiny jitter keeps P̆ positive definite
+                    ps[i, i] += CLONE_JITTER
+            active = True
+            do = False  # δz ≡ 0 at t0
+        elif action == MAG_KEEP and active:
+            do = trust > 0.0
+        else:
+            if active:  # the period ends
+                rs[0], rs[1] = 0.0, 0.0
+                active = False
+                na = NX
+            do = False
+        z = rs[6:9].copy()
+        r_diag = 2.0 * sm2 if mode == MODE_DELAY else sm2
+    if mode == MODE_AEKF or active:
+        q = xs[0:4].copy()
+        nu = z - rotate1(q, mag)
+        innov = np.sqrt(nu @ nu)
+        if do:
+            h = np.zeros((3, na))
+            h[:, 0:4] = rot_jacobian1(q, mag)
+            if na == NA:
+                h[:, NX:NA] = -rot_jacobian1(xs[NX:NA], rs[3:6])
+            q_before = xs[0:4].copy()
+            k, s_inv = _kalman_update(xs, ps, na, nu, h, r_diag, trust)
+            nis = nu @ s_inv @ nu
+            dq = xs[0:4] - q_before
+            corr = np.sqrt(dq @ dq)
+            _renormalise(xs, ps, na, params[P_EPS])
+            if na == NA and params[P_UPDREF] > 0.5:
+                rs[6:9] = rotate1(xs[NX:NA], rs[3:6])
+            updated = True
+    if keep_clone and active and na == NA and rs[1] > 0.0:  # eq. 24 read literally: the t0 estimate stays
+        xs[NX:NA] = x[NX:NA]
+    # 4. covariance health
+    p = ps[:na, :na].copy()
+    status = repair_cov1(p, params[P_FLOOR])
+    if status < 0:
+        return -1
+    for i in range(na):
+        if not np.isfinite(xs[i]):
+            return -1
+    ps[:na, :na] = p
+    if na == NX:  # keep the unused clone block tidy
+        ps[NX:, :] = 0.0
+        ps[:, NX:] = 0.0
+    x[:] = xs
+    pa[:, :] = ps
+    ref[:] = rs
+    e = heading_row1(xs[0:4])
+    sig[0] = 1.0 if (active and mode != MODE_AEKF) else 0.0
+    sig[1] = innov
+    sig[2] = nis
+    sig[3] = corr
+    sig[4] = rs[1] if active else 0.0
+    sig[5] = trust if updated else 0.0
+    sig[6] = np.sqrt(max(0.0, e @ (ps[0:4, 0:4].copy() @ e)))
+    sig[7] = 1.0 if acc_used else 0.0
+    sig[8] = 1.0 if updated else 0.0
+    return status
+
+
+@njit(cache=True)
+def run_kernel(x, pa, ref, gyr, acc, mag, dt, i0, i1, actions, trusts, params, q_out, sig_out):
+    """Samples ``i0 … i1−1`` in place (sample 0: no prediction). Action/trust of sample i:
+    ``actions[i]``, ``trusts[i]``. Writes q_out[i], sig_out[i]. Returns (first bad index or −1, repairs)."""
+    repairs = 0
+    for i in range(i0, i1):
+        ip = i - 1 if i > 0 else 0
+        st = step1(x, pa, ref, gyr[ip], gyr[i], acc[i], mag[i], dt, i > 0, actions[i], trusts[i], params,
+                   sig_out[i])
+        if st < 0:
+            return i, repairs
+        repairs += st
+        q_out[i] = x[0:4]
+    return -1, repairs
+
+
+# ------------------------------------------------------------ detector
+
+
+@njit(cache=True)
+def detect_kernel(gyr, mag, dt, window, th_spread, th_drift, max_len, code, spread):
+    """QSF detector over whole arrays (see module docstring); writes code (N,) int8 and spread (N,) µT."""
+    n = gyr.shape[0]
+    qg = np.array([1.0, 0.0, 0.0, 0.0])
+    mg = np.empty((n, 3))
+    start = -1
+    for i in range(n):
+        if i > 0:
+            qg = normalize1(mul1(qg, from_rotvec1(0.5 * (gyr[i - 1] + gyr[i]) * dt)))
+        mg[i] = rotate1(qg, mag[i])
+        if i + 1 < window:
+            spread[i] = np.nan
+            code[i] = 0
+            start = -1
+            continue
+        mean = np.zeros(3)
+        for j in range(i - window + 1, i + 1):
+            mean += mg[j]
+        mean /= window
+        s = 0.0
+        for j in range(i - window + 1, i + 1):
+            d = mg[j] - mean
+            s += d @ d
+        spread[i] = np.sqrt(s / window)
+        if spread[i] < th_spread:
+            if start >= 0:
+                d = mg[i] - mg[start]
+                if np.sqrt(d @ d) < th_drift and i - start < max_len:
+                    code[i] = MAG_KEEP
+                    continue
+            start = i
+            code[i] = MAG_START
+        else:
+            start = -1
+            code[i] = MAG_NONE
+
+
+@dataclass(frozen=True)
+class QSFDetector:
+    """Quasi-static field detector (magnetometer/gyro consistency; module docstring).
+
+    Attributes:
+        window_s: window of the spread test, s. th_spread: µT (RMS spread of the gyro-frame field).
+        th_drift: µT, largest drift of the gyro-frame field from its value at the period start.
+        max_period_s: a period is restarted (new reference) after this long, s.
+    """
+
+    window_s: float = 0.5
+    th_spread: float = 1.0
+    th_drift: float = 2.0
+    max_period_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        for k in ("window_s", "th_spread", "th_drift", "max_period_s"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"QSFDetector.{k} must be a positive finite number, got {v!r}")
+
+    @classmethod
+    def for_noise(cls, sigma_ut: float, **kw) -> "QSFDetector":
+        """Thresholds scaled to a magnetometer's white noise σ (µT per axis): the 3D spread of pure noise is
+        ≈ √3·σ, so th_spread = 2√3·σ and th_drift = 4√3·σ (σ = 0.3 µT gives the defaults 1.0 / 2.0 µT)."""
+        if not (np.isfinite(sigma_ut) and sigma_ut > 0):
+            raise ValueError(f"sigma_ut must be a positive number of µT, got {sigma_ut!r}")
+        return cls(th_spread=2.0 * np.sqrt(3.0) * sigma_ut, th_drift=4.0 * np.sqrt(3.0) * sigma_ut, **kw)
+
+    def detect(self, gyr, mag, rate: float) -> tuple[np.ndarray, np.ndarray]:
+        """Codes (N,) int8 (0 none, 1 start, 2 keep) and spread (N,) µT for gyr (N, 3) rad/s, mag (N, 3) µT."""
+        gyr = np.ascontiguousarray(gyr, float)
+        mag = np.ascontiguousarray(mag, float)
+        if gyr.shape != mag.shape or gyr.ndim != 2 or gyr.shape[1] != 3:
+            raise ValueError(f"gyr and mag must both be (N, 3), got {gyr.shape} and {mag.shape}")
+        if not (np.all(np.isfinite(gyr)) and np.all(np.isfinite(mag))):
+            raise ValueError("QSF detector: gyr and mag must be finite")
+        n = len(gyr)
+        code = np.zeros(n, np.int8)
+        spread = np.empty(n)
+        window = max(1, int(round(self.window_s * rate)))
+        detect_kernel(gyr, mag, 1.0 / rate, window, self.th_spread, self.th_drift,
+                      max(1, int(round(self.max_period_s * rate))), code, spread)
+        return code, spread
+
+
+# ------------------------------------------------------------ Python wrappers
+
+
+def initial_state(q0, dt: float, p0_angle: float = P0_ANGLE, p0_gyr_bias: float = P0_GYR_BIAS,
+                  p0_acc_bias: float = P0_ACC_BIAS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(x (15,), P (15, 15), ref (NREF,))`` at orientation q0 (4,), zero biases.
+
+    p0_angle: rad (quaternion variance (p0/2)² per component); p0_gyr_bias: rad/s (quaternion bias
+    std dt/2 · p0_gyr_bias); p0_acc_bias: m/s².
+    """
+    q0 = np.asarray(q0, float)
+    if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) < 1e-9:
+        raise FilterError(f"QSF filters: bad initial quaternion {q0}")
+    x = np.zeros(NA)
+    x[0:4] = q0 / np.linalg.norm(q0)
+    pa = np.zeros((NA, NA))
+    pa[0:4, 0:4] = (0.5 * p0_angle) ** 2 * np.eye(4)
+    pa[4:8, 4:8] = (0.5 * dt * p0_gyr_bias) ** 2 * np.eye(4)
+    pa[8:11, 8:11] = p0_acc_bias**2 * np.eye(3)
+    _renormalise(x, pa, NX, RADIAL_EPS)
+    return x, pa, np.zeros(NREF)
+
+
+def triad_init(acc0, mag0, params) -> np.ndarray:
+    """Orientation from the first sample by TRIAD against g and the Earth field of ``params``."""
+    q = triad1(np.ascontiguousarray(acc0, float), np.ascontiguousarray(mag0, float), params[P_G:P_G + 3],
+               params[P_H:P_H + 3])
+    if not np.all(np.isfinite(q)):
+        raise FilterError(f"QSF filters: cannot initialise by TRIAD from acc={acc0}, mag={mag0}")
+    return q
+
+
+def run(x, pa, ref, gyr, acc, mag, dt, i0, i1, actions, trusts, params, q_out, sig_out) -> int:
+    """Advance over samples ``i0 … i1−1`` (arrays as in ``run_kernel``); returns the number of covariance
+    repairs; raises FilterError on a non-finite sample or covariance (state left at the previous sample)."""
+    if not 0 <= i0 <= i1 <= len(gyr):
+        raise ValueError(f"need 0 <= i0 <= i1 <= N={len(gyr)}, got {i0}, {i1}")
+    bad, repairs = run_kernel(x, pa, ref, gyr, acc, mag, dt, i0, i1, actions, trusts, params, q_out, sig_out)
+    if bad >= 0:
+        raise FilterError(f"QSF filter: non-finite sample or covariance at sample {bad} "
+                          f"(gyr={gyr[bad]}, acc={acc[bad]}, mag={mag[bad]})")
+    return repairs
+
+
+@dataclass
+class QSFResult:
+    """Output of :func:`run_trial`: q (N, 4), sig (N, NSIG), codes (N,) the magnetic actions used,
+    spread (N,) detector statistic µT, repairs (count of covariance repairs)."""
+
+    q: np.ndarray
+    sig: np.ndarray
+    codes: np.ndarray
+    spread: np.ndarray
+    repairs: int
+
+
+def run_trial(trial, mode="delay_magyq", detector: QSFDetector | None = None, q0=None, trust=1.0,
+              params=None, actions=None, p0: dict | None = None, **param_kw) -> QSFResult:
+    """Whole trial. ``q0``: initial orientation (default TRIAD on sample 0 against the trial's Earth field;
+    the paper initialises from its reference system: pass ``trial.q_true[0]``). ``actions`` (N,) overrides
+    the detector's codes. ``p0``: keywords of :func:`initial_state`. Extra keywords go to :func:`make_params`."""
+    if params is None:
+        params = make_params(trial.field_norm, trial.field_dip, mode=mode, **param_kw)
+    detector = QSFDetector() if detector is None else detector
+    codes, spread = detector.detect(trial.gyr, trial.mag, trial.rate)
+    if actions is not None:
+        codes = np.ascontiguousarray(actions, np.int8)
+        if codes.shape != (trial.n,) or np.any((codes < 0) | (codes > 2)):
+            raise ValueError(f"actions must be (N,) = ({trial.n},) with values 0, 1, 2")
+    q_init = triad_init(trial.acc[0], trial.mag[0], params) if q0 is None else np.asarray(q0, float)
+    x, pa, ref = initial_state(q_init, trial.dt, **(p0 or {}))
+    trusts = np.broadcast_to(np.asarray(trust, float), (trial.n,)).copy()
+    if np.any((trusts < 0) | (trusts > 1)):
+        raise ValueError("trust must be in [0, 1]")
+    q_out = np.empty((trial.n, 4))
+    sig = np.zeros((trial.n, NSIG))
+    repairs = run(x, pa, ref, trial.gyr, trial.acc, trial.mag, trial.dt, 0, trial.n, codes, trusts, params,
+                  q_out, sig)
+    return QSFResult(q_out, sig, codes, spread, repairs)

@@ -1,0 +1,229 @@
+"""Hand-held pedestrian scenarios (Combettes & Renaudin 2016 §5.2): a walker in a static indoor field.
+
+Public API (mirrors ``magenv.scenarios``)::
+
+    make_trial(name, seed, **overrides) -> Trial
+    scenario_names() -> list[str]
+    get_scenario(name) -> HandheldConfig
+    configure(name, **overrides) -> HandheldConfig
+
+Scenarios, all at 100 Hz (the paper's ADIS-16488 rate):
+
+* ``handheld_texting`` — device held steady in front, walking at 5 km/h, 120 s;
+* ``handheld_swinging`` — device in the swinging hand, 5 km/h, 120 s;
+* ``handheld_free`` — 13 min (780 s) of mixed carrying modes (texting,
+  swinging, phoning, irregular), speed 1–1.7 m/s, as the unsupervised walk;
+* ``handheld_corridor`` — texting while travelling a figure-eight (6 × 3 m)
+  through the field at 5 km/h, 120 s;
+* ``handheld_random`` — the training family: random modes, speed, field
+  sources, Earth field location and sensor noise, treadmill or travelling
+  (probability ½ each), 60 s.
+
+The paper's subjects walked on a treadmill in a 9 m² motion lab (§5.1), so
+the three paper scenarios walk in place (``treadmill_prob=1``): the field at
+the sensor then changes only with the hand's motion relative to the body
+(Fig. 8), and is otherwise steady though far from the Earth field (Fig. 4).
+``handheld_corridor`` (and half of ``handheld_random``) travel through the
+spatially varying field instead, where a quasi-static reference also goes
+stale from the walk itself. Truth channels:
+``mag_disturbance`` (N, 3) µT sensor frame (field − Earth field),
+``position`` (N, 3) m ENU, ``mode`` (N,) index into ``magenv.sim.handheld.MODES``,
+``stationary`` (N,) bool (never, the walker does not stop).
+
+A name + a seed → the same Trial bit for bit: four independent random
+streams (motion, field, Earth location, sensor) are spawned from
+``numpy.random.SeedSequence(seed)``.
+
+The sensor is smartphone-grade (``HANDHELD_SENSOR``: gyro bias 0.3 °/s per
+axis, much worse than the paper's ADIS-16488), so that the magnetometer
+matters for heading, which is the paper's setting of interest; the
+magnetometer has no lag or sample-and-hold (those are properties of the BROAD
+unit, kept in the shared ``SensorConfig`` defaults).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from magenv import quaternion as quat
+from magenv.sim import earth
+from magenv.sim.handheld import MODES, Motion, ideal_readings
+from magenv.sim.indoor_field import random_indoor_field
+from magenv.sim.sensors import SensorConfig, apply_sensor_model
+from magenv.trial import Trial
+
+#: Nantes (IFSTTAR, the paper's lab), approximate IGRF values: 47 µT, dip 61°.
+NANTES = (47.0, 61.0)
+
+HANDHELD_SENSOR = SensorConfig(gyr_noise_dps=0.1, gyr_bias_dps=0.3, gyr_drift_dps=0.01, acc_noise=0.03,
+                               acc_bias=0.05, mag_noise_ut=0.3, mag_hard_iron_ut=0.5, mag_soft_iron=0.005,
+                               mag_lag_samples=0, mag_hold_fraction=0.0)
+
+
+def _pair(name, v, lo=-math.inf, hi=math.inf):
+    if not (isinstance(v, (tuple, list)) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v)
+            and lo <= v[0] <= v[1] <= hi):
+        raise ValueError(f"{name} must be a (low, high) pair with {lo} ≤ low ≤ high ≤ {hi}, got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class HandheldConfig:
+    """A hand-held walking scenario. Ranges are (low, high), drawn uniformly per seed.
+
+    Attributes:
+        duration: s. rate: Hz.
+        modes: carrying modes (``magenv.sim.handheld.MODES``); one mode → one segment.
+        segment_s: duration of each mode segment, s (mixed modes only).
+        transition_s: hand-over between segments, s.
+        speed_mps: walking speed, m/s (5 km/h = 1.39; unused on the treadmill). step_hz: step frequency, Hz.
+        path_m: long half extent a of the figure-eight, m (the short one is a/2).
+        treadmill_prob: probability that the walker walks in place (the paper's treadmill, §5.1)
+            rather than travelling the figure-eight through the field.
+        n_dipoles, dipole_ut, dipole_distance_m: number of ferrous sources, the field of each at the
+            nearest point of the walk (µT), and their distance from the walk (m, ≥ 1).
+        n_wires, wire_current_a: ceiling wires (2.7 m) and their DC current, A.
+        field_norm, field_dip: Earth field, µT and ° down (ignored if ``random_location``).
+        random_location: draw the Earth field from ``magenv.sim.earth`` ranges.
+        noise_scale: factor on the white-noise levels of ``sensor``.
+        sensor: the MIMU error model.
+    """
+
+    duration: float = 120.0
+    rate: float = 100.0
+    modes: tuple = ("texting",)
+    segment_s: tuple = (20.0, 60.0)
+    transition_s: float = 1.5
+    speed_mps: tuple = (1.39, 1.39)
+    step_hz: tuple = (1.7, 2.0)
+    path_m: tuple = (6.0, 6.0)
+    treadmill_prob: float = 1.0
+    n_dipoles: tuple = (3, 6)
+    dipole_ut: tuple = (1.0, 6.0)
+    dipole_distance_m: tuple = (1.5, 4.0)
+    n_wires: tuple = (0, 2)
+    wire_current_a: tuple = (1.0, 15.0)
+    field_norm: float = NANTES[0]
+    field_dip: float = NANTES[1]
+    random_location: bool = False
+    noise_scale: tuple = (1.0, 1.0)
+    sensor: SensorConfig = HANDHELD_SENSOR
+
+    def __post_init__(self) -> None:
+        if not (0 < self.duration <= 7200 and 1 <= self.rate <= 10000 and self.duration * self.rate >= 2):
+            raise ValueError(f"need 0 < duration ≤ 7200 s, 1 ≤ rate ≤ 10000 Hz and ≥ 2 samples, "
+                             f"got {self.duration!r} s, {self.rate!r} Hz")
+        if not self.modes or any(m not in MODES for m in self.modes):
+            raise ValueError(f"modes must be a non-empty tuple of {MODES}, got {self.modes!r}")
+        _pair("segment_s", self.segment_s, 1.0)
+        _pair("speed_mps", self.speed_mps, 0.0, 3.0)
+        _pair("step_hz", self.step_hz, 0.5, 4.0)
+        _pair("path_m", self.path_m, 0.5, 100.0)
+        _pair("n_dipoles", self.n_dipoles, 0, 50)
+        _pair("dipole_ut", self.dipole_ut, 0.0, 500.0)
+        _pair("dipole_distance_m", self.dipole_distance_m, 0.3, 50.0)
+        _pair("n_wires", self.n_wires, 0, 20)
+        _pair("wire_current_a", self.wire_current_a, 0.0, 1000.0)
+        _pair("noise_scale", self.noise_scale, 0.0, 100.0)
+        if not 0.0 <= self.treadmill_prob <= 1.0:
+            raise ValueError(f"treadmill_prob must be in [0, 1], got {self.treadmill_prob!r}")
+        if not 0.0 <= self.transition_s <= self.segment_s[0]:
+            raise ValueError(f"transition_s must be in [0, segment_s low], got {self.transition_s!r}")
+        if not (0 < self.field_norm < 1000 and -90 <= self.field_dip <= 90):
+            raise ValueError(f"field_norm must be in (0, 1000) µT and field_dip in [-90, 90]°, "
+                             f"got {self.field_norm!r}, {self.field_dip!r}")
+        if not isinstance(self.sensor, SensorConfig):
+            raise ValueError(f"sensor must be a SensorConfig, got {type(self.sensor).__name__}")
+
+
+SCENARIOS: dict[str, HandheldConfig] = {
+    "handheld_texting": HandheldConfig(modes=("texting",)),
+    "handheld_swinging": HandheldConfig(modes=("swinging",)),
+    "handheld_free": HandheldConfig(duration=780.0, modes=MODES, speed_mps=(1.0, 1.7), segment_s=(20.0, 90.0)),
+    "handheld_corridor": HandheldConfig(modes=("texting",), treadmill_prob=0.0),
+    "handheld_random": HandheldConfig(duration=60.0, modes=MODES, segment_s=(8.0, 40.0), speed_mps=(0.8, 1.8),
+                                      step_hz=(1.5, 2.2), path_m=(3.0, 8.0), n_dipoles=(0, 8),
+                                      dipole_ut=(1.0, 25.0), n_wires=(0, 3), random_location=True,
+                                      noise_scale=(0.5, 2.0), treadmill_prob=0.5),
+}
+
+
+def scenario_names() -> list[str]:
+    """Names of the hand-held scenarios."""
+    return list(SCENARIOS)
+
+
+def get_scenario(name: str) -> HandheldConfig:
+    """Default config of ``name``; ValueError lists the known names."""
+    if name not in SCENARIOS:
+        raise ValueError(f"unknown hand-held scenario {name!r}; known: {', '.join(SCENARIOS)}")
+    return SCENARIOS[name]
+
+
+def configure(name: str, **overrides) -> HandheldConfig:
+    """``name``'s config with overrides (config fields or ``SensorConfig`` fields)."""
+    cfg = get_scenario(name)
+    own = {f.name for f in dataclasses.fields(cfg)}
+    sensor_fields = {f.name for f in dataclasses.fields(SensorConfig)}
+    unknown = sorted(k for k in overrides if k not in own and k not in sensor_fields)
+    if unknown:
+        raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} for scenario {name!r}; "
+                         f"known: {', '.join(sorted(own))}; sensor: {', '.join(sorted(sensor_fields))}")
+    sensor_over = {k: v for k, v in overrides.items() if k in sensor_fields and k not in own}
+    cfg_over = {k: v for k, v in overrides.items() if k in own}
+    try:
+        if sensor_over:
+            cfg_over["sensor"] = dataclasses.replace(cfg_over.get("sensor", cfg.sensor), **sensor_over)
+        return dataclasses.replace(cfg, **cfg_over)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"scenario {name!r}: bad parameter value: {exc}") from None
+
+
+def make_trial(name: str, seed: int, **overrides) -> Trial:
+    """Simulate hand-held scenario ``name`` with ``seed`` (int ≥ 0): the same Trial bit for bit every time."""
+    cfg = configure(name, **overrides)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an integer ≥ 0, got {seed!r}")
+    r_motion, r_field, r_loc, r_sensor = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(4)]
+    n = int(round(cfg.duration * cfg.rate))
+    t = np.arange(n) / cfg.rate
+    motion = Motion(r_motion, cfg.modes, cfg.duration, cfg.segment_s, cfg.transition_s,
+                    speed=r_motion.uniform(*cfg.speed_mps), step_hz=r_motion.uniform(*cfg.step_hz),
+                    path_m=(a := r_motion.uniform(*cfg.path_m), 0.5 * a),
+                    travel=bool(r_motion.uniform() >= cfg.treadmill_prob))
+    if cfg.random_location:
+        norm, dip = earth.random_location(r_loc)
+    else:
+        norm, dip = cfg.field_norm, cfg.field_dip
+    b_earth = quat.earth_field(norm, dip)
+    # the field's sources are placed around the region the sensor visits (sampled every 0.1 s)
+    p_visit, _ = motion.pose(t[:: max(1, int(cfg.rate // 10))])
+    field = random_indoor_field(r_field, b_earth, p_visit, cfg.n_dipoles, cfg.dipole_ut, cfg.dipole_distance_m,
+                                cfg.n_wires, cfg.wire_current_a)
+    p, q, gyr, acc, mag, b_e = ideal_readings(motion, t, field)
+    scale = float(r_sensor.uniform(*cfg.noise_scale))
+    gyr_m, acc_m, mag_m = apply_sensor_model(gyr, acc, mag, cfg.rate, cfg.sensor.scaled(scale), r_sensor)
+    meta = {"scenario": name, "seed": int(seed), "modes": motion.mode_names,
+            "mode_bounds_s": [float(b) for b in motion.bounds], "speed_mps": motion.speed,
+            "step_hz": motion.f_step, "treadmill": not motion.travel, "noise_scale": scale, "n_dipoles": int(len(field.dipole_pos)),
+            "n_wires": int(len(field.wire_point)), "min_source_distance_m": field.min_source_distance(p_visit),
+            "config": _json(dataclasses.asdict(cfg))}
+    return Trial(
+        name=f"{name}#{int(seed)}", rate=cfg.rate, gyr=gyr_m, acc=acc_m, mag=mag_m, q_true=q,
+        field_norm=norm, field_dip=dip,
+        truth={"mag_disturbance": quat.rotate_inv(q, b_e - b_earth), "position": p,
+               "mode": motion.mode_index(t), "stationary": np.zeros(n, bool)},
+        meta=meta,
+    )
+
+
+def _json(v):
+    if isinstance(v, dict):
+        return {k: _json(x) for k, x in v.items()}
+    if isinstance(v, (tuple, list)):
+        return [_json(x) for x in v]
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    return v

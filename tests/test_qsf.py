@@ -1,0 +1,307 @@
+"""AEKF / MAGYQ / Delay MAGYQ, the QSF detector and ``magenv/MagQSF-v0`` (issue 9)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from baselines import qsf as bq
+from magenv import metrics
+from magenv import quaternion as quat
+from magenv.envs.qsf import DetectorPolicy, MagQSFEnv, MagQSFVectorEnv, decode_action
+from magenv.filters import qsf
+from magenv.filters.kalman_threshold import FilterError
+from magenv.trial import Trial
+
+from conftest import kinematic_trial
+
+FIELD = (46.0, 49.6)
+
+
+def _static_trial(n=2000, rate=100.0, disturbance=(10.0, -5.0, 3.0), seed=0):
+    rng = np.random.default_rng(seed)
+    q = np.tile(quat.from_euler_zyx(0.7, 0.1, -0.2), (n, 1))
+    field = quat.earth_field(*FIELD) + np.asarray(disturbance)
+    gyr = rng.normal(0, np.deg2rad(0.3), (n, 3))
+    acc = quat.rotate_inv(q, np.tile(quat.gravity_up(), (n, 1))) + rng.normal(0, 0.03, (n, 3))
+    mag = quat.rotate_inv(q, np.tile(field, (n, 1))) + rng.normal(0, 0.3, (n, 3))
+    return Trial("static", rate, gyr, acc, mag, q, *FIELD)
+
+
+def _run(trial, mode, **kw):
+    return qsf.run_trial(trial, mode=mode, sigma_gyr=np.deg2rad(0.5), **kw)
+
+
+# ------------------------------------------------------------ maths
+
+
+def test_rotation_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        q, v = rng.normal(size=4), rng.normal(size=3)
+        h = lambda qq: (qq[0] ** 2 - qq[1:] @ qq[1:]) * v + 2 * (qq[1:] @ v) * qq[1:] + 2 * qq[0] * np.cross(qq[1:], v)
+        num = np.stack([(h(q + 1e-6 * e) - h(q - 1e-6 * e)) / 2e-6 for e in np.eye(4)], 1)
+        np.testing.assert_allclose(qsf.rot_jacobian1(q, v), num, atol=1e-8)
+
+
+# ------------------------------------------------------------ filters
+
+
+@pytest.mark.parametrize("mode", ["aekf", "magyq", "delay_magyq"])
+def test_filters_track_a_clean_kinematic_trial(mode):
+    tr = kinematic_trial(seed=1, duration=30.0, rate=100.0)
+    res = _run(tr, mode)
+    s = metrics.score(res.q, tr.q_true)
+    assert s.total < 2.0, s
+    assert res.repairs < 0.01 * tr.n
+
+
+@pytest.mark.parametrize("mode", ["aekf", "magyq", "delay_magyq"])
+def test_tilt_converges_from_a_wrong_start(mode):
+    tr = kinematic_trial(seed=2, duration=30.0, rate=100.0)
+    q0 = quat.mul(quat.from_rotvec(np.deg2rad([8.0, -6.0, 0.0])), tr.q_true[0])
+    res = _run(tr, mode, q0=q0, p0=dict(p0_angle=np.deg2rad(10.0)))
+    incl = metrics.inclination_error(metrics.error_quaternion(res.q, tr.q_true))
+    assert metrics.inclination_error(metrics.error_quaternion(q0, tr.q_true[0])) > 5.0
+    assert np.mean(incl[-500:]) < 1.5
+
+
+def test_aekf_corrects_heading_but_magyq_cannot():
+    """The AEKF has an absolute heading reference (the Earth field); QSF filters only relative ones."""
+    tr = kinematic_trial(seed=3, duration=30.0, rate=100.0)
+    q0 = quat.mul(quat.from_rotvec(np.deg2rad([0.0, 0.0, 15.0])), tr.q_true[0])
+    head = {m: metrics.heading_error(metrics.error_quaternion(_run(tr, m, q0=q0, p0=dict(
+        p0_angle=np.deg2rad(20.0))).q, tr.q_true))[-300:].mean() for m in ("aekf", "magyq")}
+    assert head["aekf"] < 3.0 and head["magyq"] > 10.0
+
+
+def test_steady_non_earth_field_magyq_keeps_heading_aekf_is_pulled():
+    tr = kinematic_trial(seed=4, duration=40.0, rate=100.0, disturbance_ut=15.0, disturbance_window=(0.0, 1e9))
+    err = {}
+    for m in ("aekf", "magyq", "delay_magyq"):
+        res = _run(tr, m, q0=tr.q_true[0])
+        err[m] = metrics.score(res.q, tr.q_true).heading
+    assert err["aekf"] > 10.0
+    assert err["magyq"] < 2.0 and err["delay_magyq"] < 2.0
+
+
+def test_innovation_property_of_section_5_5():
+    """Static MIMU, one QSF period from the first sample, both filters started at truth: Delay MAGYQ's
+    corrections K·δz are smaller than MAGYQ's (Fig. 10)."""
+    tr = _static_trial()
+    act = np.full(tr.n, qsf.MAG_KEEP, np.int8)
+    act[0] = qsf.MAG_START
+    corr = {}
+    for m in ("magyq", "delay_magyq"):
+        res = qsf.run_trial(tr, mode=m, q0=tr.q_true[0], actions=act, max_age_s=1e6)
+        assert np.all(res.sig[:, 0] == 1.0)  # the period started on the first sample and never ended
+        corr[m] = res.sig[1:, qsf.SIGNALS.index("corr_norm")].mean()
+    assert corr["delay_magyq"] < 0.8 * corr["magyq"]
+
+
+def test_no_magnetic_update_without_a_period():
+    tr = _static_trial(n=300)
+    res = qsf.run_trial(tr, mode="magyq", actions=np.zeros(tr.n, np.int8))
+    assert not res.sig[:, qsf.SIGNALS.index("mag_updated")].any()
+    keep_only = qsf.run_trial(tr, mode="magyq", actions=np.full(tr.n, qsf.MAG_KEEP, np.int8))
+    np.testing.assert_array_equal(res.q, keep_only.q)  # keep without an active period = no update
+
+
+def test_trust_zero_equals_no_update():
+    tr = _static_trial(n=500)
+    act = np.full(tr.n, qsf.MAG_KEEP, np.int8)
+    act[0] = qsf.MAG_START
+    a = qsf.run_trial(tr, mode="delay_magyq", actions=act, trust=0.0).q
+    b = qsf.run_trial(tr, mode="delay_magyq", actions=np.zeros(tr.n, np.int8)).q
+    np.testing.assert_allclose(a, b, atol=1e-12)
+
+
+# ------------------------------------------------------------ covariance health and bad input
+
+
+def test_period_that_never_ends_stays_healthy():
+    tr = kinematic_trial(seed=5, duration=60.0, rate=100.0, disturbance_ut=10.0, disturbance_window=(0.0, 1e9))
+    act = np.full(tr.n, qsf.MAG_KEEP, np.int8)
+    act[0] = qsf.MAG_START
+    params = qsf.make_params(*FIELD, mode="delay_magyq", sigma_gyr=np.deg2rad(0.5), max_age_s=1e6)
+    x, pa, ref = qsf.initial_state(tr.q_true[0], tr.dt)
+    q_out, sig = np.empty((tr.n, 4)), np.zeros((tr.n, qsf.NSIG))
+    repairs = qsf.run(x, pa, ref, tr.gyr, tr.acc, tr.mag, tr.dt, 0, tr.n, act, np.ones(tr.n), params, q_out, sig)
+    assert np.all(np.isfinite(q_out)) and np.all(sig[:, 0] == 1.0)
+    assert sig[-1, qsf.SIGNALS.index("age")] == pytest.approx(tr.duration - tr.dt)
+    np.testing.assert_array_equal(pa, pa.T)
+    assert np.linalg.eigvalsh(pa).min() > 0.0
+    assert repairs < 0.01 * tr.n
+    assert metrics.score(q_out, tr.q_true).total < 3.0
+
+
+def test_max_age_restarts_a_period():
+    tr = _static_trial(n=600)
+    act = np.full(tr.n, qsf.MAG_KEEP, np.int8)
+    act[0] = qsf.MAG_START
+    res = qsf.run_trial(tr, mode="magyq", actions=act, max_age_s=1.0)
+    age = res.sig[:, qsf.SIGNALS.index("age")]
+    assert age.max() <= 1.0 + 1e-9 and np.sum(np.diff(age) < 0) >= 4
+
+
+def test_broken_covariance_is_repaired_not_nan():
+    params = qsf.make_params(*FIELD, mode="aekf")
+    x, pa, ref = qsf.initial_state(np.array([1.0, 0, 0, 0]), 0.01)
+    pa[:11, :11] -= 1e-3 * np.eye(11)  # no longer positive definite
+    pa[0, 1] += 1e-4  # nor symmetric
+    sig = np.zeros(qsf.NSIG)
+    z3 = np.zeros(3)
+    st = qsf.step1(x, pa, ref, z3, z3, quat.gravity_up(), quat.earth_field(*FIELD), 0.01, True, 0, 1.0, params, sig)
+    assert st == 1
+    np.testing.assert_array_equal(pa, pa.T)
+    assert np.linalg.eigvalsh(pa[:11, :11]).min() > 0.0 and np.all(np.isfinite(x))
+
+
+def test_non_finite_input_fails_loudly():
+    tr = _static_trial(n=100)
+    tr.mag[50, 1] = np.nan  # bypass Trial's own check on purpose
+    with pytest.raises(ValueError, match="finite"):  # the detector refuses it first
+        qsf.run_trial(tr, mode="delay_magyq")
+    params = qsf.make_params(*FIELD, mode="magyq")
+    x, pa, ref = qsf.initial_state(tr.q_true[0], tr.dt)
+    with pytest.raises(FilterError, match="sample 50"):
+        qsf.run(x, pa, ref, tr.gyr, tr.acc, tr.mag, tr.dt, 0, tr.n, np.full(tr.n, 2, np.int8), np.ones(tr.n),
+                params, np.empty((tr.n, 4)), np.zeros((tr.n, qsf.NSIG)))
+    assert np.all(np.isfinite(x)) and np.all(np.isfinite(pa))  # state left at sample 49
+    params = qsf.make_params(*FIELD)
+    x, pa, ref = qsf.initial_state(np.array([1.0, 0, 0, 0]), 0.01)
+    pa[0, 0] = np.inf
+    sig = np.zeros(qsf.NSIG)
+    z3 = np.zeros(3)
+    assert qsf.step1(x, pa, ref, z3, z3, quat.gravity_up(), quat.earth_field(*FIELD), 0.01, True, 2, 1.0, params,
+                     sig) == -1
+
+
+def test_bad_parameters_raise():
+    with pytest.raises(ValueError):
+        qsf.make_params(*FIELD, mode="ekf")
+    with pytest.raises(ValueError):
+        qsf.make_params(*FIELD, sigma_mag=-1.0)
+    with pytest.raises(ValueError):
+        qsf.QSFDetector(th_spread=0.0)
+    with pytest.raises(ValueError):
+        qsf.run_trial(_static_trial(n=50), actions=np.full(50, 3, np.int8))
+
+
+# ------------------------------------------------------------ detector
+
+
+def test_detector_flags_steady_field_and_not_a_varying_one():
+    rng = np.random.default_rng(7)
+    base = kinematic_trial(seed=7, duration=20.0, rate=100.0, noise=False)
+    t = base.t
+    field = np.tile(quat.earth_field(*FIELD) + np.array([8.0, 3.0, -4.0]), (base.n, 1))
+    varying = t >= 10.0
+    field[varying, 0] += 6.0 * np.sin(2 * np.pi * 0.7 * t[varying])  # time-varying field in the second half
+    mag = quat.rotate_inv(base.q_true, field) + rng.normal(0, 0.15, (base.n, 3))
+    gyr = base.gyr + rng.normal(0, np.deg2rad(0.3), base.gyr.shape)
+    code, spread = qsf.QSFDetector().detect(gyr, mag, 100.0)
+    steady_part = (t > 1.0) & (t < 10.0)
+    assert np.mean(code[steady_part] > 0) > 0.9
+    assert np.mean(code[t > 10.5] > 0) < 0.2
+    assert np.all(code[:49] == 0) and np.all(np.isnan(spread[:49]))  # window not full yet
+    assert code[49] == qsf.MAG_START  # the first full window starts a period, kept through the steady part
+    assert np.all(code[50:1000] == qsf.MAG_KEEP)
+
+
+def test_detector_window_of_one_sample_starts_on_the_first_sample():
+    tr = _static_trial(n=100)
+    code, _ = qsf.QSFDetector(window_s=0.01, th_spread=5.0).detect(tr.gyr, tr.mag, tr.rate)
+    assert code[0] == qsf.MAG_START and np.all(code[1:] == qsf.MAG_KEEP)
+    res = qsf.run_trial(tr, mode="delay_magyq", detector=qsf.QSFDetector(window_s=0.01, th_spread=5.0))
+    assert res.sig[0, 0] == 1.0 and np.all(np.isfinite(res.q))
+
+
+# ------------------------------------------------------------ estimators and env
+
+
+def test_estimators_registered_and_deterministic():
+    assert set(bq.methods()) >= {"aekf", "magyq", "delay_magyq"}
+    tr = kinematic_trial(seed=8, duration=5.0, rate=100.0)
+    a, b = bq.magyq().run(tr), bq.magyq().run(tr)
+    np.testing.assert_array_equal(a.q, b.q)
+    assert a.q.shape == (tr.n, 4) and a.trust.shape == (tr.n,)
+    with pytest.raises(ValueError):
+        bq.QSFEstimator(init="oracle")
+
+
+def _env_trial():
+    return kinematic_trial(seed=9, duration=6.0, rate=100.0, disturbance_ut=10.0, disturbance_window=(0.0, 1e9))
+
+
+def test_env_passes_gymnasium_checker():
+    env = MagQSFEnv(scenario=[_env_trial()], decision_every=5)
+    check_env(env, skip_render_check=True)
+
+
+def test_registered_env_id():
+    if "magenv/MagQSF-v0" not in gym.registry:
+        gym.register("magenv/MagQSF-v0", entry_point="magenv.envs.qsf:MagQSFEnv")
+    env = gym.make("magenv/MagQSF-v0", scenario=[_env_trial()])
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    assert "qsf_detector" in bq.methods()  # the detector policy is offered once the env is registered
+
+
+def test_env_draws_handheld_scenarios_by_name():
+    env = MagQSFEnv(scenario="handheld_texting,handheld_swinging", episode_seconds=2.0,
+                    scenario_kwargs=dict(duration=3.0))
+    obs, info = env.reset(seed=3)
+    assert info["trial"].startswith("handheld_") and info["n_samples"] == 200
+    obs2, info2 = MagQSFEnv(scenario="handheld_texting,handheld_swinging", episode_seconds=2.0,
+                            scenario_kwargs=dict(duration=3.0)).reset(seed=3)
+    assert info2["trial"] == info["trial"] and np.array_equal(obs, obs2)
+
+
+def test_detector_policy_reproduces_the_delay_magyq_estimator():
+    tr = _env_trial()
+    env = MagQSFEnv(scenario=[tr], decision_every=1)
+    obs, _ = env.reset(seed=0)
+    policy, done, rewards = DetectorPolicy(), False, []
+    while not done:
+        obs, r, _, done, info = env.step(policy(obs))
+        rewards.append(r)
+    np.testing.assert_array_equal(env.estimate, bq.delay_magyq().run(tr).q)
+    assert np.all(np.asarray(rewards) <= 0.0)
+
+
+def test_env_actions_decode_and_validate():
+    assert decode_action([-1.0, 0.5])[:2] == (qsf.MAG_NONE, 0.5)
+    assert decode_action([0.0, 1.0])[:2] == (qsf.MAG_KEEP, 1.0)
+    assert decode_action([2.0, 1.5]) == (qsf.MAG_START, 1.0, True)
+    with pytest.raises(ValueError):
+        decode_action([np.nan, 1.0])
+    with pytest.raises(ValueError):
+        decode_action([0.0])
+    env = MagQSFEnv(scenario=[_env_trial()], decision_every=10)
+    with pytest.raises(RuntimeError):
+        env.step([0.0, 1.0])
+    env.reset(seed=1)
+    _, _, _, _, info = env.step(np.array([1.0, 1.0], np.float32))
+    assert info["decision"] == "start" and info["qsf_active"]
+    _, _, _, _, info = env.step(np.array([-1.0, 1.0], np.float32))
+    assert info["decision"] == "none" and not info["qsf_active"]
+
+
+def test_vector_env_replays_single_envs():
+    trials = [_env_trial(), kinematic_trial(seed=10, duration=4.0, rate=100.0)]
+    venv = MagQSFVectorEnv(num_envs=2, scenario=trials, decision_every=20)
+    obs, _ = venv.reset(seed=4)
+    singles = [MagQSFEnv(scenario=trials, decision_every=20) for _ in range(2)]
+    single_obs = [e.reset(seed=4 + i)[0] for i, e in enumerate(singles)]
+    np.testing.assert_array_equal(obs, np.stack(single_obs))
+    act = np.array([[1.0, 1.0], [-1.0, 0.5]], np.float32)
+    obs, rew, _, _, info = venv.step(act)
+    for i, e in enumerate(singles):
+        o, r, _, _, _ = e.step(act[i])
+        np.testing.assert_array_equal(obs[i], o)
+        assert rew[i] == r
+    with pytest.raises(ValueError):
+        venv.step(np.zeros((2, 1), np.float32))
