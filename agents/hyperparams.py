@@ -5,6 +5,7 @@ This follows the rl-zoo3 convention (``agents/configs/ppo.yaml``)::
     magenv/MagBlend-v0:
       n_timesteps: 100000   # default for `magenv train --steps`
       n_envs: 4             # parallel environments
+      normalize_reward: true  # scale rewards by a running std of the return (VecNormalize)
       env_kwargs: {decision_every: 8}
       policy: MlpPolicy
       learning_rate: 3.0e-4
@@ -24,7 +25,7 @@ import yaml
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 # Keys of a config section that are not constructor arguments of the algorithm.
-RUN_KEYS = {"n_timesteps", "n_envs", "env_kwargs"}
+RUN_KEYS = {"n_timesteps", "n_envs", "env_kwargs", "normalize_reward"}
 ACTIVATIONS = ("tanh", "relu", "elu", "leaky_relu")
 
 

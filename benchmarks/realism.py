@@ -261,7 +261,7 @@ def main(argv=None) -> int:
     for label, key, default, fmt in rows:
         print(f"{label.ljust(w)}  {fmt.format(rec[key]):>10}  {('' if default is None else str(default)):>11}")
     print("\nLags are effective delays: sample-and-hold adds its mean age (≈ 0.3–0.4 sample) to a")
-    print("pure delay, so the simulator's whole-sample mag_lag_samples = 4 shows as ≈ 4.3 behind its gyro.")
+    print("pure delay, so the simulator's whole-sample mag_lag_samples shows ≈ 0.3 sample larger behind its gyro.")
     if args.out is not None:
         plot(real_trials, real, sim_trials, sim, rec, args.out)
     return 0
