@@ -59,6 +59,7 @@ import math
 import numpy as np
 
 from magenv import quaternion as quat
+from magenv.config_checks import check_intervals, check_number, check_range, config_json
 from magenv.sim import earth
 from magenv.sim import twolink as tl
 from magenv.sim.hand import Approach
@@ -82,18 +83,6 @@ LAB_RADIUS = 0.25
 TOOL_FOLLOW = 0.5
 #: A sample counts as stationary when both gyros (noise-free) read less than this, rad/s.
 STATIONARY_RATE = 1e-3
-
-
-def _number(name, v, lo=-math.inf, hi=math.inf, lo_open=False):
-    ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
-    if not ok or v < lo or v > hi or (lo_open and v == lo):
-        raise ValueError(f"{name} must be a number in {'(' if lo_open else '['}{lo}, {hi}], got {v!r}")
-
-
-def _pair(name, v, lo=-math.inf, hi=math.inf):
-    if not (isinstance(v, (tuple, list)) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v)
-            and lo <= v[0] <= v[1] <= hi):
-        raise ValueError(f"{name} must be a (low, high) pair with {lo} ≤ low ≤ high ≤ {hi}, got {v!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,35 +130,33 @@ class ConstraintConfig:
     jitter_s: float = 1.0
 
     def __post_init__(self) -> None:
-        _number("duration", self.duration, 1.0, 3600.0)
-        _number("rate", self.rate, 10.0, 2000.0)
-        _number("physics_rate", self.physics_rate, self.rate, 20000.0)
-        _number("field_norm", self.field_norm, 0.0, 1000.0, lo_open=True)
-        _number("field_dip", self.field_dip, -90.0, 90.0)
+        check_number("duration", self.duration, 1.0, 3600.0)
+        check_number("rate", self.rate, 10.0, 2000.0)
+        check_number("physics_rate", self.physics_rate, self.rate, 20000.0)
+        check_number("field_norm", self.field_norm, 0.0, 1000.0, lo_open=True)
+        check_number("field_dip", self.field_dip, -90.0, 90.0)
         if not isinstance(self.sensor, SensorConfig):
             raise ValueError(f"sensor must be a SensorConfig, got {type(self.sensor).__name__}")
         if len(self.gyro_bias) != 3:
             raise ValueError(f"gyro_bias must be 3 numbers (rad/s), got {self.gyro_bias!r}")
         for i, b in enumerate(self.gyro_bias):
-            _number(f"gyro_bias[{i}]", b, -1.0, 1.0)
+            check_number(f"gyro_bias[{i}]", b, -1.0, 1.0)
         if len(self.amplitude) != tl.N_JOINTS:
             raise ValueError(f"amplitude must have {tl.N_JOINTS} entries ({', '.join(tl.JOINTS)}), got {self.amplitude!r}")
         for i, a in enumerate(self.amplitude):
-            _number(f"amplitude[{i}]", a, 0.0, 1.5)
-        _number("motion_scale", self.motion_scale, 0.0, 3.0)
+            check_number(f"amplitude[{i}]", a, 0.0, 1.5)
+        check_number("motion_scale", self.motion_scale, 0.0, 3.0)
         if self.target_ext_acc is not None:
-            _number("target_ext_acc", self.target_ext_acc, 0.0, 20.0, lo_open=True)
-        _pair("freq_hz", self.freq_hz, 0.01, 5.0)
-        _number("start_rest", self.start_rest, 0.0, self.duration)
-        _number("lab_inhomogeneity", self.lab_inhomogeneity, 0.0, 1.0)
-        _number("tool_moment", self.tool_moment, 0.0, 10.0)
-        _number("tool_near", self.tool_near, 0.02, 2.0)
-        _number("tool_far", self.tool_far, self.tool_near, 5.0)
-        _number("tool_travel", self.tool_travel, 0.05, 60.0)
-        _number("jitter_s", self.jitter_s, 0.0, 60.0)
-        for i, d in enumerate(self.disturbances):
-            if len(d) != 2 or d[0] < 0 or d[1] < 0:
-                raise ValueError(f"disturbances[{i}] must be (start s ≥ 0, hold s ≥ 0), got {d!r}")
+            check_number("target_ext_acc", self.target_ext_acc, 0.0, 20.0, lo_open=True)
+        check_range("freq_hz", self.freq_hz, 0.01, 5.0)
+        check_number("start_rest", self.start_rest, 0.0, self.duration)
+        check_number("lab_inhomogeneity", self.lab_inhomogeneity, 0.0, 1.0)
+        check_number("tool_moment", self.tool_moment, 0.0, 10.0)
+        check_number("tool_near", self.tool_near, 0.02, 2.0)
+        check_number("tool_far", self.tool_far, self.tool_near, 5.0)
+        check_number("tool_travel", self.tool_travel, 0.05, 60.0)
+        check_number("jitter_s", self.jitter_s, 0.0, 60.0)
+        check_intervals("disturbances", self.disturbances)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,20 +194,20 @@ class ConstraintRandomConfig(ConstraintConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        _pair("segment_s", self.segment_s, 0.5)
-        _number("still_prob", self.still_prob, 0.0, 1.0)
-        _number("slow_prob", self.slow_prob, 0.0, 1.0 - self.still_prob)
-        _pair("level", self.level, 0.0, 3.0)
-        _pair("motion_scale_range", self.motion_scale_range, 0.0, 3.0)
-        _pair("n_tool", self.n_tool, 0, 50)
-        _pair("tool_hold_s", self.tool_hold_s, 0.0)
-        _pair("tool_near_m", self.tool_near_m, 0.02, 2.0)
-        _pair("tool_moment_am2", self.tool_moment_am2, 0.0, 10.0)
-        _pair("lab_range", self.lab_range, 0.0, 1.0)
-        _pair("field_norm_ut", self.field_norm_ut, 1.0, 1000.0)
-        _pair("field_dip_deg", self.field_dip_deg, -90.0, 90.0)
-        _pair("noise_scale", self.noise_scale, 0.0, 100.0)
-        _number("gyro_bias_max", self.gyro_bias_max, 0.0, 1.0)
+        check_range("segment_s", self.segment_s, 0.5)
+        check_number("still_prob", self.still_prob, 0.0, 1.0)
+        check_number("slow_prob", self.slow_prob, 0.0, 1.0 - self.still_prob)
+        check_range("level", self.level, 0.0, 3.0)
+        check_range("motion_scale_range", self.motion_scale_range, 0.0, 3.0)
+        check_range("n_tool", self.n_tool, 0, 50)
+        check_range("tool_hold_s", self.tool_hold_s, 0.0)
+        check_range("tool_near_m", self.tool_near_m, 0.02, 2.0)
+        check_range("tool_moment_am2", self.tool_moment_am2, 0.0, 10.0)
+        check_range("lab_range", self.lab_range, 0.0, 1.0)
+        check_range("field_norm_ut", self.field_norm_ut, 1.0, 1000.0)
+        check_range("field_dip_deg", self.field_dip_deg, -90.0, 90.0)
+        check_range("noise_scale", self.noise_scale, 0.0, 100.0)
+        check_number("gyro_bias_max", self.gyro_bias_max, 0.0, 1.0)
 
 
 SCENARIOS: dict[str, ConstraintConfig] = {
@@ -463,7 +450,7 @@ def _simulate(plan: _Plan, cfg: ConstraintConfig, scenario: str, seed: int, rngs
         "gyro_bias_rad_s": plan.gyro_bias.tolist(), "mean_ext_acc": float(ext.mean()),
         "approach_starts_s": [a.start for a in plan.approaches], "approach_holds_s": [a.hold for a in plan.approaches],
         "tool_azimuth_rad": float(az), "physics_steps": run.physics_steps, **plan.meta,
-        "config": _json(cfg),
+        "config": config_json(cfg),
     }
     return Trial(
         name=f"{scenario}#{seed}", rate=cfg.rate, gyr=gyr_i, acc=acc_i, mag=mag_i, q_true=run.q_i,
@@ -473,17 +460,3 @@ def _simulate(plan: _Plan, cfg: ConstraintConfig, scenario: str, seed: int, rngs
         extra={"gyr_j": gyr_j, "acc_j": acc_j, "mag_j": mag_j, "q_j": run.q_j},
         meta=meta,
     )
-
-
-def _json(value):
-    if dataclasses.is_dataclass(value):
-        return {k: _json(v) for k, v in dataclasses.asdict(value).items()}
-    if isinstance(value, dict):
-        return {k: _json(v) for k, v in value.items()}
-    if isinstance(value, (tuple, list, np.ndarray)):
-        return [_json(v) for v in value]
-    if isinstance(value, (np.floating, float)):
-        return float(value)
-    if isinstance(value, (np.integer, int)) and not isinstance(value, bool):
-        return int(value)
-    return value

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magenv.trial import Trial, TrialError
+from magenv.trial import Trial, TrialError, open_hdf5
 
 BERLIN_FIELD_NORM = 44.5  # µT, documented local field (README of the data)
 BERLIN_FIELD_DIP = 69.0  # degrees, positive down
@@ -148,13 +148,7 @@ def load_recording(path: str | Path) -> Trial:
     import h5py
 
     path = Path(path)
-    if not path.is_file():
-        raise TrialError(f"{path}: no such file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise TrialError(f"{path}: not an HDF5 file ({exc})") from None
-    with f:
+    with open_hdf5(path) as f:
         missing = [k for k in REQUIRED if k not in f or not isinstance(f[k], h5py.Dataset)]
         if missing:
             raise TrialError(f"{path}: missing dataset(s) {', '.join(missing)} (a BROAD file needs {', '.join(REQUIRED)})")

@@ -47,7 +47,7 @@ from typing import Callable
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.config_checks import check_intervals, check_number, check_range
+from magenv.config_checks import check_intervals, check_number, check_range, config_json
 from magenv.sim import base_paths, earth, indoor, profiles
 from magenv.sim.gimbal import PHYSICS_RATE, Tube, simulate_gimbal
 from magenv.sim.hand import Approach, hand_path
@@ -650,20 +650,6 @@ def make_trial(name: str, seed: int, **overrides) -> Trial:
     return _simulate(plan, cfg, f"{name}#{int(seed)}", name, int(seed), rngs[3])
 
 
-def _json(value):
-    if dataclasses.is_dataclass(value):
-        return {k: _json(v) for k, v in dataclasses.asdict(value).items()}
-    if isinstance(value, dict):
-        return {k: _json(v) for k, v in value.items()}
-    if isinstance(value, (tuple, list, np.ndarray)):
-        return [_json(v) for v in value]
-    if isinstance(value, (np.floating, float)):
-        return float(value)
-    if isinstance(value, (np.integer, int)) and not isinstance(value, bool):
-        return int(value)
-    return value
-
-
 def _simulate(plan: Plan, cfg: ScenarioConfig, trial_name: str, scenario: str, seed: int, r_sensor) -> Trial:
     """Run the gimbal, add the fields (paper §2.5.3) and the sensor model."""
     n = int(round(cfg.duration * cfg.rate))
@@ -689,7 +675,7 @@ def _simulate(plan: Plan, cfg: ScenarioConfig, trial_name: str, scenario: str, s
     step = np.diff(run.p_imu, axis=0, prepend=run.p_imu[:1])
     stationary = (norms(run.gyr) < STATIONARY_RATE) & (norms(step) * cfg.rate < STATIONARY_SPEED)
     meta = {"scenario": scenario, "seed": seed, "magnet": plan.magnet, "moment_am2": float(plan.moment),
-            "physics_steps": run.physics_steps, **_json(plan.meta), "config": _json(cfg)}
+            "physics_steps": run.physics_steps, **config_json(plan.meta), "config": config_json(cfg)}
     return Trial(
         name=trial_name, rate=cfg.rate, gyr=gyr, acc=acc, mag=mag, q_true=run.q,
         field_norm=plan.field[0], field_dip=plan.field[1],

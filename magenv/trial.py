@@ -21,6 +21,18 @@ class TrialError(ValueError):
     """A trial (or a file meant to hold one) is malformed."""
 
 
+def open_hdf5(path: Path):
+    """``h5py.File(path, "r")``; TrialError naming the file if it does not exist or is not HDF5."""
+    import h5py
+
+    if not path.is_file():
+        raise TrialError(f"{path}: no such file")
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise TrialError(f"{path}: not an HDF5 file ({exc})") from None
+
+
 @dataclasses.dataclass(eq=False)
 class Trial:
     """Sensor data and truth of one trial, all arrays with N rows at ``rate`` Hz.
@@ -138,16 +150,8 @@ class Trial:
     @classmethod
     def load(cls, path: str | Path) -> "Trial":
         """Read a trial written by ``save``. Raises TrialError naming the file and the problem."""
-        import h5py
-
         path = Path(path)
-        if not path.is_file():
-            raise TrialError(f"{path}: no such file")
-        try:
-            f = h5py.File(path, "r")
-        except OSError as exc:
-            raise TrialError(f"{path}: not an HDF5 file ({exc})") from None
-        with f:
+        with open_hdf5(path) as f:
             if f.attrs.get("format") != FORMAT:
                 raise TrialError(f"{path}: not a magenv trial (attribute format={f.attrs.get('format')!r}, expected {FORMAT!r})")
             missing = [k for k in ("gyr", "acc", "mag", "q_true", "score_mask") if k not in f]

@@ -4,6 +4,9 @@
 integrated from a smooth random body rate, ideal sensor readings from that
 orientation plus white noise, and an optional magnetic disturbance window.
 Filter tests use it where the physics of the gimbal does not matter.
+
+Env test helpers: ``short_trials`` (fixture), ``run_episode``,
+``check_seeded_replay``, ``check_scalar_action``, ``check_with_checkers``.
 """
 
 from __future__ import annotations
@@ -69,9 +72,72 @@ def make_kinematic_trial():
     return kinematic_trial
 
 
+@pytest.fixture(scope="module")
+def short_trials():
+    """Two 3 s kinematic trials, 20 µT disturbance from 1 to 2 s (a test module may define its own)."""
+    return [kinematic_trial(seed=s, duration=3.0, disturbance_ut=20.0, disturbance_window=(1.0, 2.0))
+            for s in range(2)]
+
+
 @pytest.fixture(scope="session")
 def broad_dir() -> Path:
     """Folder of the real BROAD recordings (../shared/data/broad)."""
     if not BROAD_DIR.is_dir():
         pytest.fail(f"BROAD recordings not found at {BROAD_DIR}; they live in ../shared/data/broad")
     return BROAD_DIR
+
+
+def run_episode(env, seed, actions):
+    """Reset with ``seed`` and step ``actions`` (scalars, sent as (1,) float32) until truncated: (obs, rewards)."""
+    obs, _ = env.reset(seed=seed)
+    out_obs, rewards = [obs], []
+    for a in actions:
+        obs, r, _, trunc, _ = env.step(np.array([a], np.float32))
+        out_obs.append(obs)
+        rewards.append(r)
+        if trunc:
+            break
+    return np.array(out_obs), np.array(rewards)
+
+
+def check_seeded_replay(env_id: str, kwargs: dict, seed: int, actions, n_steps: int) -> None:
+    """``gym.make(env_id, **kwargs)`` replays seed ``seed`` bit for bit in ``n_steps`` steps; seed + 1 differs."""
+    import gymnasium as gym
+
+    a = run_episode(gym.make(env_id, **kwargs), seed, actions)
+    b = run_episode(gym.make(env_id, **kwargs), seed, actions)
+    c = run_episode(gym.make(env_id, **kwargs), seed + 1, actions)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    assert len(a[1]) == n_steps
+    assert not np.array_equal(a[0], c[0])
+
+
+def check_scalar_action(env, key: str) -> None:
+    """After ``reset``: NaN/inf and wrong shapes raise; out-of-range values are clipped (``info[key]``); scalars work.
+
+    Steps three times, with 1 (clipped from 1.7), 0 (from −0.2) and 0.25.
+    """
+    for bad in (np.array([np.nan], np.float32), np.array([np.inf])):
+        with pytest.raises(ValueError, match="finite"):
+            env.step(bad)
+    for bad in (np.array([0.1, 0.2]), np.zeros((1, 1)), []):
+        with pytest.raises(ValueError, match="shape"):
+            env.step(bad)
+    _, _, _, _, info = env.step(np.array([1.7], np.float32))
+    assert info["action_clipped"] and info[key] == 1.0
+    _, _, _, _, info = env.step(np.array([-0.2], np.float32))
+    assert info["action_clipped"] and info[key] == 0.0
+    _, _, _, _, info = env.step(0.25)  # a plain scalar is accepted
+    assert not info["action_clipped"] and info[key] == 0.25
+
+
+def check_with_checkers(env_id: str, env_class, **kwargs) -> None:
+    """gymnasium's and stable-baselines3's env checkers pass (SB3 only advises a [-1, 1] action box)."""
+    import gymnasium as gym
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    check_env(gym.make(env_id, **kwargs).unwrapped, skip_render_check=True)
+    with pytest.warns(UserWarning, match="symmetric"):
+        sb3_check_env(env_class(**kwargs), warn=True)

@@ -16,7 +16,7 @@ from magenv import metrics
 from magenv import quaternion as quat
 from magenv.envs.constraint import MagConstraintEnv
 from magenv.filters import constraint as cf
-from tests.conftest import kinematic_trial
+from tests.conftest import check_seeded_replay, check_with_checkers, kinematic_trial
 
 ENV_ID = "magenv/MagConstraint-v0"
 if ENV_ID not in gym.registry:  # until the lead adds it to magenv/__init__.py
@@ -231,12 +231,9 @@ def test_env_bad_actions_and_order(short_trials):
 
 def test_env_checkers(short_trials):
     from gymnasium.utils.env_checker import check_env
-    from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-    check_env(gym.make(ENV_ID, scenario=short_trials).unwrapped, skip_render_check=True)
+    check_with_checkers(ENV_ID, MagConstraintEnv, scenario=short_trials)
     check_env(MagConstraintEnv(scenario=short_trials, control_gain=True), skip_render_check=True)
-    with pytest.warns(UserWarning, match="symmetric"):  # SB3 only advises a [-1, 1] action box
-        sb3_check_env(MagConstraintEnv(scenario=short_trials), warn=True)
 
 
 def test_paper_rule_in_the_env_is_the_estimator(short_trials):
@@ -263,28 +260,10 @@ def test_gain_action_sets_k(short_trials):
         env.step(np.array([0.3], np.float32))
 
 
-def _episode(env, seed, actions):
-    obs, _ = env.reset(seed=seed)
-    out, rewards = [obs], []
-    for a in actions:
-        obs, r, _, trunc, _ = env.step(np.array([a], np.float32))
-        out.append(obs)
-        rewards.append(r)
-        if trunc:
-            break
-    return np.array(out), np.array(rewards)
-
-
 def test_same_seed_same_episode_on_the_random_family():
     kw = dict(scenario="constraint_random", episode_seconds=3.0, scenario_kwargs={"duration": 3.0})
     acts = np.linspace(0.0, 1.0, 80)
-    a = _episode(gym.make(ENV_ID, **kw), 5, acts)
-    b = _episode(gym.make(ENV_ID, **kw), 5, acts)
-    c = _episode(gym.make(ENV_ID, **kw), 6, acts)
-    np.testing.assert_array_equal(a[0], b[0])
-    np.testing.assert_array_equal(a[1], b[1])
-    assert len(a[1]) == 75  # 3 s at 100 Hz, 4 samples per step
-    assert not np.array_equal(a[0], c[0])
+    check_seeded_replay(ENV_ID, kw, 5, acts, 75)  # 3 s at 100 Hz, 4 samples per step
 
 
 def test_weight_one_ignores_the_magnetometer(short_trials):

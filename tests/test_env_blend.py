@@ -12,7 +12,7 @@ from magenv import quaternion as quat
 from magenv.envs.blend import MagBlendEnv
 from magenv.filters import madgwick as mg
 from magenv.filters.blend import FEATURE_NAMES, BlendEstimator, BlendRunner
-from tests.conftest import kinematic_trial
+from tests.conftest import check_scalar_action, check_seeded_replay, check_with_checkers, kinematic_trial, run_episode
 
 ENV_ID = "magenv/MagBlend-v0"
 
@@ -21,12 +21,6 @@ ENV_ID = "magenv/MagBlend-v0"
 def disturbed():
     """12 s, a 30 µT eastward disturbance from 4 to 8 s."""
     return kinematic_trial(seed=5, duration=12.0, disturbance_ut=30.0, disturbance_window=(4.0, 8.0))
-
-
-@pytest.fixture(scope="module")
-def short_trials():
-    return [kinematic_trial(seed=s, duration=3.0, disturbance_ut=20.0, disturbance_window=(1.0, 2.0))
-            for s in range(2)]
 
 
 # ------------------------------------------------------------------ kernel
@@ -86,30 +80,13 @@ def test_env_steps_equal_one_whole_trial_run(disturbed):
 
 
 def test_gymnasium_and_sb3_checkers(short_trials):
-    from gymnasium.utils.env_checker import check_env
-    from stable_baselines3.common.env_checker import check_env as sb3_check_env
-
-    check_env(gym.make(ENV_ID, scenario=short_trials).unwrapped, skip_render_check=True)
-    with pytest.warns(UserWarning, match="symmetric"):  # SB3 only advises a [-1, 1] action box
-        sb3_check_env(MagBlendEnv(scenario=short_trials), warn=True)
-
-
-def _episode(env, seed, actions):
-    obs, _ = env.reset(seed=seed)
-    out_obs, rewards = [obs], []
-    for a in actions:
-        obs, r, _, trunc, _ = env.step(np.array([a], np.float32))
-        out_obs.append(obs)
-        rewards.append(r)
-        if trunc:
-            break
-    return np.array(out_obs), np.array(rewards)
+    check_with_checkers(ENV_ID, MagBlendEnv, scenario=short_trials)
 
 
 def test_same_seed_same_episode(short_trials):
     acts = np.random.default_rng(0).uniform(0, 1, 40)
-    a = _episode(MagBlendEnv(scenario=short_trials), 123, acts)
-    b = _episode(MagBlendEnv(scenario=short_trials), 123, acts)
+    a = run_episode(MagBlendEnv(scenario=short_trials), 123, acts)
+    b = run_episode(MagBlendEnv(scenario=short_trials), 123, acts)
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
     names = set()
@@ -123,13 +100,7 @@ def test_same_seed_same_episode_on_a_simulated_scenario():
     pytest.importorskip("magenv.scenarios")
     kw = dict(scenario="random", episode_seconds=2.0)
     acts = np.linspace(0, 1, 70)
-    a = _episode(gym.make(ENV_ID, **kw), 7, acts)
-    b = _episode(gym.make(ENV_ID, **kw), 7, acts)
-    c = _episode(gym.make(ENV_ID, **kw), 8, acts)
-    np.testing.assert_array_equal(a[0], b[0])
-    np.testing.assert_array_equal(a[1], b[1])
-    assert len(a[1]) == 64  # 2 s at 256 Hz, 8 samples per step
-    assert not np.array_equal(a[0], c[0])
+    check_seeded_replay(ENV_ID, kw, 7, acts, 64)  # 2 s at 256 Hz, 8 samples per step
 
 
 def test_step_before_reset_and_after_end(short_trials):
@@ -148,18 +119,7 @@ def test_step_before_reset_and_after_end(short_trials):
 def test_bad_actions(short_trials):
     env = MagBlendEnv(scenario=short_trials)
     env.reset(seed=0)
-    for bad in (np.array([np.nan], np.float32), np.array([np.inf])):
-        with pytest.raises(ValueError, match="finite"):
-            env.step(bad)
-    for bad in (np.array([0.1, 0.2]), np.zeros((1, 1)), []):
-        with pytest.raises(ValueError, match="shape"):
-            env.step(bad)
-    _, _, _, _, info = env.step(np.array([1.7], np.float32))
-    assert info["action_clipped"] and info["lambda"] == 1.0
-    _, _, _, _, info = env.step(np.array([-0.2], np.float32))
-    assert info["action_clipped"] and info["lambda"] == 0.0
-    _, _, _, _, info = env.step(0.25)  # a plain scalar is accepted
-    assert not info["action_clipped"] and info["lambda"] == 0.25
+    check_scalar_action(env, "lambda")
     assert np.all(env.lambdas[:8] == 1.0) and np.all(env.lambdas[8:16] == 0.0)
 
 

@@ -14,7 +14,7 @@ from magenv.envs.kalman import MagKalmanEnv
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_env import FEATURE_NAMES
 from magenv.filters.kalman_model import ModelKF
-from tests.conftest import kinematic_trial
+from tests.conftest import check_scalar_action, check_with_checkers, kinematic_trial
 
 ENV_ID = "magenv/MagKalman-v0"
 IX = {f: i for i, f in enumerate(FEATURE_NAMES)}
@@ -24,12 +24,6 @@ IX = {f: i for i, f in enumerate(FEATURE_NAMES)}
 def disturbed():
     """10 s, a 30 µT eastward disturbance from 4 to 7 s."""
     return kinematic_trial(seed=5, duration=10.0, disturbance_ut=30.0, disturbance_window=(4.0, 7.0))
-
-
-@pytest.fixture(scope="module")
-def short_trials():
-    return [kinematic_trial(seed=s, duration=3.0, disturbance_ut=20.0, disturbance_window=(1.0, 2.0))
-            for s in range(2)]
 
 
 def _run(env, actions, seed=0, options=None):
@@ -156,12 +150,7 @@ def test_reward_and_info_match_the_metrics_module(disturbed):
 
 
 def test_gymnasium_and_sb3_checkers(short_trials):
-    from gymnasium.utils.env_checker import check_env
-    from stable_baselines3.common.env_checker import check_env as sb3_check_env
-
-    check_env(gym.make(ENV_ID, scenario=short_trials).unwrapped, skip_render_check=True)
-    with pytest.warns(UserWarning, match="symmetric"):  # SB3 only advises a [-1, 1] action box
-        sb3_check_env(MagKalmanEnv(scenario=short_trials), warn=True)
+    check_with_checkers(ENV_ID, MagKalmanEnv, scenario=short_trials)
 
 
 def test_same_seed_same_episode(short_trials):
@@ -209,18 +198,7 @@ def test_step_before_reset_and_after_end(short_trials):
 def test_bad_actions_and_arguments(short_trials):
     env = MagKalmanEnv(scenario=short_trials)
     env.reset(seed=0)
-    for bad in (np.array([np.nan], np.float32), np.array([np.inf])):
-        with pytest.raises(ValueError, match="finite"):
-            env.step(bad)
-    for bad in (np.array([0.1, 0.2]), np.zeros((1, 1)), []):
-        with pytest.raises(ValueError, match="shape"):
-            env.step(bad)
-    _, _, _, _, info = env.step(np.array([1.7], np.float32))
-    assert info["action_clipped"] and info["trust"] == 1.0
-    _, _, _, _, info = env.step(np.array([-0.2], np.float32))
-    assert info["action_clipped"] and info["trust"] == 0.0
-    _, _, _, _, info = env.step(0.25)  # a plain scalar is accepted
-    assert not info["action_clipped"] and info["trust"] == 0.25
+    check_scalar_action(env, "trust")
     np.testing.assert_array_equal(env.trust[:25], np.r_[1.0, [1.0] * 8, [0.0] * 8, [0.25] * 8])
     with pytest.raises(TypeError, match="render"):
         MagKalmanEnv(scenario=short_trials, render_mode="human")

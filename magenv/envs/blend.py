@@ -2,26 +2,20 @@
 
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
-import gymnasium as gym
 import numpy as np
-from gymnasium import spaces
 
 from magenv.envs.common import (  # noqa: F401  (RECORDING_PREFIX, trial_source: re-exported)
-    RECORDING_PREFIX, LoopVectorEnv, TrialSource, check_env_args, cut_trial, scalar_action, select_features,
-    trial_source,
+    RECORDING_PREFIX, LoopVectorEnv, TrustEnv, scalar_action, trial_source,
 )
 from magenv.filters import stationary as stat
-from magenv.filters.blend import (
-    E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, BlendRunner,
-)
+from magenv.filters.blend import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, BlendRunner
 from magenv.filters.madgwick import BETA_DEFAULT
 from magenv.trial import Trial
 
 
-class MagBlendEnv(gym.Env):
+class MagBlendEnv(TrustEnv):
     """
     ## Description
 
@@ -132,96 +126,39 @@ class MagBlendEnv(gym.Env):
     - v0: initial version.
     """
 
-    metadata = {"render_modes": []}
+    env_name = "MagBlend-v0"
 
     def __init__(self, scenario="random", decision_every: int = 8, episode_seconds: float | None = None,
                  stationary_hold: bool = True, features: Sequence[str] | None = None,
                  beta: float = BETA_DEFAULT, t0: float = stat.T0_S, th_acc_g: float = stat.TH_ACC_G,
                  th_gyro_dps: float = stat.TH_GYRO_DPS, scenario_kwargs: dict | None = None,
                  render_mode: str | None = None):
-        self.k = check_env_args("MagBlend-v0", decision_every, episode_seconds, render_mode)
-        self.trials = TrialSource(scenario, scenario_kwargs)
-        self.scenario = self.trials.label
-        self.episode_seconds = episode_seconds
+        self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
+                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH)
         self.stationary_hold = bool(stationary_hold)
         self.filter_kwargs = dict(beta=float(beta), hold=self.stationary_hold, t0=float(t0),
                                   th_acc_g=float(th_acc_g), th_gyro_dps=float(th_gyro_dps))
-        self.features, self._idx, self._all, self.observation_space = select_features(
-            features, FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH)
-        self.action_space = spaces.Box(0.0, 1.0, (1,), dtype=np.float32)
-        self.render_mode = None
-        self._runner: BlendRunner | None = None
-        self.trial: Trial | None = None
 
-    # ------------------------------------------------------------ API
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        options = options or {}
-        trial = options.get("trial")
-        if trial is None:
-            trial = self.trials.draw(self.np_random)
-        elif not isinstance(trial, Trial):
-            raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
-        self.trial = cut_trial(trial, self.episode_seconds)
-        self._runner = BlendRunner(self.trial, **self.filter_kwargs)
-        self._has_truth_dist = self._runner.has_dist
-        info = {"trial": self.trial.name, "rate": self.trial.rate, "n_samples": self.trial.n,
-                "field_norm": self.trial.field_norm, "field_dip": self.trial.field_dip, "sample": 0}
-        return self._obs(), info
-
-    def _obs(self) -> np.ndarray:
-        feat = self._runner.feat
-        return (feat if self._all else feat[self._idx]).astype(np.float32)
+    def _make_runner(self, trial: Trial) -> BlendRunner:
+        return BlendRunner(trial, **self.filter_kwargs)
 
     def step(self, action):
-        runner = self._runner
-        if runner is None:
-            raise RuntimeError("MagBlendEnv.step() called before reset(); call env.reset() first")
-        if runner.done:
-            raise RuntimeError("MagBlendEnv.step() called after the episode was truncated; call env.reset()")
+        runner = self._step_runner()
         lam, clipped = scalar_action(action, "λ")
-        runner.advance(self.k, lam)
-        err = runner.err
-        cnt = err[E_COUNT]
-        if cnt > 0:
-            total, heading, incl = err[E_TOTAL] / cnt, err[E_HEADING] / cnt, err[E_INCL] / cnt
-            reward = -total
-        else:
-            total = heading = incl = math.nan
-            reward = 0.0
-        last = runner.pos - 1
-        info = {
-            "t": last / self.trial.rate, "sample": runner.pos, "lambda": lam, "action_clipped": clipped,
-            "error_total": total, "error_heading": heading, "error_inclination": incl,
-            "disturbance_norm": (err[E_DIST] / runner.last_count) if self._has_truth_dist else math.nan,
-            "q_est": runner.est[last].copy(), "q_true": runner.q_true[last].copy(),
-        }
-        return self._obs(), float(reward), False, runner.done, info
+        runner.advance(self.k_steps, lam)
+        return self._step_result(runner, {"lambda": lam, "action_clipped": clipped})
 
     # ------------------------------------------------------------ evaluation access
 
     @property
-    def estimate(self) -> np.ndarray:
-        """(N, 4) per-sample blended estimate of the current episode (NaN rows not fused yet)."""
-        self._need_reset()
-        return self._runner.est
-
-    @property
     def lambdas(self) -> np.ndarray:
         """(N,) λ used per sample (NaN where not fused yet)."""
-        self._need_reset()
-        return self._runner.lam
+        return self._need_reset().lam
 
     @property
     def stationary(self) -> np.ndarray:
         """(N,) bool, samples the detector flagged stationary (False where not fused yet)."""
-        self._need_reset()
-        return self._runner.aux[:, 2] > 0.5
-
-    def _need_reset(self):
-        if self._runner is None:
-            raise RuntimeError("no episode yet; call env.reset() first")
+        return self._need_reset().aux[:, 2] > 0.5
 
 
 class MagBlendVectorEnv(LoopVectorEnv):

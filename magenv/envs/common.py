@@ -8,6 +8,8 @@
 * :func:`select_features` — the ``features`` option → index array and Box bounds.
 * :func:`scalar_action` — one trust value from an action: NaN / wrong shape →
   ValueError, finite out-of-range → clipped.
+* :class:`TrustEnv` — base single env: arguments, reset (trial draw and
+  cut), step checks, reward and info from the runner's error sums.
 * :class:`LoopVectorEnv` — ``num_envs`` copies of a single env in one process
   (next-step autoreset), the ``vector_entry_point`` of an env.
 """
@@ -20,6 +22,7 @@ from typing import Any, Sequence
 import gymnasium as gym
 import numpy as np
 
+from magenv.filters.common import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL
 from magenv.seeding import draw_training_seed
 from magenv.trial import Trial
 
@@ -69,7 +72,7 @@ class TrialSource:
     """
 
     def __init__(self, scenario, scenario_kwargs: dict | None = None):
-        self.kind, self.source = trial_source(scenario)
+        self.kind, self.source = self.classify(scenario)
         self.label = scenario if isinstance(scenario, str) else "trials"
         self.scenario_kwargs = dict(scenario_kwargs or {})
         self._recording: Trial | None = None
@@ -85,11 +88,20 @@ class TrialSource:
                     raise RuntimeError(f"'recording:' needs magenv.recordings ({exc})") from None
                 self._recording = load_recording(self.source)
             return self._recording
-        from magenv import scenarios
-
         names = self.source
         name = names[0] if len(names) == 1 else names[int(rng.integers(len(names)))]
         seed = draw_training_seed(rng)  # never a held-out evaluation seed
+        return self.make_trial(name, seed)
+
+    @staticmethod
+    def classify(scenario) -> tuple[str, Any]:
+        """(kind, source) of the ``scenario`` argument; :func:`trial_source` (subclasses: another family)."""
+        return trial_source(scenario)
+
+    def make_trial(self, name: str, seed: int) -> Trial:
+        """Trial ``seed`` of scenario ``name`` (``magenv.scenarios.make_trial`` with ``scenario_kwargs``)."""
+        from magenv import scenarios
+
         return scenarios.make_trial(name, seed, **self.scenario_kwargs)
 
 
@@ -103,7 +115,7 @@ def cut_trial(trial: Trial, episode_seconds: float | None) -> Trial:
 
 def check_env_args(env_name: str, decision_every, episode_seconds, render_mode) -> int:
     """Validate the options every trust env takes; returns ``decision_every`` as int."""
-    if int(decision_every) != decision_every or decision_every < 1:
+    if isinstance(decision_every, bool) or int(decision_every) != decision_every or decision_every < 1:
         raise ValueError(f"decision_every must be a positive integer, got {decision_every!r}")
     if episode_seconds is not None and not episode_seconds > 0:
         raise ValueError(f"episode_seconds must be positive or None, got {episode_seconds!r}")
@@ -145,11 +157,102 @@ def scalar_action(action, symbol: str = "λ") -> tuple[float, bool]:
     return value, False
 
 
+class TrustEnv(gym.Env):
+    """Bookkeeping every trust env shares: arguments, trial per ``reset``, step checks, errors, histories.
+
+    Subclasses call :meth:`_setup` in ``__init__`` and implement
+    ``_make_runner(trial)``. A runner has ``feat`` (observation of the next
+    sample), ``err`` (the last step's sums, indexed by
+    ``magenv.filters.common.E_*``), ``pos`` (next sample), ``done``,
+    ``last_count``, ``has_dist``, ``est`` (N, 4) and ``q_true`` (N, 4).
+    """
+
+    metadata = {"render_modes": []}
+    env_name = "TrustEnv"  # registered id without the namespace, for messages
+
+    def _setup(self, scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
+               names: tuple[str, ...], low: np.ndarray, high: np.ndarray, action_dim: int = 1,
+               source: type[TrialSource] = TrialSource) -> None:
+        """Check the common arguments; set ``k_steps``, ``trials``, ``scenario``, ``features``, the spaces."""
+        self.k_steps = check_env_args(self.env_name, decision_every, episode_seconds, render_mode)
+        self.trials = source(scenario, scenario_kwargs)
+        self.scenario = self.trials.label
+        self.episode_seconds = episode_seconds
+        self.features, self._idx, self._all, self.observation_space = select_features(features, names, low, high)
+        self.action_space = gym.spaces.Box(0.0, 1.0, (action_dim,), dtype=np.float32)
+        self.render_mode = None
+        self._runner = None
+        self.trial: Trial | None = None
+
+    def _make_runner(self, trial: Trial):
+        raise NotImplementedError
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        options = options or {}
+        trial = options.get("trial")
+        if trial is None:
+            trial = self.trials.draw(self.np_random)
+        elif not isinstance(trial, Trial):
+            raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
+        self.trial = cut_trial(trial, self.episode_seconds)
+        self._runner = self._make_runner(self.trial)
+        info = {"trial": self.trial.name, "rate": self.trial.rate, "n_samples": self.trial.n,
+                "field_norm": self.trial.field_norm, "field_dip": self.trial.field_dip, "sample": self._runner.pos}
+        return self._obs(), info
+
+    def _obs(self) -> np.ndarray:
+        feat = self._runner.feat
+        return (feat if self._all else feat[self._idx]).astype(np.float32)
+
+    def _step_runner(self):
+        """The runner, checked for ``step()``: RuntimeError before ``reset()`` or after truncation."""
+        runner = self._runner
+        name = type(self).__name__
+        if runner is None:
+            raise RuntimeError(f"{name}.step() called before reset(); call env.reset() first")
+        if runner.done:
+            raise RuntimeError(f"{name}.step() called after the episode was truncated; call env.reset()")
+        return runner
+
+    def _step_result(self, runner, action_info: dict, extra_info: dict | None = None):
+        """``step()``'s return after ``runner`` advanced: reward −(mean total error, °) over the step (0 if none
+        had truth); info ``t``, ``sample``, ``action_info``, the mean errors (°), ``disturbance_norm`` (µT),
+        ``q_est``, ``q_true`` (last fused sample), ``extra_info``."""
+        err = runner.err
+        cnt = err[E_COUNT]
+        if cnt > 0:
+            total, heading, incl = err[E_TOTAL] / cnt, err[E_HEADING] / cnt, err[E_INCL] / cnt
+            reward = -total
+        else:
+            total = heading = incl = math.nan
+            reward = 0.0
+        last = runner.pos - 1
+        info = {
+            "t": last / self.trial.rate, "sample": runner.pos, **action_info,
+            "error_total": total, "error_heading": heading, "error_inclination": incl,
+            "disturbance_norm": (err[E_DIST] / runner.last_count) if runner.has_dist else math.nan,
+            "q_est": runner.est[last].copy(), "q_true": runner.q_true[last].copy(), **(extra_info or {}),
+        }
+        return self._obs(), float(reward), False, runner.done, info
+
+    def _need_reset(self):
+        """The runner of the current episode (RuntimeError before the first ``reset()``)."""
+        if self._runner is None:
+            raise RuntimeError("no episode yet; call env.reset() first")
+        return self._runner
+
+    @property
+    def estimate(self) -> np.ndarray:
+        """(N, 4) per-sample estimate sensor → ENU of the current episode (NaN rows not fused yet)."""
+        return self._need_reset().est
+
+
 class LoopVectorEnv(gym.vector.VectorEnv):
     """``num_envs`` copies of ``env_class`` in one process, batched arrays in and out.
 
-    Subclasses set ``env_class`` (a single env with a `(1,)` Box action whose
-    step ``info`` has ``error_total``). Each sub-env keeps its own
+    Subclasses set ``env_class`` (a single env with a `(d,)` Box action whose
+    step ``info`` has ``error_total``; ``actions`` (N, d), or (N,) when d = 1). Each sub-env keeps its own
     ``np_random`` (``reset(seed=s)`` seeds sub-env i with s + i), so sub-env i
     replays exactly the single env seeded s + i. Autoreset: next-step (the
     step after a truncation resets that sub-env, ignoring its action, and
@@ -161,7 +264,7 @@ class LoopVectorEnv(gym.vector.VectorEnv):
     env_class: type[gym.Env]
 
     def __init__(self, num_envs: int = 1, **kwargs):
-        if int(num_envs) != num_envs or num_envs < 1:
+        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         self.num_envs = int(num_envs)
         self.envs = [self.env_class(**kwargs) for _ in range(self.num_envs)]
@@ -184,10 +287,11 @@ class LoopVectorEnv(gym.vector.VectorEnv):
         return obs, {}
 
     def step(self, actions):
+        dim = self.single_action_space.shape[0]
         actions = np.asarray(actions, dtype=np.float32)
-        if actions.shape not in ((self.num_envs, 1), (self.num_envs,)):
-            raise ValueError(f"actions must have shape ({self.num_envs}, 1), got {actions.shape}")
-        actions = actions.reshape(self.num_envs, 1)
+        if actions.shape not in ((self.num_envs, dim),) + (((self.num_envs,),) if dim == 1 else ()):
+            raise ValueError(f"actions must have shape ({self.num_envs}, {dim}), got {actions.shape}")
+        actions = actions.reshape(self.num_envs, dim)
         n, f = self.num_envs, self.single_observation_space.shape[0]
         obs = np.empty((n, f), np.float32)
         rewards = np.zeros(n)

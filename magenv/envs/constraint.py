@@ -5,12 +5,10 @@ from __future__ import annotations
 import math
 from typing import Any, Sequence
 
-import gymnasium as gym
 import numpy as np
-from gymnasium import spaces
 
+from magenv.envs.common import LoopVectorEnv, TrialSource, TrustEnv
 from magenv.filters import constraint as cf
-from magenv.seeding import draw_training_seed
 from magenv.trial import Trial
 
 
@@ -41,7 +39,18 @@ def _trial_source(scenario) -> tuple[str, Any]:
     return "scenario", names
 
 
-class MagConstraintEnv(gym.Env):
+class TwoLinkSource(TrialSource):
+    """A :class:`~magenv.envs.common.TrialSource` of two-link trials (``magenv.constraint_scenarios``)."""
+
+    classify = staticmethod(_trial_source)
+
+    def make_trial(self, name: str, seed: int) -> Trial:
+        from magenv import constraint_scenarios
+
+        return constraint_scenarios.make_trial(name, seed, **self.scenario_kwargs)
+
+
+class MagConstraintEnv(TrustEnv):
     """
     ## Description
 
@@ -141,79 +150,22 @@ class MagConstraintEnv(gym.Env):
     - v0: initial version.
     """
 
-    metadata = {"render_modes": []}
+    env_name = "MagConstraint-v0"
 
     def __init__(self, scenario="constraint_random", decision_every: int = 4, episode_seconds: float | None = None,
                  control_gain: bool = False, gain_max: float = 1.0, th2: float = cf.TH2, th3: float = cf.TH3,
                  k_min: float = cf.K_MIN, k_max: float = cf.K_MAX, features: Sequence[str] | None = None,
                  scenario_kwargs: dict | None = None, render_mode: str | None = None):
-        if isinstance(decision_every, bool) or int(decision_every) != decision_every or decision_every < 1:
-            raise ValueError(f"decision_every must be a positive integer, got {decision_every!r}")
-        if episode_seconds is not None and not episode_seconds > 0:
-            raise ValueError(f"episode_seconds must be positive or None, got {episode_seconds!r}")
         if not (math.isfinite(gain_max) and gain_max > 0):
             raise ValueError(f"gain_max must be a positive number, got {gain_max!r}")
-        if render_mode is not None:  # TypeError like MagBlend-v0 (make_vec_env falls back to none)
-            raise TypeError(f"MagConstraint-v0 has no render modes, got render_mode={render_mode!r}")
-        self._source_kind, self._source = _trial_source(scenario)
-        self.scenario = scenario if isinstance(scenario, str) else "trials"
-        self.k_steps = int(decision_every)
-        self.episode_seconds = episode_seconds
+        self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
+                    cf.FEATURE_NAMES, cf.FEATURE_LOW, cf.FEATURE_HIGH, 2 if control_gain else 1, TwoLinkSource)
         self.control_gain = bool(control_gain)
         self.gain_max = float(gain_max)
         self.filter_kwargs = dict(th2=float(th2), th3=float(th3), k_min=float(k_min), k_max=float(k_max))
-        self.scenario_kwargs = dict(scenario_kwargs or {})
-        names = cf.FEATURE_NAMES if features is None else tuple(features)
-        unknown = [f for f in names if f not in cf.FEATURE_NAMES]
-        if unknown or not names:
-            raise ValueError(f"unknown observation feature(s) {unknown or '(none selected)'}; "
-                             f"known: {', '.join(cf.FEATURE_NAMES)}")
-        self.features = names
-        self._idx = np.array([cf.FEATURE_NAMES.index(f) for f in names])
-        self._all = names == cf.FEATURE_NAMES
-        self.observation_space = spaces.Box(cf.FEATURE_LOW[self._idx], cf.FEATURE_HIGH[self._idx], dtype=np.float32)
-        self.action_space = spaces.Box(0.0, 1.0, (2 if self.control_gain else 1,), dtype=np.float32)
-        self.render_mode = None
-        self._runner: cf.ConstraintRunner | None = None
-        self.trial: Trial | None = None
 
-    # ------------------------------------------------------------ trials
-
-    def _draw_trial(self) -> Trial:
-        if self._source_kind == "trials":
-            return self._source[int(self.np_random.integers(len(self._source)))]
-        from magenv import constraint_scenarios
-
-        names = self._source
-        name = names[0] if len(names) == 1 else names[int(self.np_random.integers(len(names)))]
-        seed = draw_training_seed(self.np_random)  # never a held-out evaluation seed
-        return constraint_scenarios.make_trial(name, seed, **self.scenario_kwargs)
-
-    def _cut(self, trial: Trial) -> Trial:
-        if self.episode_seconds is None:
-            return trial
-        n = min(trial.n, max(2, int(round(self.episode_seconds * trial.rate))))
-        return trial if n == trial.n else trial.slice(0, n)
-
-    # ------------------------------------------------------------ API
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        options = options or {}
-        trial = options.get("trial")
-        if trial is None:
-            trial = self._draw_trial()
-        elif not isinstance(trial, Trial):
-            raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
-        self.trial = self._cut(trial)
-        self._runner = cf.ConstraintRunner(self.trial, **self.filter_kwargs)  # checks link j's channels
-        info = {"trial": self.trial.name, "rate": self.trial.rate, "n_samples": self.trial.n,
-                "field_norm": self.trial.field_norm, "field_dip": self.trial.field_dip, "sample": 0}
-        return self._obs(), info
-
-    def _obs(self) -> np.ndarray:
-        feat = self._runner.feat
-        return (feat if self._all else feat[self._idx]).astype(np.float32)
+    def _make_runner(self, trial: Trial) -> cf.ConstraintRunner:
+        return cf.ConstraintRunner(trial, **self.filter_kwargs)  # checks link j's channels
 
     def _action(self, action) -> tuple[float, float, bool]:
         dim = self.action_space.shape[0]
@@ -231,43 +183,14 @@ class MagConstraintEnv(gym.Env):
         return w, k, clipped
 
     def step(self, action):
-        runner = self._runner
-        if runner is None:
-            raise RuntimeError("MagConstraintEnv.step() called before reset(); call env.reset() first")
-        if runner.done:
-            raise RuntimeError("MagConstraintEnv.step() called after the episode was truncated; call env.reset()")
+        runner = self._step_runner()
         w, k, clipped = self._action(action)
         start = runner.pos
         runner.advance(self.k_steps, w, k)
-        err = runner.err
-        cnt = err[cf.E_COUNT]
-        if cnt > 0:
-            total, heading, incl = err[cf.E_TOTAL] / cnt, err[cf.E_HEADING] / cnt, err[cf.E_INCL] / cnt
-            reward = -total
-        else:
-            total = heading = incl = math.nan
-            reward = 0.0
-        last = runner.pos - 1
-        info = {
-            "t": last / self.trial.rate, "sample": runner.pos, "w": w,
-            "k": float(np.mean(runner.k[start:runner.pos])), "action_clipped": clipped,
-            "error_total": total, "error_heading": heading, "error_inclination": incl,
-            "disturbance_norm": (err[cf.E_DIST] / runner.last_count) if runner.has_dist else math.nan,
-            "q_est": runner.est[last].copy(), "q_true": runner.trial.q_true[last].copy(),
-        }
-        return self._obs(), float(reward), False, runner.done, info
+        return self._step_result(runner, {"w": w, "k": float(np.mean(runner.k[start:runner.pos])),
+                                          "action_clipped": clipped})
 
     # ------------------------------------------------------------ evaluation access
-
-    def _need_reset(self) -> cf.ConstraintRunner:
-        if self._runner is None:
-            raise RuntimeError("no episode yet; call env.reset() first")
-        return self._runner
-
-    @property
-    def estimate(self) -> np.ndarray:
-        """(N, 4) per-sample estimate of link i (NaN rows not fused yet)."""
-        return self._need_reset().est
 
     @property
     def weights(self) -> np.ndarray:
@@ -285,59 +208,10 @@ class MagConstraintEnv(gym.Env):
         return self.weights
 
 
-class MagConstraintVectorEnv(gym.vector.VectorEnv):
-    """``num_envs`` copies of ``MagConstraintEnv`` in one process, batched arrays in and out.
+class MagConstraintVectorEnv(LoopVectorEnv):
+    """``num_envs`` copies of ``MagConstraintEnv`` in one process (see ``magenv.envs.common.LoopVectorEnv``).
 
-    The ``vector_entry_point`` of ``magenv/MagConstraint-v0``, with the
-    conventions of ``magenv.envs.blend.MagBlendVectorEnv``: ``reset(seed=s)``
-    seeds sub-env i with s + i; next-step autoreset (the step after a
-    truncation resets that sub-env, ignores its action, reward 0); ``infos``
-    carries ``error_total`` (N,) (NaN on autoreset steps).
+    The ``vector_entry_point`` of ``magenv/MagConstraint-v0``; ``actions`` (N, 1), or (N, 2) with ``control_gain``.
     """
 
-    metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP, "render_modes": []}
-
-    def __init__(self, num_envs: int = 1, **kwargs):
-        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        self.num_envs = int(num_envs)
-        self.envs = [MagConstraintEnv(**kwargs) for _ in range(self.num_envs)]
-        self.single_observation_space = self.envs[0].observation_space
-        self.single_action_space = self.envs[0].action_space
-        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
-        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
-        self.render_mode = None
-        self._needs_reset = np.zeros(self.num_envs, bool)
-
-    def reset(self, *, seed=None, options=None):
-        if seed is None or isinstance(seed, (int, np.integer)):
-            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != self.num_envs:
-                raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} envs")
-        obs = np.stack([env.reset(seed=s, options=options)[0] for env, s in zip(self.envs, seeds)])
-        self._needs_reset[:] = False
-        return obs, {}
-
-    def step(self, actions):
-        dim = self.single_action_space.shape[0]
-        actions = np.asarray(actions, dtype=np.float32)
-        if actions.shape not in ((self.num_envs, dim),) + (((self.num_envs,),) if dim == 1 else ()):
-            raise ValueError(f"actions must have shape ({self.num_envs}, {dim}), got {actions.shape}")
-        actions = actions.reshape(self.num_envs, dim)
-        n, f = self.num_envs, self.single_observation_space.shape[0]
-        obs = np.empty((n, f), np.float32)
-        rewards = np.zeros(n)
-        terminated = np.zeros(n, bool)
-        truncated = np.zeros(n, bool)
-        error = np.full(n, np.nan)
-        for i, env in enumerate(self.envs):
-            if self._needs_reset[i]:
-                obs[i] = env.reset()[0]
-                self._needs_reset[i] = False
-                continue
-            obs[i], rewards[i], terminated[i], truncated[i], info = env.step(actions[i])
-            error[i] = info["error_total"]
-            self._needs_reset[i] = terminated[i] or truncated[i]
-        return obs, rewards, terminated, truncated, {"error_total": error}
+    env_class = MagConstraintEnv

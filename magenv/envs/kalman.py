@@ -2,24 +2,19 @@
 
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
-import gymnasium as gym
 import numpy as np
-from gymnasium import spaces
 
-from magenv.envs.common import LoopVectorEnv, TrialSource, check_env_args, cut_trial, scalar_action, select_features
+from magenv.envs.common import LoopVectorEnv, TrustEnv, scalar_action
 from magenv.filters import kalman_trust as kt
-from magenv.filters.kalman_env import (
-    E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, KalmanRunner,
-)
+from magenv.filters.kalman_env import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, KalmanRunner
 from magenv.filters.kalman_model import C_A, C_B
 from magenv.filters.kalman_threshold import SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
 from magenv.trial import Trial
 
 
-class MagKalmanEnv(gym.Env):
+class MagKalmanEnv(TrustEnv):
     """
     ## Description
 
@@ -146,84 +141,35 @@ class MagKalmanEnv(gym.Env):
     - v0: initial version.
     """
 
-    metadata = {"render_modes": []}
+    env_name = "MagKalman-v0"
 
     def __init__(self, scenario="random", decision_every: int = 8, episode_seconds: float | None = None,
                  features: Sequence[str] | None = None, sigma_gyr: float = SIGMA_GYR, sigma_acc: float = SIGMA_ACC,
                  sigma_mag: float = SIGMA_MAG, th_acc: float = TH_ACC, heading_only: bool = True,
                  model_c_a: float = C_A, model_c_b: float = C_B, scenario_kwargs: dict | None = None,
                  render_mode: str | None = None):
-        self.k = check_env_args("MagKalman-v0", decision_every, episode_seconds, render_mode)
+        self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
+                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH)
         if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
             raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a!r}, {model_c_b!r}")
         if not th_acc > 0:
             raise ValueError(f"th_acc must be positive (math.inf disables the gate), got {th_acc!r}")
-        self.trials = TrialSource(scenario, scenario_kwargs)
-        self.scenario = self.trials.label
-        self.episode_seconds = episode_seconds
         self.filter_kwargs = dict(sigma_gyr=float(sigma_gyr), sigma_acc=float(sigma_acc), sigma_mag=float(sigma_mag),
                                   th_acc=float(th_acc), heading_only=bool(heading_only))
         kt.make_params(46.0, 49.6, **self.filter_kwargs)  # validate the noise model now, not at the first reset
         self.model_kwargs = dict(model_c_a=float(model_c_a), model_c_b=float(model_c_b))
-        self.features, self._idx, self._all, self.observation_space = select_features(
-            features, FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH)
-        self.action_space = spaces.Box(0.0, 1.0, (1,), dtype=np.float32)
-        self.render_mode = None
-        self._runner: KalmanRunner | None = None
-        self.trial: Trial | None = None
 
-    # ------------------------------------------------------------ API
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        options = options or {}
-        trial = options.get("trial")
-        if trial is None:
-            trial = self.trials.draw(self.np_random)
-        elif not isinstance(trial, Trial):
-            raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
-        self.trial = cut_trial(trial, self.episode_seconds)
-        params = kt.make_params(self.trial.field_norm, self.trial.field_dip, **self.filter_kwargs)
-        self._runner = KalmanRunner(self.trial, params, **self.model_kwargs)
-        info = {"trial": self.trial.name, "rate": self.trial.rate, "n_samples": self.trial.n,
-                "field_norm": self.trial.field_norm, "field_dip": self.trial.field_dip, "sample": 1}
-        return self._obs(), info
-
-    def _obs(self) -> np.ndarray:
-        feat = self._runner.feat
-        return (feat if self._all else feat[self._idx]).astype(np.float32)
+    def _make_runner(self, trial: Trial) -> KalmanRunner:
+        params = kt.make_params(trial.field_norm, trial.field_dip, **self.filter_kwargs)
+        return KalmanRunner(trial, params, **self.model_kwargs)
 
     def step(self, action):
-        runner = self._runner
-        if runner is None:
-            raise RuntimeError("MagKalmanEnv.step() called before reset(); call env.reset() first")
-        if runner.done:
-            raise RuntimeError("MagKalmanEnv.step() called after the episode was truncated; call env.reset()")
+        runner = self._step_runner()
         gamma, clipped = scalar_action(action, "γ")
-        runner.advance(self.k, gamma)
-        err = runner.err
-        cnt = err[E_COUNT]
-        if cnt > 0:
-            total, heading, incl = err[E_TOTAL] / cnt, err[E_HEADING] / cnt, err[E_INCL] / cnt
-            reward = -total
-        else:
-            total = heading = incl = math.nan
-            reward = 0.0
-        last = runner.pos - 1
-        info = {
-            "t": last / self.trial.rate, "sample": runner.pos, "trust": gamma, "action_clipped": clipped,
-            "error_total": total, "error_heading": heading, "error_inclination": incl,
-            "disturbance_norm": (err[E_DIST] / runner.last_count) if runner.has_dist else math.nan,
-            "q_est": runner.est[last].copy(), "q_true": runner.q_true[last].copy(), "repairs": runner.repairs,
-        }
-        return self._obs(), float(reward), False, runner.done, info
+        runner.advance(self.k_steps, gamma)
+        return self._step_result(runner, {"trust": gamma, "action_clipped": clipped}, {"repairs": runner.repairs})
 
     # ------------------------------------------------------------ evaluation access
-
-    @property
-    def estimate(self) -> np.ndarray:
-        """(N, 4) per-sample estimate sensor → ENU of the current episode (NaN rows not fused yet)."""
-        return self._need_reset().est
 
     @property
     def trust(self) -> np.ndarray:
@@ -244,11 +190,6 @@ class MagKalmanEnv(gym.Env):
     def model_disturbance(self) -> np.ndarray:
         """(N,) ‖d̂‖ of the model-based split, µT (the ``model_dist`` feature before scaling)."""
         return self._need_reset().mdist
-
-    def _need_reset(self) -> KalmanRunner:
-        if self._runner is None:
-            raise RuntimeError("no episode yet; call env.reset() first")
-        return self._runner
 
 
 class MagKalmanVectorEnv(LoopVectorEnv):

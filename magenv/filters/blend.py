@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from magenv.filters.common import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR, TrialRunner, add_errors  # noqa: F401
 from magenv.filters import stationary as stat
 from magenv.filters.stationary import stationary_peek1, stationary_step1
 from magenv.filters.madgwick import BETA_DEFAULT, MODE_IMU, MODE_MIMU, ecompass1, step_scalar
@@ -65,9 +66,7 @@ FEATURE_HIGH = np.array([f[2] for f in FEATURES], np.float32)
 # params vector layout (float64)
 P_BETA, P_DT, P_TH_A, P_TH_G, P_HOLD, P_M0, P_DIP0 = range(7)
 N_PARAMS = 7
-# err vector layout: sums over the interval, then count of samples with truth
-E_TOTAL, E_HEADING, E_INCL, E_COUNT, E_DIST = range(5)
-N_ERR = 5
+# err vector layout (E_*, N_ERR): magenv.filters.common
 
 
 @njit(cache=True, inline="always")
@@ -153,16 +152,7 @@ def advance(q, buf, ctr, gyr, acc, mag, q_true, dist, lam, lam_const, start, sto
             nb = np.sqrt(bw * bw + bx * bx + by * by + bz * bz)
             q[0], q[1], q[2], q[3] = bw / nb, bx / nb, by / nb, bz / nb
         est[i, 0], est[i, 1], est[i, 2], est[i, 3] = q[0], q[1], q[2], q[3]
-        # errors against truth (same definitions as magenv.metrics): e = q ⊗ q_true*
-        tw, tx, ty, tz = q_true[i, 0], q_true[i, 1], q_true[i, 2], q_true[i, 3]
-        if tw == tw:
-            ew = q[0] * tw + q[1] * tx + q[2] * ty + q[3] * tz
-            ez = -q[0] * tz - q[1] * ty + q[2] * tx + q[3] * tw
-            err[E_TOTAL] += np.rad2deg(2.0 * np.arccos(min(1.0, abs(ew))))
-            err[E_HEADING] += np.rad2deg(2.0 * np.arctan(abs(ez / ew))) if ew != 0.0 else 180.0
-            err[E_INCL] += np.rad2deg(2.0 * np.arccos(min(1.0, np.sqrt(ew * ew + ez * ez))))
-            err[E_COUNT] += 1.0
-        err[E_DIST] += dist[i]
+        add_errors(err, q[0], q[1], q[2], q[3], q_true[i], dist[i])  # against truth, as magenv.metrics
     _features(q, buf, ctr, gyr, acc, mag, lam, start, stop, params, aux, feat)
 
 
@@ -212,7 +202,7 @@ def _features(q, buf, ctr, gyr, acc, mag, lam, start, stop, params, aux, feat):
     feat[12] = sfrac / (cnt + 1)
 
 
-class BlendRunner:
+class BlendRunner(TrialRunner):
     """Holds one trial's arrays and the blend state; steps it k samples at a time.
 
     Used by the environment (``advance(k, λ)`` per step) and for offline replay
@@ -254,14 +244,6 @@ class BlendRunner:
         # observation of sample 0 before anything is fused
         advance(self.q, self.buf, self.ctr, self.gyr, self.acc, self.mag, self.q_true, self.dist,
                 self.lam, 0.0, 0, 0, self.params, self.est, self.aux, self.err, self.feat)
-
-    @property
-    def n(self) -> int:
-        return self.trial.n
-
-    @property
-    def done(self) -> bool:
-        return self.pos >= self.trial.n
 
     def advance(self, k: int, lam: float) -> int:
         """Fuse the next ``k`` samples (fewer at the end) with weight ``lam`` ∈ [0, 1]; returns samples fused."""

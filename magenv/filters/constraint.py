@@ -45,6 +45,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from magenv.filters.common import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR, TrialRunner, add_errors  # noqa: F401
 from magenv.filters.madgwick import ecompass1
 from magenv.quaternion import GRAVITY, earth_field, normalize1, rotate, rotate1
 from magenv.trial import Trial
@@ -85,9 +86,7 @@ N_PARAMS = 11
 # aux layout per sample: [mag_dev Au, ‖Δq‖, w, k, con_mismatch m/s²]
 A_DEV, A_STEP, A_W, A_K, A_MIS = range(5)
 N_AUX = 5
-# err layout: sums over the interval of total / heading / inclination error (deg), count with truth, sum of dist
-E_TOTAL, E_HEADING, E_INCL, E_COUNT, E_DIST = range(5)
-N_ERR = 5
+# err vector layout (E_*, N_ERR): magenv.filters.common
 # mode values for w_const / k_const
 FROM_ARRAY = -1.0  # read w[i] / k[i]
 BY_RULE = -2.0  # eq. 16 for w, eq. 18 for k (written into the array)
@@ -321,15 +320,7 @@ def advance(q, gyr, acc, mag, h_i, c_j, q_true, dist, w_arr, w_const, k_arr, k_c
         nn = np.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
         q[0], q[1], q[2], q[3] = nw / nn, nx / nn, ny / nn, nz / nn
         est[i, 0], est[i, 1], est[i, 2], est[i, 3] = q[0], q[1], q[2], q[3]
-        tw, tx, ty, tz = q_true[i, 0], q_true[i, 1], q_true[i, 2], q_true[i, 3]
-        if tw == tw:  # error quaternion q ⊗ q_true* (magenv.metrics)
-            ew = q[0] * tw + q[1] * tx + q[2] * ty + q[3] * tz
-            ez = -q[0] * tz - q[1] * ty + q[2] * tx + q[3] * tw
-            err[E_TOTAL] += np.rad2deg(2.0 * np.arccos(min(1.0, abs(ew))))
-            err[E_HEADING] += np.rad2deg(2.0 * np.arctan(abs(ez / ew))) if ew != 0.0 else 180.0
-            err[E_INCL] += np.rad2deg(2.0 * np.arccos(min(1.0, np.sqrt(ew * ew + ez * ez))))
-            err[E_COUNT] += 1.0
-        err[E_DIST] += dist[i]
+        add_errors(err, q[0], q[1], q[2], q[3], q_true[i], dist[i])  # against truth, as magenv.metrics
     _features(q, gyr, acc, mag, h_i, c_j, w_arr, k_arr, start, stop, params, aux, feat, F, dq)
 
 
@@ -380,7 +371,7 @@ def _features(q, gyr, acc, mag, h_i, c_j, w_arr, k_arr, start, stop, params, aux
 # ------------------------------------------------------------------ runner
 
 
-class ConstraintRunner:
+class ConstraintRunner(TrialRunner):
     """One two-link trial's arrays and the filter state; steps it k samples at a time.
 
     Args:
@@ -440,10 +431,6 @@ class ConstraintRunner:
         self.pos = 0
         self.last_count = 0
         self._advance(0, 0.0, 0.0)  # observation of sample 0
-
-    @property
-    def done(self) -> bool:
-        return self.pos >= self.trial.n
 
     def _advance(self, stop: int, w_const: float, k_const: float) -> None:
         advance(self.q, self.gyr, self.acc, self.mag, self.h_i, self.c_j, self.q_true, self.dist, self.w, w_const,

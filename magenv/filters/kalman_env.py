@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from magenv.filters.common import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR, TrialRunner, add_errors  # noqa: F401
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_trust import run_k_kernel, step_kernel
 from magenv.filters.kalman_model import C_A, C_B, vec_step1
@@ -62,9 +63,7 @@ FEATURE_HIGH = np.array([f[2] for f in FEATURES], np.float32)
  F_ACC_MAX, F_GYRO_MEAN, F_INNOV_MEAN, F_NIS_MEAN, F_MODEL, F_MODEL_MAX, F_FIELD) = range(N_FEATURES)
 FIELD_SCALE_UT = 50.0  # field_ref unit, µT
 
-# err vector layout: sums over the interval, then count of samples with truth, sum of true disturbance norm
-E_TOTAL, E_HEADING, E_INCL, E_COUNT, E_DIST = range(5)
-N_ERR = 5
+# err vector layout (E_*, N_ERR): magenv.filters.common
 # trust-KF params indices used here (kalman_trust.make_params layout)
 _P_M0, _P_DIP0 = 11, 12
 
@@ -126,16 +125,7 @@ def advance(q, p, gyr, acc, mag, dt, q_true, dist, mdist, trust, gamma, start, s
         return status, repairs
     for i in range(start, stop):
         trust[i] = gamma
-        tw, tx, ty, tz = q_true[i, 0], q_true[i, 1], q_true[i, 2], q_true[i, 3]
-        if tw == tw:  # errors as magenv.metrics: e = q ⊗ q_true*
-            w, x, y, z = est[i, 0], est[i, 1], est[i, 2], est[i, 3]
-            ew = w * tw + x * tx + y * ty + z * tz
-            ez = -w * tz - x * ty + y * tx + z * tw
-            err[E_TOTAL] += np.rad2deg(2.0 * np.arccos(min(1.0, abs(ew))))
-            err[E_HEADING] += np.rad2deg(2.0 * np.arctan(abs(ez / ew))) if ew != 0.0 else 180.0
-            err[E_INCL] += np.rad2deg(2.0 * np.arccos(min(1.0, np.sqrt(ew * ew + ez * ez))))
-            err[E_COUNT] += 1.0
-        err[E_DIST] += dist[i]
+        add_errors(err, est[i, 0], est[i, 1], est[i, 2], est[i, 3], q_true[i], dist[i])  # as magenv.metrics
     # peek at the next sample: prediction + acc update + mag innovation, γ = 0, on copies
     if stop < n:
         qc = q.copy()
@@ -200,7 +190,7 @@ def _features(gyr, mag, dt, mdist, trust, start, stop, j, params, sig, peek, fea
     feat[F_FIELD] = _clip(m0 / FIELD_SCALE_UT, 0.0, 20.0)
 
 
-class KalmanRunner:
+class KalmanRunner(TrialRunner):
     """One trial's arrays and the trust-KF state; stepped k samples at a time.
 
     Sample 0 initialises the filter (TRIAD on acc[0], mag[0], never truth);
@@ -244,14 +234,6 @@ class KalmanRunner:
         self.last_count = 0
         self.repairs = 0
         self._advance(1, 1, 1.0)  # features of sample 1, nothing fused
-
-    @property
-    def n(self) -> int:
-        return self.trial.n
-
-    @property
-    def done(self) -> bool:
-        return self.pos >= self.trial.n
 
     def _advance(self, start: int, stop: int, gamma: float) -> None:
         status, repairs = advance(self.q, self.p, self.gyr, self.acc, self.mag, self.trial.dt, self.q_true,

@@ -40,21 +40,13 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.filters.kalman_threshold import (
-    COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, SOLVERS, FilterError, finite3, repair_cov1, solve1,
+    COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, SOLVERS, FilterError, finite3, repair_cov1, skew1,
+    solve1,
 )
 from magenv.quaternion import from_rotvec1, rotate_inv1
 
 C_A = 0.1  # GM correlation per sample (survey)
 C_B = 1.0  # GM driving-noise std per sample, sensor unit (survey)
-
-
-@njit(cache=True)
-def _skew(v):
-    m = np.zeros((3, 3))
-    m[0, 1], m[0, 2] = -v[2], v[1]
-    m[1, 0], m[1, 2] = v[2], -v[0]
-    m[2, 0], m[2, 1] = -v[1], v[0]
-    return m
 
 
 @njit(cache=True)
@@ -80,7 +72,7 @@ def vec_step1(x, p, omega, y, dt, sigma_gyr, sigma_y, c_a, c_b, floor):
     f[:3, :3] = rot
     for i in range(3):
         f[3 + i, 3 + i] = c_a
-    gx = _skew(x[:3])
+    gx = skew1(x[:3])
     qn = np.zeros((6, 6))
     sg = dt * sigma_gyr
     qn[:3, :3] = (sg * sg) * (gx @ gx.T)  # A9: G_gyr = T_s [r×]

@@ -146,6 +146,16 @@ def right_matrix1(p):
 
 
 @njit(cache=True)
+def skew1(v):
+    """3×3 cross-product matrix [v]× with ``[v]× u = v × u``."""
+    m = np.zeros((3, 3))
+    m[0, 1], m[0, 2] = -v[2], v[1]
+    m[1, 0], m[1, 2] = v[2], -v[0]
+    m[2, 0], m[2, 1] = -v[1], v[0]
+    return m
+
+
+@njit(cache=True)
 def xi1(q):
     """4×3 matrix Ξ(q) with ``q ⊗ [0, n] = Ξ n`` (survey A6, scalar first)."""
     x = np.empty((4, 3))

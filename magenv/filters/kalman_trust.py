@@ -64,7 +64,7 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.filters.kalman_threshold import (
-    COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC, FilterError, finite3, repair_cov1,
+    COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC, FilterError, finite3, repair_cov1, skew1,
 )
 from magenv.filters.solvers import triad1
 from magenv.quaternion import from_rotvec1, mul1, normalize1, rotate1
@@ -95,15 +95,6 @@ def make_params(field_norm: float, field_dip: float, sigma_gyr: float = SIGMA_GY
         quat.gravity_up(), quat.earth_field(field_norm, field_dip),
         [field_norm, np.deg2rad(field_dip), COV_FLOOR, p0],
     ])
-
-
-@njit(cache=True)
-def _skew(v):
-    m = np.zeros((3, 3))
-    m[0, 1], m[0, 2] = -v[2], v[1]
-    m[1, 0], m[1, 2] = v[2], -v[0]
-    m[2, 0], m[2, 1] = -v[1], v[0]
-    return m
 
 
 @njit(cache=True)
@@ -151,7 +142,7 @@ def step_kernel(q, p, gyr_prev, gyr, acc, mag, dt, trust, params, sig):
     ng = np.sqrt(g_ref[0] ** 2 + g_ref[1] ** 2 + g_ref[2] ** 2)
     acc_used = abs(na - ng) < th_acc
     if acc_used:
-        h = _skew(g_ref)
+        h = skew1(g_ref)
         nu = rotate1(qn, acc) - g_ref
         s = h @ p @ h.T
         for i in range(3):
@@ -161,7 +152,7 @@ def step_kernel(q, p, gyr_prev, gyr, acc, mag, dt, trust, params, sig):
         ikh = np.eye(3) - k @ h
         p = ikh @ p @ ikh.T + (sa * sa) * (k @ k.T)
     # 3. magnetometer update scaled by trust
-    h = _skew(h_ref)
+    h = skew1(h_ref)
     m_e = rotate1(qn, mag)
     nu = m_e - h_ref
     s = h @ p @ h.T

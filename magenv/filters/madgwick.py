@@ -43,7 +43,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
-from magenv.quaternion import normalize1
+from magenv.filters.solvers import quat_from_dcm1
 
 BETA_DEFAULT = 0.1  # rad/s, Fan et al. 2017 §3
 
@@ -187,41 +187,7 @@ def ecompass1(acc, mag):
     r[0] = east
     r[1] = north
     r[2] = up
-    return _from_matrix1(r)
-
-
-@njit(cache=True)
-def _from_matrix1(m):
-    """Unit quaternion, w ≥ 0, of a rotation matrix (Shepperd's method)."""
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    q = np.empty(4)
-    if tr >= m[0, 0] and tr >= m[1, 1] and tr >= m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + tr)
-        q[0] = 0.25 * s
-        q[1] = (m[2, 1] - m[1, 2]) / s
-        q[2] = (m[0, 2] - m[2, 0]) / s
-        q[3] = (m[1, 0] - m[0, 1]) / s
-    elif m[0, 0] >= m[1, 1] and m[0, 0] >= m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + 2.0 * m[0, 0] - tr)
-        q[0] = (m[2, 1] - m[1, 2]) / s
-        q[1] = 0.25 * s
-        q[2] = (m[0, 1] + m[1, 0]) / s
-        q[3] = (m[0, 2] + m[2, 0]) / s
-    elif m[1, 1] >= m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + 2.0 * m[1, 1] - tr)
-        q[0] = (m[0, 2] - m[2, 0]) / s
-        q[1] = (m[0, 1] + m[1, 0]) / s
-        q[2] = 0.25 * s
-        q[3] = (m[1, 2] + m[2, 1]) / s
-    else:
-        s = 2.0 * np.sqrt(1.0 + 2.0 * m[2, 2] - tr)
-        q[0] = (m[1, 0] - m[0, 1]) / s
-        q[1] = (m[0, 2] + m[2, 0]) / s
-        q[2] = (m[1, 2] + m[2, 1]) / s
-        q[3] = 0.25 * s
-    if q[0] < 0.0:
-        q = -q
-    return normalize1(q)
+    return quat_from_dcm1(r)
 
 
 @njit(cache=True)

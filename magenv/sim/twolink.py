@@ -30,6 +30,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout as mj_rollout
 
+from magenv import quaternion as quat
 from magenv.sim.gimbal import SimulationError, resample_cubic
 
 MODEL_PATH = Path(__file__).with_name("twolink.xml")
@@ -112,6 +113,42 @@ def lever_arms() -> tuple[np.ndarray, np.ndarray]:
     return r_i.copy(), r_j.copy()
 
 
+def _hinge_axes(angles: np.ndarray) -> np.ndarray:
+    """(n, 3, 3): axes of a body's z, y, x hinges (MuJoCo applies them in that order) in the body's frame.
+
+    ``angles`` (n, 3): the hinges' positions (z, y, x), rad. Row r of the
+    result is hinge r's axis: x = e_x, y = R_x(x)ᵀe_y, z = R_x(x)ᵀR_y(y)ᵀe_z.
+    """
+    sy, cy = np.sin(angles[:, 1]), np.cos(angles[:, 1])
+    sx, cx = np.sin(angles[:, 2]), np.cos(angles[:, 2])
+    zero, one = np.zeros_like(sx), np.ones_like(sx)
+    return np.stack([np.stack([-sy, sx * cy, cx * cy], axis=1),
+                     np.stack([zero, cx, -sx], axis=1),
+                     np.stack([one, zero, zero], axis=1)], axis=1)
+
+
+def _centre_gyro(sens: np.ndarray, adr: dict, phys_rate: float) -> None:
+    """Put MuJoCo's gyro readings at the same instant as its positions (in place).
+
+    As in ``magenv.sim.gimbal._centre_gyro``: the joint velocity v_k of step
+    k is the mean rate over [t_k − h, t_k], half a step behind the positions;
+    the rate at t_k is the central difference v̄_k = (q_{k+1} − q_{k−1})/(2h).
+    Each gyro gets Σ_j a_j·(v̄_j − v_j), a_j the hinge axes in its sensor frame
+    (the sites are not rotated in their bodies): link j's own hinges, and for
+    link i its own hinges plus link j's term carried from frame j to frame i
+    through MuJoCo's orientations q_j, q_i. First and last rows stay as read.
+    """
+    pos = np.stack([sens[:, adr["q_" + k].start] for k in JOINTS[3:]], axis=1)
+    vel = np.stack([sens[:, adr["v_" + k].start] for k in JOINTS[3:]], axis=1)
+    dv = np.zeros_like(vel)
+    dv[1:-1] = (pos[2:] - pos[:-2]) * (0.5 * phys_rate) - vel[1:-1]
+    dw_j = np.einsum("nr,nrc->nc", dv[:, :3], _hinge_axes(pos[:, :3]))
+    dw_i = np.einsum("nr,nrc->nc", dv[:, 3:], _hinge_axes(pos[:, 3:]))
+    q_i, q_j = sens[:, adr["q_i"]], sens[:, adr["q_j"]]
+    sens[:, adr["gyro_j"]] += dw_j
+    sens[:, adr["gyro_i"]] += quat.rotate_inv(q_i, quat.rotate(q_j, dw_j)) + dw_i
+
+
 def envelope(t: np.ndarray, levels: list[tuple[float, float]], ramp: float = 1.0) -> np.ndarray:
     """A motion envelope: ``levels`` = [(start s, level), …] held until the next start,
     with half-cosine transitions of ``ramp`` s; 0 before the first start."""
@@ -192,11 +229,8 @@ def simulate_twolink(command: Command, sample_rate: float, n_samples: int) -> Tw
         q = sens[:, adr[key]]
         flip = np.cumprod(np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0))
         q[1:] *= flip[:, None]
+    _centre_gyro(sens, adr, phys)
     out = resample_cubic(sens, phys, sample_rate, n_samples, 0.0)
-    # The velocity at physics step k is the mean rate over [t_k − h, t_k] (see
-    # magenv.sim.gimbal): read the gyros half a step later so they do not lag.
-    for key in ("gyro_i", "gyro_j"):
-        out[:, adr[key]] = resample_cubic(np.ascontiguousarray(sens[:, adr[key]]), phys, sample_rate, n_samples, 0.5)
     for key in ("q_i", "q_j"):
         qs = out[:, adr[key]]
         qs /= np.linalg.norm(qs, axis=1, keepdims=True)
