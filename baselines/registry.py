@@ -43,11 +43,12 @@ def register(name: str, factory: Callable[[], Any], description: str = "", overw
     _REGISTERED[name] = (factory, description)
 
 
-def tunable_rules() -> dict[str, type[rules.RulePolicy]]:
-    """Every rule with tunable parameters, by name: the λ rules and the Kalman-trust rules."""
-    from baselines import kalman_policies
+def tunable_rules() -> dict[str, type]:
+    """Every method with tunable parameters (``PARAM_BOUNDS``, ``params``, ``from_params``), by name:
+    the λ rules, the Kalman-trust rules (policies) and the constraint filter (an estimator)."""
+    from baselines import constraint, kalman_policies
 
-    return {**rules.RULES, **kalman_policies.RULES}
+    return {**rules.RULES, **kalman_policies.RULES, "cf_constraint": constraint.ConstraintCF}
 
 
 def rule_class(name: str) -> type[rules.RulePolicy]:

@@ -1,4 +1,4 @@
-"""``magenv tune``: optimise a hand-crafted rule's parameters with CMA-ES.
+"""``magenv tune``: optimise a hand-crafted rule's (or filter's) parameters with CMA-ES.
 
     magenv tune --rule fan_lambda [--scenarios random] [--seeds 10000:10016] [--iterations 30]
 
@@ -51,16 +51,16 @@ def tune_rule(rule: str, trials: list, iterations: int = 30, popsize: int = 8, s
     from tqdm import tqdm
 
     from baselines.registry import rule_class
-    from magenv.evaluation import run_policy_on_trials
+    from magenv import evaluation
 
     cls = rule_class(rule)
     bounds = cls.PARAM_BOUNDS
     published = cls()  # the published parameter values are the constructor defaults
 
     def objective(params: dict) -> float:
-        policy = cls(**params)
-        scores = run_policy_on_trials(policy, trials, policy.env_id, {})
-        return float(np.mean([s.total for s in scores]))
+        method = cls(**params)  # a policy (run in its env) or an estimator (run on the trial)
+        runner = evaluation.PolicyRunner()
+        return float(np.mean([evaluation.run_method(rule, method, t, runner).score.total for t in trials]))
 
     x0 = _to_unit(published.params, bounds)
     if len(bounds) == 1:  # CMA-ES needs two dimensions or more: bounded scalar search instead
@@ -83,9 +83,12 @@ def tune_rule(rule: str, trials: list, iterations: int = 30, popsize: int = 8, s
         bar.close()
         xbest, fbest = es.result.xbest, float(es.result.fbest)
     best = _to_params(xbest, bounds)
+    published_deg = objective(published.params)
+    if published_deg <= fbest:  # the search never returns worse than where it started
+        best, fbest = published.params, published_deg
     return {
         "rule": rule, "params": best, "objective_deg": fbest,
-        "published_params": published.params, "published_objective_deg": objective(published.params),
+        "published_params": published.params, "published_objective_deg": published_deg,
         "trials": [t.name for t in trials], "cma": {"iterations": iterations, "popsize": popsize, "seed": seed},
         "date": time.strftime("%Y-%m-%d"),
     }

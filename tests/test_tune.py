@@ -1,0 +1,36 @@
+"""magenv tune: CMA-ES over a rule's parameters, saved and picked up by the registry."""
+
+import json
+
+import pytest
+
+from baselines import registry
+from magenv.scenarios import make_trial
+from train.cli import main as cli
+from train.tune import _to_params, _to_unit, tune_rule
+
+
+def test_unit_mapping_round_trips_linear_and_log_bounds():
+    bounds = {"a": (0.0, 1.0), "b": (0.1, 90.0)}  # b spans > a decade: log scale
+    params = {"a": 0.25, "b": 3.0}
+    assert _to_params(_to_unit(params, bounds), bounds) == pytest.approx(params)
+    assert _to_params([0.5, 0.5], bounds)["b"] == pytest.approx(3.0)  # geometric midpoint of 0.1…90
+
+
+@pytest.mark.parametrize("rule", ["threshold", "constant"])  # two parameters (CMA-ES) and one (scalar search)
+def test_tuning_improves_on_the_training_trials_and_registers(tmp_path, monkeypatch, rule):
+    trials = [make_trial("dynamic_magnet", 10_000, duration=10.0)]
+    record = tune_rule(rule, trials, iterations=3, popsize=4, progress=False)
+    assert set(record["params"]) == set(registry.rule_class(rule).PARAM_BOUNDS)
+    assert record["objective_deg"] <= record["published_objective_deg"]
+    monkeypatch.setattr(registry, "TUNED_DIR", tmp_path)
+    (tmp_path / f"{rule}.json").write_text(json.dumps(record))
+    tuned = registry.make(f"{rule}_tuned")
+    assert tuned.params == pytest.approx(record["params"])
+
+
+def test_held_out_seeds_are_refused(capsys):
+    assert cli(["tune", "--rule", "threshold", "--seeds", "0:3"]) == 2
+    assert "held out for evaluation" in capsys.readouterr().err
+    assert cli(["tune", "--rule", "nope", "--seeds", "10000:10001", "--scenarios", "dynamic_clean"]) == 2
+    assert "unknown rule 'nope'" in capsys.readouterr().err
