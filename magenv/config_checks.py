@@ -45,3 +45,27 @@ def config_json(value):
     if isinstance(value, (np.integer, int)) and not isinstance(value, bool):
         return int(value)
     return value
+
+
+def apply_overrides(name: str, cfg, overrides: dict):
+    """Scenario config ``cfg`` (of scenario ``name``) with ``overrides`` applied.
+
+    A key is a field of the config, or else of its ``sensor`` (a
+    ``SensorConfig``); an unknown key or a bad value raises ValueError naming it.
+    """
+    from magenv.sim.sensors import SensorConfig
+
+    own = {f.name for f in dataclasses.fields(cfg)}
+    sensor_fields = {f.name for f in dataclasses.fields(SensorConfig)}
+    unknown = sorted(k for k in overrides if k not in own and k not in sensor_fields)
+    if unknown:
+        raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} for scenario {name!r}; "
+                         f"known: {', '.join(sorted(own))}; sensor: {', '.join(sorted(sensor_fields))}")
+    sensor_over = {k: v for k, v in overrides.items() if k not in own}
+    cfg_over = {k: v for k, v in overrides.items() if k in own}
+    try:
+        if sensor_over:
+            cfg_over["sensor"] = dataclasses.replace(cfg_over.get("sensor", cfg.sensor), **sensor_over)
+        return dataclasses.replace(cfg, **cfg_over)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"scenario {name!r}: bad parameter value: {exc}") from None

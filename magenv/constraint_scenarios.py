@@ -54,12 +54,11 @@ Each trial draws from six independent streams spawned from
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.config_checks import check_intervals, check_number, check_range, config_json
+from magenv.config_checks import apply_overrides, check_intervals, check_number, check_range, config_json
 from magenv.sim import earth
 from magenv.sim import twolink as tl
 from magenv.sim.hand import Approach
@@ -233,21 +232,7 @@ def get_scenario(name: str) -> ConstraintConfig:
 
 def configure(name: str, **overrides) -> ConstraintConfig:
     """Scenario ``name``'s config with ``overrides`` (config fields or ``SensorConfig`` fields)."""
-    cfg = get_scenario(name)
-    own = {f.name for f in dataclasses.fields(cfg)}
-    sensor_fields = {f.name for f in dataclasses.fields(SensorConfig)}
-    unknown = sorted(k for k in overrides if k not in own and k not in sensor_fields)
-    if unknown:
-        raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} for scenario {name!r}; "
-                         f"known: {', '.join(sorted(own))}; sensor: {', '.join(sorted(sensor_fields))}")
-    cfg_over = {k: v for k, v in overrides.items() if k in own}
-    sensor_over = {k: v for k, v in overrides.items() if k not in own}
-    try:
-        if sensor_over:
-            cfg_over["sensor"] = dataclasses.replace(cfg_over.get("sensor", cfg.sensor), **sensor_over)
-        return dataclasses.replace(cfg, **cfg_over)
-    except (ValueError, TypeError) as exc:
-        raise ValueError(f"scenario {name!r}: bad parameter value: {exc}") from None
+    return apply_overrides(name, get_scenario(name), overrides)
 
 
 # ------------------------------------------------------------------ planning

@@ -49,6 +49,7 @@ import math
 import numpy as np
 
 from magenv import quaternion as quat
+from magenv.config_checks import apply_overrides
 from magenv.sim import earth
 from magenv.sim.handheld import MODES, Motion, ideal_readings
 from magenv.sim.indoor_field import random_indoor_field
@@ -164,21 +165,7 @@ def get_scenario(name: str) -> HandheldConfig:
 
 def configure(name: str, **overrides) -> HandheldConfig:
     """``name``'s config with overrides (config fields or ``SensorConfig`` fields)."""
-    cfg = get_scenario(name)
-    own = {f.name for f in dataclasses.fields(cfg)}
-    sensor_fields = {f.name for f in dataclasses.fields(SensorConfig)}
-    unknown = sorted(k for k in overrides if k not in own and k not in sensor_fields)
-    if unknown:
-        raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} for scenario {name!r}; "
-                         f"known: {', '.join(sorted(own))}; sensor: {', '.join(sorted(sensor_fields))}")
-    sensor_over = {k: v for k, v in overrides.items() if k in sensor_fields and k not in own}
-    cfg_over = {k: v for k, v in overrides.items() if k in own}
-    try:
-        if sensor_over:
-            cfg_over["sensor"] = dataclasses.replace(cfg_over.get("sensor", cfg.sensor), **sensor_over)
-        return dataclasses.replace(cfg, **cfg_over)
-    except (ValueError, TypeError) as exc:
-        raise ValueError(f"scenario {name!r}: bad parameter value: {exc}") from None
+    return apply_overrides(name, get_scenario(name), overrides)
 
 
 def make_trial(name: str, seed: int, **overrides) -> Trial:

@@ -47,7 +47,7 @@ from typing import Callable
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.config_checks import check_intervals, check_number, check_range, config_json
+from magenv.config_checks import apply_overrides, check_intervals, check_number, check_range, config_json
 from magenv.sim import base_paths, earth, indoor, profiles
 from magenv.sim.gimbal import PHYSICS_RATE, Tube, simulate_gimbal
 from magenv.sim.hand import Approach, hand_path
@@ -619,22 +619,7 @@ def configure(name: str, **overrides) -> ScenarioConfig:
     family = family_of(name) if name not in _REGISTRY else None
     if family is not None:
         return family.configure(name, **overrides)
-    cfg = get_scenario(name)
-    own = {f.name for f in dataclasses.fields(cfg)}
-    sensor_fields = {f.name for f in dataclasses.fields(SensorConfig)}
-    unknown = sorted(k for k in overrides if k not in own and k not in sensor_fields)
-    if unknown:
-        raise ValueError(
-            f"unknown parameter(s) {', '.join(map(repr, unknown))} for scenario {name!r}; "
-            f"known: {', '.join(sorted(own))}; sensor: {', '.join(sorted(sensor_fields))}")
-    sensor_over = {k: v for k, v in overrides.items() if k in sensor_fields and k not in own}
-    cfg_over = {k: v for k, v in overrides.items() if k in own}
-    try:
-        if sensor_over:
-            cfg_over["sensor"] = dataclasses.replace(cfg_over.get("sensor", cfg.sensor), **sensor_over)
-        return dataclasses.replace(cfg, **cfg_over)
-    except (ValueError, TypeError) as exc:
-        raise ValueError(f"scenario {name!r}: bad parameter value: {exc}") from None
+    return apply_overrides(name, get_scenario(name), overrides)
 
 
 def make_trial(name: str, seed: int, **overrides) -> Trial:

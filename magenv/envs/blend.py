@@ -6,9 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from magenv.envs.common import (  # noqa: F401  (RECORDING_PREFIX, trial_source: re-exported)
-    RECORDING_PREFIX, LoopVectorEnv, TrustEnv, scalar_action, trial_source,
-)
+from magenv.envs.common import LoopVectorEnv, TrustEnv, scalar_action
 from magenv.filters import stationary as stat
 from magenv.filters.blend import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, BlendRunner
 from magenv.filters.madgwick import BETA_DEFAULT

@@ -338,23 +338,3 @@ class MagQSFVectorEnv(LoopVectorEnv):
     autoreset), with the env's `(2,)` action: ``actions`` of shape ``(num_envs, 2)``."""
 
     env_class = MagQSFEnv
-
-    def step(self, actions):
-        actions = np.asarray(actions, dtype=np.float32)
-        if actions.shape != (self.num_envs, 2):
-            raise ValueError(f"actions must have shape ({self.num_envs}, 2), got {actions.shape}")
-        n, f = self.num_envs, self.single_observation_space.shape[0]
-        obs = np.empty((n, f), np.float32)
-        rewards = np.zeros(n)
-        terminated = np.zeros(n, bool)
-        truncated = np.zeros(n, bool)
-        error = np.full(n, np.nan)
-        for i, env in enumerate(self.envs):
-            if self._needs_reset[i]:
-                obs[i] = env.reset()[0]
-                self._needs_reset[i] = False
-                continue
-            obs[i], rewards[i], terminated[i], truncated[i], info = env.step(actions[i])
-            error[i] = info["error_total"]
-            self._needs_reset[i] = terminated[i] or truncated[i]
-        return obs, rewards, terminated, truncated, {"error_total": error}

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from magenv.filters.common import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR, TrialRunner, add_errors  # noqa: F401
+from magenv.filters.common import N_ERR, TrialRunner, add_errors
 from magenv.filters import stationary as stat
 from magenv.filters.stationary import stationary_peek1, stationary_step1
 from magenv.filters.madgwick import BETA_DEFAULT, MODE_IMU, MODE_MIMU, ecompass1, step_scalar
@@ -122,8 +122,6 @@ def advance(q, buf, ctr, gyr, acc, mag, q_true, dist, lam, lam_const, start, sto
     th_a = params[P_TH_A]
     th_g = params[P_TH_G]
     hold = params[P_HOLD] > 0.5
-    m0 = params[P_M0]
-    dip0 = params[P_DIP0]
     for k in range(N_ERR):
         err[k] = 0.0
     for i in range(start, stop):

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from magenv.filters.common import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR, TrialRunner, add_errors  # noqa: F401
+from magenv.filters.common import N_ERR, TrialRunner, add_errors
 from magenv.filters.madgwick import ecompass1
 from magenv.quaternion import GRAVITY, earth_field, normalize1, rotate, rotate1
 from magenv.trial import Trial

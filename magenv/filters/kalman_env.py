@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from magenv.filters.common import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR, TrialRunner, add_errors  # noqa: F401
+from magenv.filters.common import N_ERR, TrialRunner, add_errors
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_trust import run_k_kernel, step_kernel
 from magenv.filters.kalman_model import C_A, C_B, vec_step1
