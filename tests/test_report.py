@@ -1,0 +1,19 @@
+"""magenv report: Markdown with the tables and the PNG plots."""
+
+from magenv import evaluation
+from magenv.scenarios import make_trial
+from train.report import write_report
+
+
+def test_report_has_tables_and_plots(tmp_path):
+    trials = [make_trial("dynamic_magnet", s, duration=8.0) for s in (0, 1)] + [make_trial("dynamic_clean", 0, duration=8.0)]
+    runs = evaluation.evaluate(["mimu", "fan_lambda", "th_triad"], trials)
+    path = write_report(runs, tmp_path / "report")
+    text = path.read_text()
+    assert "| dynamic_magnet | " in text and "| dynamic_clean | " in text
+    for method in ("mimu", "fan_lambda", "th_triad"):
+        assert f"| {method} |" in text
+    pngs = sorted(p.name for p in (tmp_path / "report").glob("*.png"))
+    assert pngs == ["rmse_bars.png", "trial_dynamic_clean.png", "trial_dynamic_magnet.png"]
+    assert all((tmp_path / "report" / p).stat().st_size > 10_000 for p in pngs)
+    assert (tmp_path / "report" / "comparison.csv").read_text().startswith(",".join(evaluation.CSV_COLUMNS))
