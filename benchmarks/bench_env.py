@@ -6,7 +6,8 @@ Both envs are made with ``gymnasium.make`` (default wrappers), stepped with a
 fixed action, and reset when an episode ends; resets are included in the
 time; each rate is the median of 3 runs. MagBlend is measured on one pre-made trial (the cost of ``step`` itself),
 on the default ``random`` scenario (each reset simulates a new 60-s trial,
-which dominates), and as the 8-env ``vector_entry_point`` VectorEnv. Target: at least half of CartPole's rate.
+which dominates), the same with ``prefetch=True`` (the next trial made in a
+worker process meanwhile), and as the 8-env ``vector_entry_point`` VectorEnv. Target: at least half of CartPole's rate.
 """
 
 from __future__ import annotations
@@ -62,6 +63,10 @@ def main() -> None:
     print(f"MagBlend-v0 k={args.every}, one trial (step cost)      {fixed:10.0f} steps/s  "
           f"ratio {fixed / cart:.2f}  ({fixed * args.every:.0f} samples/s)")
     print(f"MagBlend-v0 k={args.every}, scenario 'random' + resets {rand:10.0f} steps/s  ratio {rand / cart:.2f}")
+    env = gym.make("magenv/MagBlend-v0", decision_every=args.every, prefetch=True)
+    ahead = rate(env, lam, args.steps)
+    env.close()
+    print(f"MagBlend-v0 k={args.every}, 'random', prefetch=True  {ahead:10.0f} steps/s  ratio {ahead / cart:.2f}")
     vec = gym.make_vec("magenv/MagBlend-v0", num_envs=8, vectorization_mode="vector_entry_point",
                        scenario=[make_trial("dynamic_magnet", 0)], decision_every=args.every)
     acts = np.full((8, 1), 0.5, np.float32)

@@ -258,3 +258,28 @@ def test_scenario_mixture_draws_only_training_seeds():
     assert seen == {"dynamic_clean", "dynamic_magnet"}
     with pytest.raises(ValueError, match="unknown scenario.*'nope'.*known scenarios"):
         gym.make(ENV_ID, scenario="dynamic_clean,nope")
+
+
+def test_prefetch_gives_the_same_episodes_bit_for_bit():
+    a = np.array([0.3], np.float32)
+
+    def episodes(env, seeds):
+        out = []
+        for s in seeds:  # None: the next trial of the sequence; an int: reseed (the prefetch guess misses)
+            obs, _ = env.reset(seed=s)
+            total = 0.0
+            for _ in range(20):
+                obs, r, *_ = env.step(a)
+                total += r
+            out.append((env.unwrapped.trial.name, obs.tobytes(), total))
+        return out
+
+    seeds = [3, None, None, 7, None]
+    plain = gym.make(ENV_ID, scenario="dynamic_clean,dynamic_magnet")
+    ahead = gym.make(ENV_ID, scenario="dynamic_clean,dynamic_magnet", prefetch=True)
+    try:
+        assert episodes(ahead, seeds) == episodes(plain, seeds)
+        assert ahead.unwrapped.trials._pending is not None  # the next trial is being made
+    finally:
+        ahead.close()
+    assert ahead.unwrapped.trials._pool is None

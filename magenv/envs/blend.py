@@ -106,6 +106,8 @@ class MagBlendEnv(TrustEnv):
     - `beta` (default 0.1 rad/s): Madgwick gain β (eq. 10).
     - `t0`, `th_acc_g`, `th_gyro_dps` (defaults 0.5 s, 0.04 g, 0.5 °/s): stationary detection (eqs. 11–13).
     - `scenario_kwargs` (default None): overrides passed to ``magenv.scenarios.make_trial``.
+    - `prefetch` (default False): simulate the next reset's trial meanwhile in a worker process
+      (same trials, bit for bit; hides the reset cost when a core is free). ``close()`` stops it.
 
     `info` of each step: `t` (s, last fused sample), `sample` (index after the step), `lambda`,
     `action_clipped`, `error_total` / `error_heading` / `error_inclination` (mean over the step, °,
@@ -130,9 +132,9 @@ class MagBlendEnv(TrustEnv):
                  stationary_hold: bool = True, features: Sequence[str] | None = None,
                  beta: float = BETA_DEFAULT, t0: float = stat.T0_S, th_acc_g: float = stat.TH_ACC_G,
                  th_gyro_dps: float = stat.TH_GYRO_DPS, scenario_kwargs: dict | None = None,
-                 render_mode: str | None = None):
+                 prefetch: bool = False, render_mode: str | None = None):
         self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH)
+                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH, prefetch=prefetch)
         self.stationary_hold = bool(stationary_hold)
         self.filter_kwargs = dict(beta=float(beta), hold=self.stationary_hold, t0=float(t0),
                                   th_acc_g=float(th_acc_g), th_gyro_dps=float(th_gyro_dps))

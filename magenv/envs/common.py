@@ -69,13 +69,41 @@ class TrialSource:
     given Trials; or, for scenarios, the scenario of a mixture and then a trial
     seed at or above ``magenv.seeding.HELD_OUT_BELOW`` (never an evaluation
     seed). A recording is loaded once and returned every time.
+
+    With ``prefetch`` (scenarios only), the trial the *next* reset will draw
+    (read off a copy of ``rng``) is simulated meanwhile in a worker process,
+    so a reset costs little more than a copy. The trial is the same either
+    way (``make_trial`` is bit-identical across processes); if the env is
+    reseeded, the guess misses and the trial is made on the spot.
     """
 
-    def __init__(self, scenario, scenario_kwargs: dict | None = None):
+    def __init__(self, scenario, scenario_kwargs: dict | None = None, prefetch: bool = False):
         self.kind, self.source = self.classify(scenario)
         self.label = scenario if isinstance(scenario, str) else "trials"
         self.scenario_kwargs = dict(scenario_kwargs or {})
         self._recording: Trial | None = None
+        self.prefetch = bool(prefetch) and self.kind == "scenario"
+        self._pending = None  # ((name, seed), Future) of the trial made ahead
+        self._pool = None
+
+    def _pick(self, rng: np.random.Generator) -> tuple[str, int]:
+        names = self.source
+        name = names[0] if len(names) == 1 else names[int(rng.integers(len(names)))]
+        return name, draw_training_seed(rng)  # never a held-out evaluation seed
+
+    def _ahead(self, key: tuple[str, int]):
+        if self._pool is None:
+            import concurrent.futures
+            import multiprocessing
+
+            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        return self._pool.submit(_make_scenario_trial, key[0], key[1], self.scenario_kwargs)
+
+    def close(self) -> None:
+        """Stop the prefetch worker, if any."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool, self._pending = None, None
 
     def draw(self, rng: np.random.Generator) -> Trial:
         if self.kind == "trials":
@@ -88,10 +116,19 @@ class TrialSource:
                     raise RuntimeError(f"'recording:' needs magenv.recordings ({exc})") from None
                 self._recording = load_recording(self.source)
             return self._recording
-        names = self.source
-        name = names[0] if len(names) == 1 else names[int(rng.integers(len(names)))]
-        seed = draw_training_seed(rng)  # never a held-out evaluation seed
-        return self.make_trial(name, seed)
+        key = self._pick(rng)
+        pending, self._pending = self._pending, None
+        trial = pending[1].result() if pending is not None and pending[0] == key else None
+        if trial is None:
+            if pending is not None:
+                pending[1].cancel()
+            trial = self.make_trial(*key)
+        if self.prefetch:
+            import copy
+
+            nxt = self._pick(copy.deepcopy(rng))  # what the next reset draws unless the env is reseeded
+            self._pending = (nxt, self._ahead(nxt))
+        return trial
 
     @staticmethod
     def classify(scenario) -> tuple[str, Any]:
@@ -103,6 +140,13 @@ class TrialSource:
         from magenv import scenarios
 
         return scenarios.make_trial(name, seed, **self.scenario_kwargs)
+
+
+def _make_scenario_trial(name: str, seed: int, scenario_kwargs: dict) -> Trial:
+    """``magenv.scenarios.make_trial`` in a prefetch worker process."""
+    from magenv import scenarios
+
+    return scenarios.make_trial(name, seed, **scenario_kwargs)
 
 
 def cut_trial(trial: Trial, episode_seconds: float | None) -> Trial:
@@ -172,10 +216,10 @@ class TrustEnv(gym.Env):
 
     def _setup(self, scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
                names: tuple[str, ...], low: np.ndarray, high: np.ndarray, action_dim: int = 1,
-               source: type[TrialSource] = TrialSource) -> None:
+               source: type[TrialSource] = TrialSource, prefetch: bool = False) -> None:
         """Check the common arguments; set ``k_steps``, ``trials``, ``scenario``, ``features``, the spaces."""
         self.k_steps = check_env_args(self.env_name, decision_every, episode_seconds, render_mode)
-        self.trials = source(scenario, scenario_kwargs)
+        self.trials = source(scenario, scenario_kwargs, prefetch=prefetch)
         self.scenario = self.trials.label
         self.episode_seconds = episode_seconds
         self.features, self._idx, self._all, self.observation_space = select_features(features, names, low, high)
@@ -186,6 +230,10 @@ class TrustEnv(gym.Env):
 
     def _make_runner(self, trial: Trial):
         raise NotImplementedError
+
+    def close(self) -> None:
+        self.trials.close()
+        super().close()
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)

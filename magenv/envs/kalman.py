@@ -121,6 +121,8 @@ class MagKalmanEnv(TrustEnv):
     - `model_c_a`, `model_c_b` (defaults 0.1, 1 µT: the survey's): Gauss–Markov parameters of
       the ``model_dist`` feature.
     - `scenario_kwargs` (default None): overrides passed to ``magenv.scenarios.make_trial``.
+    - `prefetch` (default False): simulate the next reset's trial meanwhile in a worker process
+      (same trials, bit for bit; hides the reset cost when a core is free). ``close()`` stops it.
 
     `info` of each step: `t` (s, last fused sample), `sample` (index after the step), `trust` (γ),
     `action_clipped`, `error_total` / `error_heading` / `error_inclination` (mean over the step, °,
@@ -147,9 +149,9 @@ class MagKalmanEnv(TrustEnv):
                  features: Sequence[str] | None = None, sigma_gyr: float = SIGMA_GYR, sigma_acc: float = SIGMA_ACC,
                  sigma_mag: float = SIGMA_MAG, th_acc: float = TH_ACC, heading_only: bool = True,
                  model_c_a: float = C_A, model_c_b: float = C_B, scenario_kwargs: dict | None = None,
-                 render_mode: str | None = None):
+                 prefetch: bool = False, render_mode: str | None = None):
         self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH)
+                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH, prefetch=prefetch)
         if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
             raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a!r}, {model_c_b!r}")
         if not th_acc > 0:
