@@ -44,12 +44,11 @@ unit, kept in the shared ``SensorConfig`` defaults).
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.config_checks import apply_overrides
+from magenv.config_checks import apply_overrides, check_range
 from magenv.sim import earth
 from magenv.sim.handheld import MODES, Motion, ideal_readings
 from magenv.sim.indoor_field import random_indoor_field
@@ -62,12 +61,6 @@ NANTES = (47.0, 61.0)
 HANDHELD_SENSOR = SensorConfig(gyr_noise_dps=0.1, gyr_bias_dps=0.3, gyr_drift_dps=0.01, acc_noise=0.03,
                                acc_bias=0.05, mag_noise_ut=0.3, mag_hard_iron_ut=0.5, mag_soft_iron=0.005,
                                mag_lag_samples=0, mag_hold_fraction=0.0)
-
-
-def _pair(name, v, lo=-math.inf, hi=math.inf):
-    if not (isinstance(v, (tuple, list)) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v)
-            and lo <= v[0] <= v[1] <= hi):
-        raise ValueError(f"{name} must be a (low, high) pair with {lo} ≤ low ≤ high ≤ {hi}, got {v!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,16 +111,16 @@ class HandheldConfig:
                              f"got {self.duration!r} s, {self.rate!r} Hz")
         if not self.modes or any(m not in MODES for m in self.modes):
             raise ValueError(f"modes must be a non-empty tuple of {MODES}, got {self.modes!r}")
-        _pair("segment_s", self.segment_s, 1.0)
-        _pair("speed_mps", self.speed_mps, 0.0, 3.0)
-        _pair("step_hz", self.step_hz, 0.5, 4.0)
-        _pair("path_m", self.path_m, 0.5, 100.0)
-        _pair("n_dipoles", self.n_dipoles, 0, 50)
-        _pair("dipole_ut", self.dipole_ut, 0.0, 500.0)
-        _pair("dipole_distance_m", self.dipole_distance_m, 0.3, 50.0)
-        _pair("n_wires", self.n_wires, 0, 20)
-        _pair("wire_current_a", self.wire_current_a, 0.0, 1000.0)
-        _pair("noise_scale", self.noise_scale, 0.0, 100.0)
+        check_range("segment_s", self.segment_s, 1.0)
+        check_range("speed_mps", self.speed_mps, 0.0, 3.0)
+        check_range("step_hz", self.step_hz, 0.5, 4.0)
+        check_range("path_m", self.path_m, 0.5, 100.0)
+        check_range("n_dipoles", self.n_dipoles, 0, 50)
+        check_range("dipole_ut", self.dipole_ut, 0.0, 500.0)
+        check_range("dipole_distance_m", self.dipole_distance_m, 0.3, 50.0)
+        check_range("n_wires", self.n_wires, 0, 20)
+        check_range("wire_current_a", self.wire_current_a, 0.0, 1000.0)
+        check_range("noise_scale", self.noise_scale, 0.0, 100.0)
         if not 0.0 <= self.treadmill_prob <= 1.0:
             raise ValueError(f"treadmill_prob must be in [0, 1], got {self.treadmill_prob!r}")
         if not 0.0 <= self.transition_s <= self.segment_s[0]:
