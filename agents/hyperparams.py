@@ -7,6 +7,7 @@ This follows the rl-zoo3 convention (``agents/configs/ppo.yaml``)::
       n_envs: 4             # parallel environments
       normalize_reward: true  # scale rewards by a running std of the return (VecNormalize)
       env_kwargs: {decision_every: 8}
+      pretrain: {teacher: fan_lambda, steps: 20000}  # optional: behaviour cloning first (agents/imitation.py)
       policy: MlpPolicy
       learning_rate: 3.0e-4
       policy_kwargs: {net_arch: [64, 64], activation_fn: tanh}
@@ -25,7 +26,7 @@ import yaml
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 # Keys of a config section that are not constructor arguments of the algorithm.
-RUN_KEYS = {"n_timesteps", "n_envs", "env_kwargs", "normalize_reward"}
+RUN_KEYS = {"n_timesteps", "n_envs", "env_kwargs", "normalize_reward", "pretrain"}
 ACTIVATIONS = ("tanh", "relu", "elu", "leaky_relu")
 
 
@@ -74,6 +75,13 @@ def load_hyperparams(algo: str, env_id: str, config_file: str | Path | None = No
     section.setdefault("env_kwargs", {})
     if not isinstance(section["env_kwargs"], dict):
         raise ConfigError(f"{path} [{env_id}]: env_kwargs must be a mapping")
+    if "pretrain" in section:
+        from agents.imitation import check_pretrain
+
+        try:
+            section["pretrain"] = check_pretrain(section["pretrain"], env_id)
+        except ConfigError as exc:
+            raise ConfigError(f"{path} [{env_id}]: {exc}") from None
     return section
 
 

@@ -35,7 +35,7 @@ from typing import Sequence
 
 import numpy as np
 
-from baselines.protocol import Estimate
+from baselines.protocol import Estimate, Tunable
 from magenv.filters import constraint as cf
 from magenv.trial import Trial
 
@@ -64,7 +64,7 @@ class Strapdown(_Base):
         return Estimate(q=r.run_all(0.0, 0.0).copy(), trust=np.zeros(trial.n))
 
 
-class ConventionalCF(_Base):
+class ConventionalCF(Tunable, _Base):
     """Gravity + magnetometer Gauss–Newton CF without the constraint (w = 0), constant gain k."""
 
     name = "cf_conventional"
@@ -76,16 +76,12 @@ class ConventionalCF(_Base):
             raise ValueError(f"gain k must be ≥ 0, got {k!r}")
         self.k = float(k)
 
-    @property
-    def params(self) -> dict[str, float]:
-        return {"k": self.k}
-
     def run(self, trial: Trial) -> Estimate:
         r = self._runner(trial)
         return Estimate(q=r.run_all(0.0, self.k).copy(), trust=np.ones(trial.n))
 
 
-class ConstraintCF(_Base):
+class ConstraintCF(Tunable, _Base):
     """The constraint-combined adaptive CF (eqs. 4–18); defaults are the published parameters."""
 
     name = "cf_constraint"
@@ -102,18 +98,6 @@ class ConstraintCF(_Base):
         # CMA-ES may propose k_min > k_max: eq. 18 then needs k_max ≥ k_min, so the larger one is k_max.
         self.th1, self.th2, self.th3 = float(th1), float(th2), float(th3)
         self.k_min, self.k_max = float(min(k_min, k_max)), float(max(k_min, k_max))
-
-    @property
-    def params(self) -> dict[str, float]:
-        """The five parameters by name (constructor arguments)."""
-        return {k: float(getattr(self, k)) for k in self.PARAM_BOUNDS}
-
-    @classmethod
-    def from_params(cls, params: dict[str, float], **kwargs) -> "ConstraintCF":
-        unknown = set(params) - set(cls.PARAM_BOUNDS)
-        if unknown:
-            raise ValueError(f"ConstraintCF has no parameter(s) {sorted(unknown)}; known: {list(cls.PARAM_BOUNDS)}")
-        return cls(**params, **kwargs)
 
     def run(self, trial: Trial) -> Estimate:
         r = self._runner(trial, use_constraint=self.use_constraint, **self.params)
@@ -132,7 +116,7 @@ def gated(**kw) -> ConstraintCF:
     return est
 
 
-class ConstraintWeightRule:
+class ConstraintWeightRule(Tunable):
     """eq. 16 as a policy of ``magenv/MagConstraint-v0``: w = min(mag_dev/th1, 1).
 
     With the env's ``control_gain`` option the action also carries k by eq. 18,
@@ -164,10 +148,6 @@ class ConstraintWeightRule:
         self.env_kwargs = {} if features is None else {"features": list(self.features)}
         if control_gain:
             self.env_kwargs.update(control_gain=True, gain_max=self.gain_max)
-
-    @property
-    def params(self) -> dict[str, float]:
-        return {"th1": self.th1}
 
     def reset(self) -> None:
         """Memoryless."""
@@ -206,17 +186,21 @@ TABLE2_METHODS = ("strapdown", "cf_conventional", "cf_constraint", "cf_gated")
 def table2(seeds: Sequence[int], methods_: Sequence[str] = TABLE2_METHODS) -> list[dict]:
     """Roll / pitch / yaw RMSE (°, ZYX Euler angles of the earth-frame error quaternion,
     ``magenv.metrics.euler_error``) of the methods on the three tests, mean over seeds
-    (``paper`` is NaN for the ablation ``cf_gated``)."""
-    from magenv import metrics
+    (``paper`` is NaN for methods not in the paper). Methods are ``magenv compare`` names (policies,
+    ``RULE_tuned`` and ``agent:RUN_DIR`` too)."""
+    from baselines import registry
+    from magenv import evaluation, metrics
     from magenv.constraint_scenarios import make_trial
 
     rows = []
+    runner = evaluation.PolicyRunner()
     for test in PAPER_TABLE2:
         trials = [make_trial(test, s) for s in seeds]
         for name in methods_:
             rms = []
             for tr in trials:
-                e = metrics.euler_error(methods()[name]().run(tr).q, tr.q_true)  # [yaw, pitch, roll]
+                q = evaluation.run_method(name, registry.make(name), tr, runner).q
+                e = metrics.euler_error(q, tr.q_true)  # [yaw, pitch, roll]
                 rms.append([metrics.rmse(e[:, 2], tr.score_mask), metrics.rmse(e[:, 1], tr.score_mask),
                             metrics.rmse(e[:, 0], tr.score_mask)])
             rms = np.array(rms)
@@ -229,9 +213,11 @@ def table2(seeds: Sequence[int], methods_: Sequence[str] = TABLE2_METHODS) -> li
 def _main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="Jung & Lee 2019 Table 2 on simulated trials")
     ap.add_argument("--seeds", default="0:5", help="START:STOP (default %(default)s)")
+    ap.add_argument("--methods", default=",".join(TABLE2_METHODS),
+                    help="comma list of method names, e.g. adding agent:RUN_DIR (default %(default)s)")
     args = ap.parse_args(argv)
     a, b = (int(x) for x in args.seeds.split(":"))
-    rows = table2(range(a, b))
+    rows = table2(range(a, b), args.methods.split(","))
     print(f"Table 2 reproduced on seeds {a}..{b - 1} (RMSE °, simulation mean ± std over seeds | paper)")
     print(f"{'test':<17} {'method':<16} {'roll':>16} {'pitch':>16} {'yaw':>16} {'avg':>13}")
     for r in rows:

@@ -5,6 +5,9 @@
 * An **Estimator** is a complete classical filter that cannot be phrased as a
   policy: it runs a whole Trial and returns its orientation estimate.
 
+Either kind can be :class:`Tunable`: named parameters with search bounds,
+for ``magenv tune`` (``baselines.registry.tunable_rules``).
+
 ``magenv.evaluation`` runs both kinds on the same trials and scores them with
 ``magenv.metrics``.
 """
@@ -52,3 +55,24 @@ class Estimator(Protocol):
 
     def run(self, trial: Trial) -> Estimate:
         """Estimate the orientation of every sample of ``trial``."""
+
+
+class Tunable:
+    """Mixin of a method with named parameters: ``PARAM_BOUNDS`` (name → (low, high)), read back by
+    ``params`` and given to the constructor by ``from_params``. The constructor's defaults are the
+    published values (``magenv tune`` starts there and never returns worse)."""
+
+    PARAM_BOUNDS: dict[str, tuple[float, float]] = {}
+
+    @property
+    def params(self) -> dict[str, float]:
+        """The parameters by name (constructor arguments)."""
+        return {k: float(getattr(self, k)) for k in self.PARAM_BOUNDS}
+
+    @classmethod
+    def from_params(cls, params: dict[str, float], **kwargs):
+        """An instance with these parameters (unknown names raise ValueError)."""
+        unknown = set(params) - set(cls.PARAM_BOUNDS)
+        if unknown:
+            raise ValueError(f"{cls.__name__} has no parameter(s) {sorted(unknown)}; known: {list(cls.PARAM_BOUNDS)}")
+        return cls(**params, **kwargs)

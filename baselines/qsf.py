@@ -10,10 +10,11 @@ else 0 (the AEKF updates on every sample). After ``run`` the estimator keeps
 the per-sample QSF flag, innovation norm and correction norm of its last
 trial in ``last`` (a ``magenv.filters.qsf.QSFResult``).
 
-Initialisation: TRIAD on the first sample against the trial's Earth field
-(causal, truth-free) by default; ``init="truth"`` starts from
-``trial.q_true[0]``, as the paper did from its optical reference (§5.3) —
-used for the paper check only.
+Initialisation (``init``, ``magenv.filters.qsf.initial_orientation``):
+``"auto"`` (default) starts the hand-held scenarios from ``trial.q_true[0]``,
+as the paper did from its optical reference (§5.3), and every other trial
+(e.g. the real recordings) from TRIAD on the first sample (truth-free);
+``"triad"`` and ``"truth"`` force one.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from baselines.protocol import Estimate
+from baselines.protocol import Estimate, Tunable
 from magenv.filters import qsf
 from magenv.trial import Trial
 
@@ -35,30 +36,41 @@ class QSFEstimator:
         mode: "aekf", "magyq" or "delay_magyq".
         detector: the QSF detector (ignored by the AEKF).
         init: "triad" (first sample, truth-free) or "truth" (paper's protocol).
-        params: keyword arguments of ``magenv.filters.qsf.make_params`` (e.g. sigma_gyr, sigma_mag, th_acc).
+        filter_kwargs: keyword arguments of ``magenv.filters.qsf.make_params`` (e.g. sigma_gyr, sigma_mag, th_acc).
     """
 
     mode: str = "delay_magyq"
     detector: qsf.QSFDetector = field(default_factory=qsf.QSFDetector)
-    init: str = "triad"
-    params: dict = field(default_factory=dict)
+    init: str = "auto"
+    filter_kwargs: dict = field(default_factory=dict)
     last: qsf.QSFResult | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if self.mode not in qsf.MODES:
             raise ValueError(f"unknown mode {self.mode!r}; known: {', '.join(qsf.MODES)}")
-        if self.init not in ("triad", "truth"):
-            raise ValueError(f"init must be 'triad' or 'truth', got {self.init!r}")
+        if self.init not in qsf.INITS:
+            raise ValueError(f"init must be one of {qsf.INITS}, got {self.init!r}")
 
     def run(self, trial: Trial) -> Estimate:
-        q0 = None
-        if self.init == "truth":
-            q0 = trial.q_true[0]
-            if not np.all(np.isfinite(q0)):
-                raise ValueError(f"trial {trial.name!r}: init='truth' needs a finite q_true[0]")
-        res = qsf.run_trial(trial, mode=self.mode, detector=self.detector, q0=q0, **self.params)
+        res = qsf.run_trial(trial, mode=self.mode, detector=self.detector, init=self.init, **self.filter_kwargs)
         self.last = res
         return Estimate(q=res.q, trust=res.sig[:, qsf.SIGNALS.index("mag_updated")].copy())
+
+
+class DetectedDelayMAGYQ(Tunable, QSFEstimator):
+    """Delay MAGYQ whose QSF detector thresholds are the tunable parameters (``magenv tune delay_magyq``;
+    defaults = ``QSFDetector``'s). ``window_s``, ``max_period_s`` in s; ``th_spread``, ``th_drift`` in µT."""
+
+    PARAM_BOUNDS = {"window_s": (0.1, 2.0), "th_spread": (0.2, 10.0), "th_drift": (0.5, 20.0),
+                    "max_period_s": (1.0, 60.0)}
+
+    def __init__(self, init: str = "auto", filter_kwargs: dict | None = None, **thresholds):
+        super().__init__(mode="delay_magyq", detector=qsf.QSFDetector(**thresholds), init=init,
+                         filter_kwargs=dict(filter_kwargs or {}))
+
+    @property
+    def params(self) -> dict[str, float]:
+        return {k: float(getattr(self.detector, k)) for k in self.PARAM_BOUNDS}
 
 
 def aekf(**kw) -> QSFEstimator:
@@ -83,14 +95,28 @@ def qsf_detector_policy():
     return DetectorPolicy()
 
 
+def qsf_detector_tuned_policy():
+    """The detector policy acting with the thresholds ``magenv tune --rule delay_magyq`` found
+    (``baselines/tuned/delay_magyq.json``): the env runs that detector (``env_kwargs["detector"]``)."""
+    from baselines.registry import tuned_params
+
+    from magenv.envs.qsf import DetectorPolicy
+
+    return DetectorPolicy(detector=tuned_params("delay_magyq"))
+
+
 def methods() -> dict:
     """Name → factory, for ``baselines.registry``; ``qsf_detector`` (a Policy) once ``magenv/MagQSF-v0`` is
-    registered."""
+    registered, and ``qsf_detector_tuned`` once the detector has been tuned."""
     import gymnasium as gym
+
+    from baselines.registry import TUNED_DIR
 
     out = {"aekf": aekf, "magyq": magyq, "delay_magyq": delay_magyq}
     if "magenv/MagQSF-v0" in gym.registry:
         out["qsf_detector"] = qsf_detector_policy
+        if (TUNED_DIR / "delay_magyq.json").is_file():
+            out["qsf_detector_tuned"] = qsf_detector_tuned_policy
     return out
 
 
@@ -135,7 +161,7 @@ def paper_check(seeds=(0, 1, 2, 3), free_seeds=(0,), **params) -> str:
                   "| mean abs yaw | paper roll μ/σ | paper pitch μ/σ | paper yaw μ/σ |",
                   "|---|---|---|---|---|---|---|---|---|---|---|"]
         for m, factory in ests.items():
-            e = _euler_errors(trials, factory(init="truth", params=sig))
+            e = _euler_errors(trials, factory(init="truth", filter_kwargs=sig))
             if name != "handheld_corridor":
                 pooled[m].append(e[:, 0])
             yaw, pitch, roll = e[:, 0], e[:, 1], e[:, 2]

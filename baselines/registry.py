@@ -45,10 +45,12 @@ def register(name: str, factory: Callable[[], Any], description: str = "", overw
 
 def tunable_rules() -> dict[str, type]:
     """Every method with tunable parameters (``PARAM_BOUNDS``, ``params``, ``from_params``), by name:
-    the λ rules, the Kalman-trust rules (policies) and the constraint filter (an estimator)."""
-    from baselines import constraint, kalman_policies
+    the λ rules, the Kalman-trust rules (policies), the constraint filter and Delay MAGYQ's QSF detector
+    (estimators)."""
+    from baselines import constraint, kalman_policies, qsf
 
-    return {**rules.RULES, **kalman_policies.RULES, "cf_constraint": constraint.ConstraintCF}
+    return {**rules.RULES, **kalman_policies.RULES, "cf_constraint": constraint.ConstraintCF,
+            "delay_magyq": qsf.DetectedDelayMAGYQ}
 
 
 def rule_class(name: str) -> type[rules.RulePolicy]:
@@ -69,6 +71,17 @@ def _builtin() -> dict[str, tuple[Callable[[], Any], str]]:
     }
 
 
+def tuned_params(rule: str) -> dict[str, float]:
+    """The parameters ``magenv tune`` wrote for ``rule`` (``baselines/tuned/RULE.json``)."""
+    path = TUNED_DIR / f"{rule}.json"
+    try:
+        return dict(json.loads(path.read_text())["params"])
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no tuned parameters for {rule!r}; run magenv tune --rule {rule}") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: corrupt tuned-parameter file ({exc})") from None
+
+
 def _tuned() -> dict[str, tuple[Callable[[], Any], str]]:
     out = {}
     table = tunable_rules()
@@ -79,8 +92,7 @@ def _tuned() -> dict[str, tuple[Callable[[], Any], str]]:
                 continue
 
             def factory(path=path, rule=rule):
-                record = json.loads(path.read_text())
-                policy = table[rule].from_params(record["params"])
+                policy = table[rule].from_params(tuned_params(rule))
                 policy.name = f"{rule}_tuned"
                 return policy
 

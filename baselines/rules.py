@@ -27,17 +27,17 @@ from typing import Sequence
 
 import numpy as np
 
+from baselines.protocol import Tunable
 from magenv.filters.blend import DIP_SCALE_DEG, FEATURE_NAMES
 
 ENV_ID = "magenv/MagBlend-v0"
 
 
-class RulePolicy:
+class RulePolicy(Tunable):
     """Base class: feature lookup, params, reset. Subclasses define ``PARAM_BOUNDS`` and ``weight(obs)``."""
 
     env_id = ENV_ID
     name = "rule"
-    PARAM_BOUNDS: dict[str, tuple[float, float]] = {}
     NEEDS: tuple[str, ...] = ()
 
     def __init__(self, features: Sequence[str] | None = None, stationary_hold: bool | None = None):
@@ -52,19 +52,6 @@ class RulePolicy:
         self.env_kwargs = {} if features is None else {"features": list(self.features)}
         if stationary_hold is not None:
             self.env_kwargs["stationary_hold"] = bool(stationary_hold)
-
-    @property
-    def params(self) -> dict[str, float]:
-        """The rule's parameters by name (constructor arguments)."""
-        return {k: float(getattr(self, k)) for k in self.PARAM_BOUNDS}
-
-    @classmethod
-    def from_params(cls, params: dict[str, float], **kwargs) -> "RulePolicy":
-        """A rule with these parameters (unknown names raise ValueError)."""
-        unknown = set(params) - set(cls.PARAM_BOUNDS)
-        if unknown:
-            raise ValueError(f"{cls.__name__} has no parameter(s) {sorted(unknown)}; known: {list(cls.PARAM_BOUNDS)}")
-        return cls(**params, **kwargs)
 
     def reset(self) -> None:
         """Rules are memoryless."""

@@ -28,7 +28,10 @@ spatially varying field instead, where a quasi-static reference also goes
 stale from the walk itself. Truth channels:
 ``mag_disturbance`` (N, 3) µT sensor frame (field − Earth field),
 ``position`` (N, 3) m ENU, ``mode`` (N,) index into ``magenv.sim.handheld.MODES``,
-``stationary`` (N,) bool (never, the walker does not stop).
+``stationary`` (N,) bool (never, the walker does not stop). The walk
+starts inside the disturbed field, so, as in the paper (§5.3), the trial
+gives the filters their true initial orientation: ``meta["start_from_truth"]``
+(``magenv.filters.qsf.initial_orientation``; the QSF methods' ``init="auto"``).
 
 A name + a seed → the same Trial bit for bit: four independent random
 streams (motion, field, Earth location, sensor) are spawned from
@@ -49,6 +52,7 @@ import numpy as np
 
 from magenv import quaternion as quat
 from magenv.config_checks import apply_overrides, check_range
+from magenv.filters.qsf import START_FROM_TRUTH
 from magenv.sim import earth
 from magenv.sim.handheld import MODES, Motion, ideal_readings
 from magenv.sim.indoor_field import random_indoor_field
@@ -185,7 +189,7 @@ def make_trial(name: str, seed: int, **overrides) -> Trial:
     p, q, gyr, acc, mag, b_e = ideal_readings(motion, t, field)
     scale = float(r_sensor.uniform(*cfg.noise_scale))
     gyr_m, acc_m, mag_m = apply_sensor_model(gyr, acc, mag, cfg.rate, cfg.sensor.scaled(scale), r_sensor)
-    meta = {"scenario": name, "seed": int(seed), "modes": motion.mode_names,
+    meta = {"scenario": name, "seed": int(seed), "modes": motion.mode_names, START_FROM_TRUTH: True,
             "mode_bounds_s": [float(b) for b in motion.bounds], "speed_mps": motion.speed,
             "step_hz": motion.f_step, "treadmill": not motion.travel, "noise_scale": scale, "n_dipoles": int(len(field.dipole_pos)),
             "n_wires": int(len(field.wire_point)), "min_source_distance_m": field.min_source_distance(p_visit),

@@ -305,3 +305,81 @@ def test_vector_env_replays_single_envs():
         assert rew[i] == r
     with pytest.raises(ValueError):
         venv.step(np.zeros((2, 1), np.float32))
+
+
+def test_start_follows_the_trial_protocol():
+    """init="auto": hand-held trials (walk starts in a disturbed field) start from truth, others from TRIAD."""
+    from magenv import handheld_scenarios as hs
+
+    hand = hs.make_trial("handheld_texting", 0, duration=2.0)
+    other = _env_trial()
+    params = qsf.make_params(hand.field_norm, hand.field_dip)
+    np.testing.assert_array_equal(qsf.initial_orientation(hand, "auto", params), hand.q_true[0])
+    np.testing.assert_array_equal(qsf.initial_orientation(other, "auto", params),
+                                  qsf.initial_orientation(other, "triad", params))
+    assert not np.allclose(qsf.initial_orientation(hand, "triad", params), hand.q_true[0], atol=1e-3)
+    est = bq.delay_magyq().run(hand)  # the estimator and the env start alike
+    env = MagQSFEnv(scenario=[hand], decision_every=1)
+    obs, _ = env.reset(seed=0)
+    policy, done = DetectorPolicy(), False
+    while not done:
+        obs, _, _, done, _ = env.step(policy(obs))
+    np.testing.assert_array_equal(env.estimate, est.q)
+    with pytest.raises(ValueError, match="init must be one of"):
+        qsf.initial_orientation(hand, "oracle", params)
+    nan_start = Trial("nan", 100.0, other.gyr, other.acc, other.mag, np.full_like(other.q_true, np.nan), *FIELD)
+    with pytest.raises(ValueError, match="finite q_true"):
+        qsf.initial_orientation(nan_start, "truth", params)
+
+
+def test_features_are_scaled_and_report_the_period():
+    tr = _static_trial(n=600)
+    env = MagQSFEnv(scenario=[tr], decision_every=10)
+    obs, _ = env.reset(seed=0)
+    f = dict(zip(env.features, obs))
+    assert f["active"] == 0 and f["age"] == 0 and f["ref_mismatch"] == 0 and f["trust_prev"] == 0
+    for _ in range(30):  # start, then keep for 3 s
+        obs, *_ = env.step(np.array([1.0 if _ == 0 else 0.0, 1.0], np.float32))
+    f = dict(zip(env.features, obs))
+    assert f["active"] == 1 and f["age"] == pytest.approx(0.299, abs=0.011)  # units of 10 s
+    assert f["trust_prev"] == 1.0
+    assert 0 < f["ref_mismatch"] < 1.0  # static: well within σ_m of the reference
+    assert f["spread"] < 1.0 and f["det_keep"] == 1  # steady field: below the detector threshold
+    assert abs(f["dip_dev"]) < 0.1 and abs(f["acc_dev"]) < 0.05
+    assert env.observation_space.contains(obs)
+
+
+def test_detector_thresholds_are_tunable():
+    from baselines.registry import rule_class
+
+    cls = rule_class("delay_magyq")
+    assert cls().params == {"window_s": 0.5, "th_spread": 1.0, "th_drift": 2.0, "max_period_s": 10.0}
+    tuned = cls.from_params({"th_spread": 3.0, "window_s": 0.2})
+    assert tuned.detector.th_spread == 3.0 and tuned.detector.window_s == 0.2 and tuned.mode == "delay_magyq"
+    with pytest.raises(ValueError, match="no parameter"):
+        cls.from_params({"gain": 1.0})
+
+
+def test_detector_option_takes_a_mapping():
+    env = MagQSFEnv(scenario=[_env_trial()], detector={"th_spread": 3.0, "window_s": 0.2})
+    assert env.detector == qsf.QSFDetector(th_spread=3.0, window_s=0.2)
+    with pytest.raises(TypeError, match="detector must be"):
+        MagQSFEnv(scenario=[_env_trial()], detector=3.0)
+    with pytest.raises(ValueError, match="th_drift must be a positive"):
+        MagQSFEnv(scenario=[_env_trial()], detector={"th_drift": -1.0})
+
+
+def test_detector_policy_with_thresholds_matches_the_tuned_estimator():
+    thresholds = {"window_s": 0.3, "th_spread": 4.0, "th_drift": 12.0, "max_period_s": 20.0}
+    tr = _env_trial()
+    policy = DetectorPolicy(detector=thresholds)
+    env = MagQSFEnv(scenario=[tr], decision_every=1, **policy.env_kwargs)
+    obs, _ = env.reset(seed=0)
+    done = False
+    while not done:
+        obs, _, _, done, _ = env.step(policy(obs))
+    from baselines.registry import rule_class
+
+    np.testing.assert_array_equal(env.estimate, rule_class("delay_magyq").from_params(thresholds).run(tr).q)
+    with pytest.raises(ValueError, match="window_s must be a positive"):
+        DetectorPolicy(detector={"window_s": 0.0})

@@ -68,3 +68,51 @@ def test_cli_errors_are_clear(tmp_path, capsys):
     assert "unknown env 'magenv/Nope-v0'" in capsys.readouterr().err
     assert cli(["evaluate", str(tmp_path / "missing")]) == 2
     assert "no such run folder" in capsys.readouterr().err
+
+
+def test_pretrain_clones_the_teacher_before_rl(tmp_path):
+    """Behaviour cloning: after pretraining (no RL update yet) the agent acts like the teacher rule."""
+    import numpy as np
+
+    from baselines.registry import make
+    from magenv.evaluation import run_policy_on_trials
+    from magenv.scenarios import make_trial
+
+    section = {"env_kwargs": {"scenario": "dynamic_magnet", "episode_seconds": 20.0},
+               "pretrain": {"teacher": "fan_lambda", "steps": 1500, "epochs": 30}, **SMALL["ppo"]}
+    cfg = tmp_path / "ppo.yaml"
+    cfg.write_text(yaml.safe_dump({ENV: section}))
+    out = tmp_path / "bc"
+    train(ENV, "ppo", 1, out, config=cfg, eval_every=10_000, eval_scenarios=("dynamic_magnet",), eval_seeds=(0,),
+          progress_bar=False)
+    state = json.loads((out / "state.json").read_text())
+    assert state["pretrain_mse"] < 0.05  # actions in [-1, 1]; an untrained actor is off by ~0.3
+    agent, teacher = load_agent(out, which="last"), make("fan_lambda")
+    trial = make_trial("dynamic_magnet", 0).slice(0, 2000)
+    env = __import__("gymnasium").make(ENV, scenario=[trial]).unwrapped
+    obs, _ = env.reset(seed=0)
+    gaps = []
+    for _ in range(100):
+        a_agent, a_teacher = agent(obs), teacher(obs)
+        gaps.append(abs(float(a_agent[0]) - float(a_teacher[0])))
+        obs, *_ = env.step(a_teacher)
+    assert np.mean(gaps) < 0.1  # λ ∈ [0, 1]
+    agent_deg = run_policy_on_trials(agent, [trial])[0].total
+    teacher_deg = run_policy_on_trials(teacher, [trial])[0].total
+    assert agent_deg < teacher_deg + 1.0
+
+
+def test_pretrain_config_errors(tmp_path):
+    from agents import ConfigError, load_hyperparams
+
+    cases = [({"teacher": "fan_lambda"}, "needs 'teacher' and 'steps'"),
+             ({"teacher": "fan_lambda", "steps": 10, "epoch": 3}, "unknown key"),
+             ({"teacher": "fan_lambda", "steps": -5}, "steps must be a positive int")]
+    for spec, msg in cases:
+        cfg = tmp_path / "ppo.yaml"
+        cfg.write_text(yaml.safe_dump({ENV: {"pretrain": spec}}))
+        with pytest.raises(ConfigError, match=msg):
+            load_hyperparams("ppo", ENV, cfg)
+    cfg.write_text(yaml.safe_dump({ENV: {"pretrain": {"teacher": "aekf", "steps": 10}, **SMALL["ppo"]}}))
+    with pytest.raises(ConfigError, match="must be a policy of magenv/MagBlend-v0"):
+        train(ENV, "ppo", 1, tmp_path / "x", config=cfg, progress_bar=False)

@@ -51,6 +51,7 @@ class HeldOutEvaluation(BaseCallback):
         self.run_dir, self.trials, self.env_id, self.env_kwargs = run_dir, trials, env_id, env_kwargs
         self.every, self.state = every, state
         self._next = state["timesteps"] + every
+        self.last_evaluated = None  # timesteps of the latest evaluation in this process
 
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next:
@@ -73,6 +74,7 @@ class HeldOutEvaluation(BaseCallback):
         with open(self.run_dir / "evaluations.csv", "a", newline="") as f:
             csv.writer(f).writerow([self.num_timesteps, f"{score:.4f}", f"{time.time() - self.state['t0']:.1f}"])
         save_checkpoint(self.model, self.run_dir, self.state, self.num_timesteps)
+        self.last_evaluated = self.num_timesteps
         return score
 
 
@@ -91,6 +93,18 @@ def save_checkpoint(model, run_dir: Path, state: dict, timesteps: int) -> None:
     tmp.replace(run_dir / "last_model.zip")
     (run_dir / (STATE_FILE + ".tmp")).write_text(json.dumps(state, indent=1))
     (run_dir / (STATE_FILE + ".tmp")).replace(run_dir / STATE_FILE)
+
+
+def pretrain(model, env_id: str, section: dict, bounds, seed: int) -> float:
+    """Behaviour cloning of the config's ``pretrain`` teacher (``agents.imitation``); returns the final MSE."""
+    from agents.imitation import clone, demonstrations, teacher_policy
+
+    spec = section["pretrain"]
+    teacher = teacher_policy(spec["teacher"], env_id)
+    obs, actions = demonstrations(env_id, section["env_kwargs"], teacher, int(spec["steps"]), seed, bounds)
+    mse = clone(model, obs, actions, spec["epochs"], spec["learning_rate"], spec["batch_size"], seed)
+    print(f"pretrain: cloned {spec['teacher']} on {len(obs)} steps, mean squared action error {mse:.4f}")
+    return mse
 
 
 def held_out_trials(scenarios: list[str], seeds: list[int]) -> list:
@@ -150,6 +164,8 @@ def train(
         state["timesteps"] = 0
         model = cls(env=vec_env, seed=seed, device="cpu", tensorboard_log=str(out / "tb"),
                     **constructor_kwargs(section))
+        if section.get("pretrain"):
+            state["pretrain_mse"] = pretrain(model, env_id, section, run["action_bounds"], seed)
     remaining = steps - state["timesteps"]
     if remaining <= 0:
         print(f"{out}: already trained for {state['timesteps']} of {steps} steps")
@@ -165,7 +181,8 @@ def train(
     try:
         model.learn(remaining, callback=CallbackList([evaluation]), progress_bar=progress_bar,
                     reset_num_timesteps=state["timesteps"] == 0, tb_log_name=algo)
-        evaluation.evaluate_and_checkpoint()
+        if evaluation.last_evaluated != model.num_timesteps:
+            evaluation.evaluate_and_checkpoint()
     except KeyboardInterrupt:
         save_checkpoint(model, out, state, model.num_timesteps)
         print(f"\ninterrupted at {model.num_timesteps} steps; run the same command again to resume")

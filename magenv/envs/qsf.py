@@ -2,43 +2,17 @@
 
 from __future__ import annotations
 
-import math
+import dataclasses
 from typing import Sequence
 
-import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from magenv import metrics
-from magenv import quaternion as quat
-from magenv.envs.common import (
-    RECORDING_PREFIX, LoopVectorEnv, TrialSource, check_env_args, cut_trial, select_features,
-)
+from magenv.envs.common import LoopVectorEnv, TrustEnv
 from magenv.filters import qsf
-from magenv.quaternion import GRAVITY
-from magenv.seeding import draw_training_seed
+from magenv.filters.qsf_env import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, VARIANTS, QSFRunner
 from magenv.trial import Trial
 
-# (name, low, high); physical units, documented in the env docstring
-FEATURES: tuple[tuple[str, float, float], ...] = (
-    ("spread", 0.0, 100.0),  # detector statistic at sample j: RMS spread of the gyro-frame field, µT
-    ("det_start", 0.0, 1.0),  # the detector would start a period at j
-    ("det_keep", 0.0, 1.0),  # the detector would keep the period at j
-    ("ref_mismatch", 0.0, 200.0),  # |m_ref − q̂ ⊗ m_j ⊗ q̂*| with the current estimate, µT (0 without period)
-    ("innov_norm", 0.0, 200.0),  # |δz| of the last fused sample, µT
-    ("nis", 0.0, 1e4),  # δzᵀS⁻¹δz of the last fused sample
-    ("age", 0.0, 1e4),  # time since the current period started, s (0 without period)
-    ("active", 0.0, 1.0),  # a QSF period is active
-    ("gyro_norm", 0.0, 50.0),  # |ω_j|, rad/s
-    ("acc_dev", -1.0, 10.0),  # (|a_j| − g)/g
-    ("mag_norm_dev", -1.0, 20.0),  # (|m_j| − m0)/m0
-    ("dip_dev", -180.0, 180.0),  # dip of m_j in the estimated earth frame − θ0, degrees
-    ("heading_std", 0.0, 10.0),  # sqrt of the filter's heading variance, rad
-    ("trust_prev", 0.0, 1.0),  # trust applied in the last step
-)
-FEATURE_NAMES = tuple(f[0] for f in FEATURES)
-FEATURE_LOW = np.array([f[1] for f in FEATURES], np.float32)
-FEATURE_HIGH = np.array([f[2] for f in FEATURES], np.float32)
 DECISIONS = ("none", "start", "keep")  # indexed by the qsf.MAG_* codes
 
 
@@ -56,32 +30,7 @@ def decode_action(action) -> tuple[int, float, bool]:
     return code, trust, clipped
 
 
-class _HandheldSource:
-    """Trials of hand-held scenarios (a name or a comma list) while they are not yet registered in
-    ``magenv.scenarios``; draws like ``magenv.envs.common.TrialSource`` (training seeds only)."""
-
-    def __init__(self, names, scenario_kwargs):
-        self.names, self.scenario_kwargs = names, dict(scenario_kwargs or {})
-
-    def draw(self, rng):
-        from magenv import handheld_scenarios
-
-        name = self.names[0] if len(self.names) == 1 else self.names[int(rng.integers(len(self.names)))]
-        return handheld_scenarios.make_trial(name, draw_training_seed(rng), **self.scenario_kwargs)
-
-
-def _source(scenario, scenario_kwargs):
-    """A ``TrialSource`` for ``scenario``; hand-held names work whether or not ``magenv.scenarios`` knows them."""
-    from magenv import handheld_scenarios
-
-    if isinstance(scenario, str) and not scenario.startswith(RECORDING_PREFIX):
-        names = [s.strip() for s in scenario.split(",")]
-        if all(n in handheld_scenarios.SCENARIOS for n in names):
-            return _HandheldSource(names, scenario_kwargs)
-    return TrialSource(scenario, scenario_kwargs)
-
-
-class MagQSFEnv(gym.Env):
+class MagQSFEnv(TrustEnv):
     """
     ## Description
 
@@ -115,22 +64,26 @@ class MagQSFEnv(gym.Env):
     estimate. Truth never enters it. The detector (``qsf.QSFDetector``) works
     on the gyroscope and magnetometer only.
 
-    | Num | Name           | Meaning                                                     | Unit   | Min  | Max  |
-    |-----|----------------|-------------------------------------------------------------|--------|------|------|
-    | 0   | `spread`       | RMS spread of the gyro-frame field over the detector window | µT     | 0    | 100  |
-    | 1   | `det_start`    | the detector would start a period at j                      | 0/1    | 0    | 1    |
-    | 2   | `det_keep`     | the detector would continue its period at j                 | 0/1    | 0    | 1    |
-    | 3   | `ref_mismatch` | |m_ref − q̂ m_j q̂*| (0 without period)                       | µT     | 0    | 200  |
-    | 4   | `innov_norm`   | |δz| (eq. 9) of the last fused sample                       | µT     | 0    | 200  |
-    | 5   | `nis`          | normalised innovation squared of the last fused sample      | –      | 0    | 1e4  |
-    | 6   | `age`          | time since the current period started                       | s      | 0    | 1e4  |
-    | 7   | `active`       | a QSF period is active                                      | 0/1    | 0    | 1    |
-    | 8   | `gyro_norm`    | |ω_j|                                                       | rad/s  | 0    | 50   |
-    | 9   | `acc_dev`      | (|a_j| − g)/g                                               | –      | -1   | 10   |
-    | 10  | `mag_norm_dev` | (|m_j| − m0)/m0                                             | –      | -1   | 20   |
-    | 11  | `dip_dev`      | dip of m_j in the estimated earth frame − θ0                | °      | -180 | 180  |
-    | 12  | `heading_std`  | sqrt of the filter's heading variance                       | rad    | 0    | 10   |
-    | 13  | `trust_prev`   | trust applied in the last step                              | –      | 0    | 1    |
+    | Num | Name           | Meaning                                                     | Unit / scale  | Min  | Max  |
+    |-----|----------------|-------------------------------------------------------------|---------------|------|------|
+    | 0   | `spread`       | RMS spread of the gyro-frame field over the detector window | th_spread     | 0    | 100  |
+    | 1   | `det_start`    | the detector would start a period at j                      | 0/1           | 0    | 1    |
+    | 2   | `det_keep`     | the detector would continue its period at j                 | 0/1           | 0    | 1    |
+    | 3   | `ref_mismatch` | ‖m_ref − q̂ m_j q̂*‖ (0 without period)                       | σ_m           | 0    | 100  |
+    | 4   | `innov_norm`   | ‖δz‖ (eq. 9) of the last fused sample                       | σ_m           | 0    | 100  |
+    | 5   | `log_nis`      | log10(1 + NIS) of the last fused sample                     | –             | 0    | 10   |
+    | 6   | `age`          | time since the current period started                       | 10 s          | 0    | 100  |
+    | 7   | `active`       | a QSF period is active                                      | 0/1           | 0    | 1    |
+    | 8   | `gyro_norm`    | ‖ω_j‖                                                       | 2π rad/s      | 0    | 10   |
+    | 9   | `acc_dev`      | (‖a_j‖ − g)/g                                               | –             | -1   | 10   |
+    | 10  | `mag_norm_dev` | (‖m_j‖ − m0)/m0                                             | –             | -1   | 20   |
+    | 11  | `dip_dev`      | dip of q̂ m_j q̂* in the earth frame − θ0                     | 90°           | -2   | 2    |
+    | 12  | `heading_std`  | sqrt of the filter's heading variance                       | rad           | 0    | 10   |
+    | 13  | `trust_prev`   | trust applied in the last step (0 after reset)              | –             | 0    | 1    |
+
+    th_spread is the detector's threshold (µT), σ_m the filter's magnetometer
+    noise (µT, default 0.1 m0); values are clipped to range. Features are
+    computed by ``magenv.filters.qsf_env.QSFRunner``.
 
     ## Rewards
 
@@ -142,8 +95,10 @@ class MagQSFEnv(gym.Env):
     A trial is drawn at ``reset`` (scenario + seed from ``self.np_random``,
     or from given Trials, or ``options={"trial": trial}``). The filter starts
     from TRIAD on the first sample against the trial's Earth field
-    (``init="ecompass"``, truth-free) or, with ``init="truth"``, from the true
+    (``init="triad"``, truth-free) or, with ``init="truth"``, from the true
     first orientation as the paper did (§5.3; truth only sets the start).
+    The default ``init="auto"`` follows the trial: truth for the hand-held
+    scenarios (their walk starts in a disturbed field), TRIAD otherwise.
     MAGYQ has no absolute heading reference, so an initial heading error is
     never corrected.
 
@@ -154,170 +109,93 @@ class MagQSFEnv(gym.Env):
 
     ## Arguments
 
-    - `scenario` (default `"handheld_random"`): a hand-held scenario name (or a comma list
-      of them; ``magenv.handheld_scenarios``), any name (or comma list) of ``magenv.scenarios``,
+    - `scenario` (default `"handheld_random"`): any scenario name of ``magenv.scenarios`` (the
+      hand-held family ``magenv.handheld_scenarios`` is the intended one) or a comma list of them,
       `"recording:PATH"`, a Trial or a list of Trials. Scenario trials use training seeds
       only (``magenv.seeding.draw_training_seed``).
     - `decision_every` (default 10): samples per step.
     - `episode_seconds` (default None): use only the first seconds of each trial.
     - `variant` (default `"delay_magyq"`): or `"magyq"`.
-    - `init` (default `"ecompass"`): or `"truth"`.
+    - `init` (default `"auto"`): `"triad"`, `"truth"` or `"auto"` (``qsf.initial_orientation``).
     - `features` (default None = all): names of the features to keep, in order.
-    - `detector` (default ``qsf.QSFDetector()``): its thresholds.
+    - `detector` (default ``qsf.QSFDetector()``): a ``QSFDetector`` or a mapping of its thresholds
+      (``window_s``, ``th_spread``, ``th_drift``, ``max_period_s``), e.g. from a YAML config.
     - `filter_kwargs`: keywords of ``qsf.make_params`` (noise levels, ``max_age_s`` …).
     - `scenario_kwargs`: overrides for the scenario's ``make_trial``.
 
     `info` of each step: `t`, `sample`, `decision` (name), `trust`, `action_clipped`,
-    `error_total`/`error_heading` (mean over the step, °), `qsf_active`, `q_est`, `q_true`.
-    Per-sample arrays of the episode so far: ``estimate`` (N, 4), ``signals`` (N, NSIG).
+    `error_total` / `error_heading` / `error_inclination` (means over the step, °), `disturbance_norm`
+    (mean true ‖field − Earth field‖ at the sensor, µT; NaN if unknown), `qsf_active`, `q_est`, `q_true`.
+    Per-sample arrays of the episode so far: ``estimate`` (N, 4), ``signals`` (N, NSIG), ``trust`` (N,).
 
     ## Version History
 
     - v0: initial version.
     """
 
-    metadata = {"render_modes": []}
+    env_name = "MagQSF-v0"
 
     def __init__(self, scenario="handheld_random", decision_every: int = 10, episode_seconds: float | None = None,
-                 variant: str = "delay_magyq", init: str = "ecompass", features: Sequence[str] | None = None,
-                 detector: qsf.QSFDetector | None = None, filter_kwargs: dict | None = None,
+                 variant: str = "delay_magyq", init: str = "auto", features: Sequence[str] | None = None,
+                 detector: qsf.QSFDetector | dict | None = None, filter_kwargs: dict | None = None,
                  scenario_kwargs: dict | None = None, render_mode: str | None = None):
-        self.k = check_env_args("MagQSF-v0", decision_every, episode_seconds, render_mode)
-        if variant not in ("delay_magyq", "magyq"):
-            raise ValueError(f"variant must be 'delay_magyq' or 'magyq', got {variant!r}")
-        if init not in ("ecompass", "truth"):
-            raise ValueError(f"init must be 'ecompass' or 'truth', got {init!r}")
-        self._source = _source(scenario, scenario_kwargs)
-        self.episode_seconds = episode_seconds
-        self.variant, self.init = variant, init
-        self.detector = detector or qsf.QSFDetector()
-        self.filter_kwargs = dict(filter_kwargs or {})
-        self.scenario_kwargs = dict(scenario_kwargs or {})
-        self.features, self._idx, _, self.observation_space = select_features(features, FEATURE_NAMES, FEATURE_LOW,
-                                                                              FEATURE_HIGH)
+        if variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+        if init not in qsf.INITS:
+            raise ValueError(f"init must be one of {qsf.INITS}, got {init!r}")
+        self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
+                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH)
         self.action_space = spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 1.0], np.float32),
                                        dtype=np.float32)
-        self.render_mode = None
-        self.trial: Trial | None = None
+        self.variant, self.init = variant, init
+        if isinstance(detector, dict):
+            detector = qsf.QSFDetector(**detector)
+        elif detector is not None and not isinstance(detector, qsf.QSFDetector):
+            raise TypeError(f"detector must be a QSFDetector or a mapping of its thresholds, got {detector!r}")
+        self.detector = detector or qsf.QSFDetector()
+        self.filter_kwargs = dict(filter_kwargs or {})
+        qsf.make_params(50.0, 60.0, mode=variant, **self.filter_kwargs)  # bad keywords fail here, not at reset
 
-    # ------------------------------------------------------------ trials
-
-    def _draw_trial(self) -> Trial:
-        return self._source.draw(self.np_random)
-
-    # ------------------------------------------------------------ API
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        options = options or {}
-        trial = options.get("trial")
-        if trial is None:
-            trial = self._draw_trial()
-        elif not isinstance(trial, Trial):
-            raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
-        trial = cut_trial(trial, self.episode_seconds)
-        self.trial = trial
-        self._params = qsf.make_params(trial.field_norm, trial.field_dip, mode=self.variant, **self.filter_kwargs)
-        self._codes, self._spread = self.detector.detect(trial.gyr, trial.mag, trial.rate)
-        if self.init == "truth":
-            q0 = trial.q_true[0]
-            if not np.all(np.isfinite(q0)):
-                raise ValueError(f"trial {trial.name!r}: init='truth' needs a finite q_true[0]")
-        else:
-            q0 = qsf.triad_init(trial.acc[0], trial.mag[0], self._params)
-        self._x, self._pa, self._ref = qsf.initial_state(q0, trial.dt)
-        self._est = np.full((trial.n, 4), np.nan)
-        self._sig = np.zeros((trial.n, qsf.NSIG))
-        self._actions = np.zeros(trial.n, np.int8)
-        self._trusts = np.zeros(trial.n)
-        self._pos = 0
-        self._trust_prev = 0.0
-        self._h_earth = quat.earth_field(trial.field_norm, trial.field_dip)
-        info = {"trial": trial.name, "rate": trial.rate, "n_samples": trial.n, "field_norm": trial.field_norm,
-                "field_dip": trial.field_dip, "sample": 0}
-        return self._obs(), info
-
-    def _obs(self) -> np.ndarray:
-        tr, j = self.trial, min(self._pos, self.trial.n - 1)
-        q = self._x[0:4]
-        last = self._sig[self._pos - 1] if self._pos > 0 else np.zeros(qsf.NSIG)
-        active = self._ref[0] > 0.5
-        m_e = quat.rotate1(q, tr.mag[j])
-        mismatch = float(np.linalg.norm(self._ref[6:9] - m_e)) if active else 0.0
-        nm = float(np.linalg.norm(tr.mag[j]))
-        dip = math.degrees(math.asin(max(-1.0, min(1.0, -m_e[2] / nm)))) if nm > 0 else 0.0
-        spread = self._spread[j]
-        feat = np.array([
-            0.0 if not np.isfinite(spread) else spread,
-            float(self._codes[j] == qsf.MAG_START), float(self._codes[j] == qsf.MAG_KEEP),
-            mismatch, last[1], last[2], self._ref[1] if active else 0.0, float(active),
-            float(np.linalg.norm(tr.gyr[j])), (float(np.linalg.norm(tr.acc[j])) - GRAVITY) / GRAVITY,
-            (nm - tr.field_norm) / tr.field_norm, dip - tr.field_dip, last[6], self._trust_prev,
-        ])
-        return np.clip(feat[self._idx], self.observation_space.low, self.observation_space.high).astype(np.float32)
+    def _make_runner(self, trial: Trial) -> QSFRunner:
+        return QSFRunner(trial, self.variant, self.detector, self.init, self.filter_kwargs)
 
     def step(self, action):
-        if self.trial is None:
-            raise RuntimeError("MagQSFEnv.step() called before reset(); call env.reset() first")
-        tr = self.trial
-        if self._pos >= tr.n:
-            raise RuntimeError("MagQSFEnv.step() called after the episode was truncated; call env.reset()")
+        runner = self._step_runner()
         code, trust, clipped = decode_action(action)
-        i0, i1 = self._pos, min(tr.n, self._pos + self.k)
-        self._actions[i0:i1] = qsf.MAG_KEEP if code != qsf.MAG_NONE else qsf.MAG_NONE
-        if code == qsf.MAG_START:
-            self._actions[i0] = qsf.MAG_START
-        self._trusts[i0:i1] = trust
-        qsf.run(self._x, self._pa, self._ref, tr.gyr, tr.acc, tr.mag, tr.dt, i0, i1, self._actions, self._trusts,
-                self._params, self._est, self._sig)
-        self._pos = i1
-        self._trust_prev = trust
-        q_err = metrics.error_quaternion(self._est[i0:i1], tr.q_true[i0:i1])
-        tot = metrics.total_error(q_err)
-        ok = np.isfinite(tot)
-        if ok.any():
-            total = float(tot[ok].mean())
-            heading = float(metrics.heading_error(q_err)[ok].mean())
-            reward = -total
-        else:
-            total = heading = math.nan
-            reward = 0.0
-        info = {"t": (i1 - 1) / tr.rate, "sample": i1, "decision": DECISIONS[code], "trust": trust,
-                "action_clipped": clipped, "error_total": total, "error_heading": heading,
-                "qsf_active": bool(self._ref[0] > 0.5), "q_est": self._est[i1 - 1].copy(),
-                "q_true": tr.q_true[i1 - 1].copy()}
-        return self._obs(), float(reward), False, i1 >= tr.n, info
+        runner.advance(self.k_steps, code, trust)
+        return self._step_result(runner, {"decision": DECISIONS[code], "trust": trust, "action_clipped": clipped},
+                                 {"qsf_active": bool(runner.ref[0] > 0.5)})
 
     # ------------------------------------------------------------ evaluation access
 
     @property
-    def estimate(self) -> np.ndarray:
-        """(N, 4) per-sample estimate of the current episode (NaN rows not fused yet)."""
-        if self.trial is None:
-            raise RuntimeError("no episode yet; call env.reset() first")
-        return self._est
-
-    @property
     def signals(self) -> np.ndarray:
         """(N, NSIG) per-sample filter signals (``qsf.SIGNALS``), zeros where not fused yet."""
-        if self.trial is None:
-            raise RuntimeError("no episode yet; call env.reset() first")
-        return self._sig
+        return self._need_reset().sig
+
+    @property
+    def trust(self) -> np.ndarray:
+        """(N,) trust of the magnetic update per sample (0 where none ran or not fused yet)."""
+        return self._need_reset().sig[:, qsf.SIGNALS.index("trust")]
 
 
 class DetectorPolicy:
     """The QSF detector as a policy of ``magenv/MagQSF-v0``: start where the detector starts, keep where it
     keeps (start if no period is active), else no update; trust 1. With ``decision_every=1`` it reproduces
-    the ``delay_magyq`` estimator sample for sample."""
+    the ``delay_magyq`` estimator sample for sample. ``detector`` (thresholds, as the env's option) and
+    ``features`` become the env options it runs with (``env_kwargs``)."""
 
     env_id = "magenv/MagQSF-v0"
 
-    def __init__(self, features: Sequence[str] | None = None):
+    def __init__(self, features: Sequence[str] | None = None, detector: dict | None = None):
         names = FEATURE_NAMES if features is None else tuple(features)
         for f in ("det_start", "det_keep", "active"):
             if f not in names:
                 raise ValueError(f"DetectorPolicy needs the observation feature {f!r}")
         self._i = {f: names.index(f) for f in ("det_start", "det_keep", "active")}
+        self.env_kwargs = {} if features is None else {"features": list(names)}
+        if detector is not None:
+            self.env_kwargs["detector"] = dataclasses.asdict(qsf.QSFDetector(**detector))  # checked here
 
     def reset(self) -> None:
         pass

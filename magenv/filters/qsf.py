@@ -561,6 +561,27 @@ def triad_init(acc0, mag0, params) -> np.ndarray:
     return q
 
 
+INITS = ("auto", "triad", "truth")
+START_FROM_TRUTH = "start_from_truth"  # Trial.meta key: the trial's protocol gives the initial orientation
+
+
+def initial_orientation(trial, init: str, params) -> np.ndarray:
+    """The filters' start q0 (4,) on ``trial``: ``"triad"`` — TRIAD on sample 0 against the trial's Earth
+    field (truth-free); ``"truth"`` — ``trial.q_true[0]``, the paper's protocol (§5.3: the optical
+    reference sets the start, nothing after); ``"auto"`` — truth where ``trial.meta[START_FROM_TRUTH]``
+    (the hand-held scenarios, whose walk starts in a disturbed field), else TRIAD."""
+    if init not in INITS:
+        raise ValueError(f"init must be one of {INITS}, got {init!r}")
+    if init == "auto":
+        init = "truth" if trial.meta.get(START_FROM_TRUTH) else "triad"
+    if init == "triad":
+        return triad_init(trial.acc[0], trial.mag[0], params)
+    q0 = np.asarray(trial.q_true[0], float)
+    if not np.all(np.isfinite(q0)):
+        raise ValueError(f"trial {trial.name!r}: starting from truth needs a finite q_true[0]")
+    return q0
+
+
 def run(x, pa, ref, gyr, acc, mag, dt, i0, i1, actions, trusts, params, q_out, sig_out) -> int:
     """Advance over samples ``i0 … i1−1`` (arrays as in ``run_kernel``); returns the number of covariance
     repairs; raises FilterError on a non-finite sample or covariance (state left at the previous sample)."""
@@ -586,10 +607,10 @@ class QSFResult:
 
 
 def run_trial(trial, mode="delay_magyq", detector: QSFDetector | None = None, q0=None, trust=1.0,
-              params=None, actions=None, p0: dict | None = None, **param_kw) -> QSFResult:
-    """Whole trial. ``q0``: initial orientation (default TRIAD on sample 0 against the trial's Earth field;
-    the paper initialises from its reference system: pass ``trial.q_true[0]``). ``actions`` (N,) overrides
-    the detector's codes. ``p0``: keywords of :func:`initial_state`. Extra keywords go to :func:`make_params`."""
+              params=None, actions=None, p0: dict | None = None, init: str = "auto", **param_kw) -> QSFResult:
+    """Whole trial. ``q0``: initial orientation (4,); default :func:`initial_orientation` by ``init``.
+    ``actions`` (N,) overrides the detector's codes. ``p0``: keywords of :func:`initial_state`. Extra
+    keywords go to :func:`make_params`."""
     if params is None:
         params = make_params(trial.field_norm, trial.field_dip, mode=mode, **param_kw)
     detector = QSFDetector() if detector is None else detector
@@ -598,7 +619,7 @@ def run_trial(trial, mode="delay_magyq", detector: QSFDetector | None = None, q0
         codes = np.ascontiguousarray(actions, np.int8)
         if codes.shape != (trial.n,) or np.any((codes < 0) | (codes > 2)):
             raise ValueError(f"actions must be (N,) = ({trial.n},) with values 0, 1, 2")
-    q_init = triad_init(trial.acc[0], trial.mag[0], params) if q0 is None else np.asarray(q0, float)
+    q_init = initial_orientation(trial, init, params) if q0 is None else np.asarray(q0, float)
     x, pa, ref = initial_state(q_init, trial.dt, **(p0 or {}))
     trusts = np.broadcast_to(np.asarray(trust, float), (trial.n,)).copy()
     if np.any((trusts < 0) | (trusts > 1)):

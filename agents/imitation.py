@@ -1,0 +1,112 @@
+"""Behaviour cloning: start an agent from a hand-crafted rule before reinforcement learning.
+
+A config section may hold (see ``agents/configs/ppo.yaml``)::
+
+    pretrain: {teacher: constraint_rule, steps: 20000, epochs: 20}
+
+``magenv train`` then, before the first RL update, rolls the teacher (a
+Policy of the same env, by its ``magenv compare`` name) through ``steps``
+steps of the *training* env (training seeds only), and fits the agent's mean
+action to the teacher's by least squares. Only the actor is fitted: its
+exploration noise (``log_std``) and the critic keep their initial values, so
+RL starts from the rule's behaviour with the config's exploration. PPO only
+(its policy exposes the action distribution's mean).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+from agents.hyperparams import ConfigError
+
+KEYS = {"teacher": str, "steps": int, "epochs": int, "learning_rate": float, "batch_size": int}
+DEFAULTS = {"epochs": 20, "learning_rate": 1e-3, "batch_size": 256}
+
+
+def check_pretrain(spec, env_id: str) -> dict:
+    """The validated ``pretrain`` mapping of a config section (defaults filled in)."""
+    if not isinstance(spec, dict):
+        raise ConfigError(f"pretrain must be a mapping with keys {sorted(KEYS)}, got {spec!r}")
+    unknown = sorted(set(spec) - set(KEYS))
+    if unknown or "teacher" not in spec or "steps" not in spec:
+        raise ConfigError(f"pretrain: needs 'teacher' and 'steps'; unknown key(s) {unknown}; known {sorted(KEYS)}")
+    out = {**DEFAULTS, **spec}
+    for key, typ in KEYS.items():
+        v = out[key]
+        if typ is str and not isinstance(v, str):
+            raise ConfigError(f"pretrain.{key} must be a method name, got {v!r}")
+        if typ in (int, float) and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0
+                                    or (typ is int and int(v) != v)):
+            raise ConfigError(f"pretrain.{key} must be a positive {typ.__name__}, got {v!r}")
+    return out
+
+
+def teacher_policy(name: str, env_id: str):
+    """The teacher: a Policy acting in ``env_id`` (``baselines.registry`` name)."""
+    from baselines.registry import make
+    from magenv.evaluation import is_policy
+
+    try:
+        teacher = make(name)
+    except ValueError as exc:
+        raise ConfigError(f"pretrain.teacher: {exc}") from None
+    if not is_policy(teacher) or teacher.env_id != env_id:
+        where = getattr(teacher, "env_id", "no env (an estimator)")
+        raise ConfigError(f"pretrain.teacher {name!r} must be a policy of {env_id}; it acts in {where}")
+    return teacher
+
+
+def demonstrations(env_id: str, env_kwargs: dict, teacher, steps: int, seed: int,
+                   bounds) -> tuple[np.ndarray, np.ndarray]:
+    """(observations (M, F), teacher actions rescaled to [-1, 1] (M, A)) over ``steps`` steps of the env."""
+    low, high = (np.asarray(b, np.float64) for b in bounds)
+    needs = getattr(teacher, "env_kwargs", {})
+    clash = {k: v for k, v in needs.items() if env_kwargs.get(k) != v}
+    if clash:
+        raise ConfigError(f"pretrain: the teacher needs env options {clash}, which the config's env_kwargs lack")
+    env = gym.make(env_id, disable_env_checker=True, **env_kwargs)
+    obs_list, act_list = [], []
+    obs, _ = env.reset(seed=seed)
+    teacher.reset()
+    while len(obs_list) < steps:
+        action = np.asarray(teacher(obs), np.float64).reshape(low.shape)
+        obs_list.append(obs)
+        act_list.append(2.0 * (np.clip(action, low, high) - low) / (high - low) - 1.0)
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            obs, _ = env.reset()
+            teacher.reset()
+    env.close()
+    return np.asarray(obs_list, np.float32), np.asarray(act_list, np.float32)
+
+
+def clone(model, obs: np.ndarray, actions: np.ndarray, epochs: int, learning_rate: float, batch_size: int,
+          seed: int = 0) -> float:
+    """Fit the actor's mean action to ``actions`` (least squares, Adam); returns the final mean squared error."""
+    import torch
+
+    policy = model.policy
+    if not hasattr(policy, "get_distribution"):
+        raise ConfigError(f"pretrain works with PPO policies, not {type(policy).__name__}")
+    actor = [p for n, p in policy.named_parameters() if n.startswith(("mlp_extractor.policy_net", "action_net"))]
+    opt = torch.optim.Adam(actor, lr=learning_rate)
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.as_tensor(obs, dtype=torch.float32)
+    y = torch.as_tensor(actions, dtype=torch.float32)
+
+    def mean_action(batch):
+        return policy.get_distribution(batch).distribution.mean
+
+    policy.set_training_mode(True)
+    for _ in range(int(epochs)):
+        perm = torch.randperm(len(x), generator=gen)
+        for i in range(0, len(perm), int(batch_size)):
+            idx = perm[i:i + int(batch_size)]
+            loss = ((mean_action(x[idx]) - y[idx]) ** 2).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    policy.set_training_mode(False)
+    with torch.no_grad():
+        return float(((mean_action(x) - y) ** 2).mean())
