@@ -78,6 +78,8 @@ def load_hyperparams(algo: str, env_id: str, config_file: str | Path | None = No
     if "pretrain" in section:
         from agents.imitation import check_pretrain
 
+        if algo != "ppo":
+            raise ConfigError(f"{path} [{env_id}]: pretrain works with ppo only, not {algo}")
         try:
             section["pretrain"] = check_pretrain(section["pretrain"], env_id)
         except ConfigError as exc:

@@ -42,8 +42,9 @@ def check_pretrain(spec, env_id: str) -> dict:
     return out
 
 
-def teacher_policy(name: str, env_id: str):
-    """The teacher: a Policy acting in ``env_id`` (``baselines.registry`` name)."""
+def teacher_policy(name: str, env_id: str, env_kwargs: dict):
+    """The teacher: a Policy acting in ``env_id`` (``baselines.registry`` name) that can act in the env made
+    with ``env_kwargs`` (the options it needs, e.g. its features, must be among them)."""
     from baselines.registry import make
     from magenv.evaluation import is_policy
 
@@ -54,17 +55,17 @@ def teacher_policy(name: str, env_id: str):
     if not is_policy(teacher) or teacher.env_id != env_id:
         where = getattr(teacher, "env_id", "no env (an estimator)")
         raise ConfigError(f"pretrain.teacher {name!r} must be a policy of {env_id}; it acts in {where}")
+    clash = {k: v for k, v in getattr(teacher, "env_kwargs", {}).items() if env_kwargs.get(k) != v}
+    if clash:
+        raise ConfigError(f"pretrain.teacher {name!r} needs env options {clash}, which the config's env_kwargs lack")
     return teacher
 
 
 def demonstrations(env_id: str, env_kwargs: dict, teacher, steps: int, seed: int,
                    bounds) -> tuple[np.ndarray, np.ndarray]:
-    """(observations (M, F), teacher actions rescaled to [-1, 1] (M, A)) over ``steps`` steps of the env."""
+    """(observations (M, F), teacher actions rescaled to [-1, 1] (M, A)) over ``steps`` steps of the env
+    (``teacher`` from :func:`teacher_policy`)."""
     low, high = (np.asarray(b, np.float64) for b in bounds)
-    needs = getattr(teacher, "env_kwargs", {})
-    clash = {k: v for k, v in needs.items() if env_kwargs.get(k) != v}
-    if clash:
-        raise ConfigError(f"pretrain: the teacher needs env options {clash}, which the config's env_kwargs lack")
     env = gym.make(env_id, disable_env_checker=True, **env_kwargs)
     obs_list, act_list = [], []
     obs, _ = env.reset(seed=seed)
@@ -86,9 +87,12 @@ def clone(model, obs: np.ndarray, actions: np.ndarray, epochs: int, learning_rat
     """Fit the actor's mean action to ``actions`` (least squares, Adam); returns the final mean squared error."""
     import torch
 
+    from stable_baselines3.common.policies import ActorCriticPolicy
+    from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
+
     policy = model.policy
-    if not hasattr(policy, "get_distribution"):
-        raise ConfigError(f"pretrain works with PPO policies, not {type(policy).__name__}")
+    if not isinstance(policy, ActorCriticPolicy) or isinstance(policy, RecurrentActorCriticPolicy):
+        raise ConfigError(f"pretrain works with PPO's feed-forward policies, not {type(policy).__name__}")
     actor = [p for n, p in policy.named_parameters() if n.startswith(("mlp_extractor.policy_net", "action_net"))]
     opt = torch.optim.Adam(actor, lr=learning_rate)
     gen = torch.Generator().manual_seed(seed)

@@ -35,7 +35,8 @@ class QSFEstimator:
     Attributes:
         mode: "aekf", "magyq" or "delay_magyq".
         detector: the QSF detector (ignored by the AEKF).
-        init: "triad" (first sample, truth-free) or "truth" (paper's protocol).
+        init: "auto" (default), "triad" (first sample, truth-free) or "truth" (paper's protocol); see
+            ``magenv.filters.qsf.initial_orientation``.
         filter_kwargs: keyword arguments of ``magenv.filters.qsf.make_params`` (e.g. sigma_gyr, sigma_mag, th_acc).
     """
 
@@ -58,7 +59,7 @@ class QSFEstimator:
 
 
 class DetectedDelayMAGYQ(Tunable, QSFEstimator):
-    """Delay MAGYQ whose QSF detector thresholds are the tunable parameters (``magenv tune delay_magyq``;
+    """Delay MAGYQ whose QSF detector thresholds are the tunable parameters (``magenv tune --rule delay_magyq``;
     defaults = ``QSFDetector``'s). ``window_s``, ``max_period_s`` in s; ``th_spread``, ``th_drift`` in µT."""
 
     PARAM_BOUNDS = {"window_s": (0.1, 2.0), "th_spread": (0.2, 10.0), "th_drift": (0.5, 20.0),

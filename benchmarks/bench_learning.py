@@ -1,7 +1,7 @@
 """Learning targets: does a trained agent beat the best hand-tuned rule, and how fast?
 
     .venv/bin/python benchmarks/bench_learning.py [--algo ppo] [--steps 300000] [--out runs/bench_ppo]
-                                                   [--seeds 0:10] [--eval-seeds 0:3]
+                                                   [--seeds 0:10] [--eval-seeds 5000:5003]
 
 Trains (or resumes) an agent with ``magenv train`` while recording held-out
 RMSE and wall-clock time at each evaluation, then scores it beside every
@@ -42,7 +42,7 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=300_000)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--seeds", default="0:10", help="held-out seeds for the final table")
-    p.add_argument("--eval-seeds", default="0:3", help="held-out seeds for evaluations during training")
+    p.add_argument("--eval-seeds", default="5000:5003", help="held-out validation seeds for evaluations during training")
     p.add_argument("--eval-every", type=int, default=25_000)
     args = p.parse_args()
     out = args.out or Path(f"runs/bench_{args.algo}")

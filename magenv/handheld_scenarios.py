@@ -30,8 +30,9 @@ stale from the walk itself. Truth channels:
 ``position`` (N, 3) m ENU, ``mode`` (N,) index into ``magenv.sim.handheld.MODES``,
 ``stationary`` (N,) bool (never, the walker does not stop). The walk
 starts inside the disturbed field, so, as in the paper (§5.3), the trial
-gives the filters their true initial orientation: ``meta["start_from_truth"]``
-(``magenv.filters.qsf.initial_orientation``; the QSF methods' ``init="auto"``).
+gives the QSF filters their true initial orientation: ``meta["start_from_truth"]``
+(``magenv.filters.qsf.initial_orientation``, their ``init="auto"``); the
+other families' methods start from their own e-compass as everywhere.
 
 A name + a seed → the same Trial bit for bit: four independent random
 streams (motion, field, Earth location, sensor) are spawned from

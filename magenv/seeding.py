@@ -4,7 +4,10 @@ Evaluation (``magenv compare``, ``evaluate``, ``demo``, the held-out
 evaluation during ``train``) uses trial seeds below ``HELD_OUT_BELOW``;
 environments draw their training trials, and ``magenv tune`` its tuning
 trials, at or above it. So no learned agent or tuned rule has seen a trial
-it is scored on.
+it is scored on. Within the held-out range, seeds from ``VALIDATION_START``
+up are for model selection (``train`` keeps the agent that scores best on
+them) and the seeds below it for reports, so the reported trials never
+chose the model either.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 HELD_OUT_BELOW = 10_000
+VALIDATION_START = 5_000
 SEED_LIMIT = 2**31 - 1
 
 

@@ -383,3 +383,14 @@ def test_detector_policy_with_thresholds_matches_the_tuned_estimator():
     np.testing.assert_array_equal(env.estimate, rule_class("delay_magyq").from_params(thresholds).run(tr).q)
     with pytest.raises(ValueError, match="window_s must be a positive"):
         DetectorPolicy(detector={"window_s": 0.0})
+
+
+def test_last_observation_reports_the_last_step():
+    tr = _static_trial(n=95)
+    env = MagQSFEnv(scenario=[tr], decision_every=10)
+    env.reset(seed=0)
+    done, trust = False, 0.0
+    while not done:
+        trust = 0.9 if trust != 0.9 else 0.3
+        obs, _, _, done, _ = env.step(np.array([0.0, trust], np.float32))
+    assert dict(zip(env.features, obs))["trust_prev"] == pytest.approx(trust)

@@ -71,7 +71,7 @@ def test_cli_errors_are_clear(tmp_path, capsys):
 
 
 def test_pretrain_clones_the_teacher_before_rl(tmp_path):
-    """Behaviour cloning: after pretraining (no RL update yet) the agent acts like the teacher rule."""
+    """Behaviour cloning: the cloned agent (then one small PPO update) acts like the teacher rule."""
     import numpy as np
 
     from baselines.registry import make
@@ -113,6 +113,13 @@ def test_pretrain_config_errors(tmp_path):
         cfg.write_text(yaml.safe_dump({ENV: {"pretrain": spec}}))
         with pytest.raises(ConfigError, match=msg):
             load_hyperparams("ppo", ENV, cfg)
+    cfg.write_text(yaml.safe_dump({ENV: {"pretrain": {"teacher": "fan_lambda", "steps": 10}, **SMALL["sac"]}}))
+    with pytest.raises(ConfigError, match="pretrain works with ppo only"):
+        load_hyperparams("sac", ENV, cfg)
     cfg.write_text(yaml.safe_dump({ENV: {"pretrain": {"teacher": "aekf", "steps": 10}, **SMALL["ppo"]}}))
     with pytest.raises(ConfigError, match="must be a policy of magenv/MagBlend-v0"):
+        train(ENV, "ppo", 1, tmp_path / "x", config=cfg, progress_bar=False)
+    assert not (tmp_path / "x").exists()  # nothing written: the same folder can be used after fixing the config
+    cfg.write_text(yaml.safe_dump({ENV: {"pretrain": {"teacher": "kf_gate", "steps": 10}, **SMALL["ppo"]}}))
+    with pytest.raises(ConfigError, match="must be a policy of magenv/MagBlend-v0; it acts in magenv/MagKalman-v0"):
         train(ENV, "ppo", 1, tmp_path / "x", config=cfg, progress_bar=False)

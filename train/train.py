@@ -28,6 +28,7 @@ import magenv  # noqa: F401  (registers the environments)
 from agents.hyperparams import ConfigError, algorithm_class, constructor_kwargs, load_hyperparams
 from agents.loading import RUN_FILE, AgentPolicy, RunError, read_run
 from agents.wrappers import action_bounds, normalized_actions
+from magenv.seeding import VALIDATION_START
 from train.cli import CommandError
 from train.seeds import parse_seeds
 
@@ -100,7 +101,7 @@ def pretrain(model, env_id: str, section: dict, bounds, seed: int) -> float:
     from agents.imitation import clone, demonstrations, teacher_policy
 
     spec = section["pretrain"]
-    teacher = teacher_policy(spec["teacher"], env_id)
+    teacher = teacher_policy(spec["teacher"], env_id, section["env_kwargs"])
     obs, actions = demonstrations(env_id, section["env_kwargs"], teacher, int(spec["steps"]), seed, bounds)
     mse = clone(model, obs, actions, spec["epochs"], spec["learning_rate"], spec["batch_size"], seed)
     print(f"pretrain: cloned {spec['teacher']} on {len(obs)} steps, mean squared action error {mse:.4f}")
@@ -117,11 +118,11 @@ def held_out_trials(scenarios: list[str], seeds: list[int]) -> list:
 def train(
     env_id: str, algo: str, steps: int | None, out: Path, config: str | None = None, seed: int = 0,
     eval_every: int = 10_000, eval_scenarios: tuple[str, ...] = ("dynamic_magnet", "dynamic_clean"),
-    eval_seeds: tuple[int, ...] = (0, 1), n_envs: int | None = None, progress_bar: bool = True,
+    eval_seeds: tuple[int, ...] = (VALIDATION_START, VALIDATION_START + 1), n_envs: int | None = None, progress_bar: bool = True,
 ) -> Path:
     """Train (or resume) a run; returns the run folder. See the module docstring."""
     out = Path(out)
-    if (out / RUN_FILE).is_file():
+    if (out / RUN_FILE).is_file() and (out / STATE_FILE).is_file():  # else: a run that never reached its start
         run = read_run(out)
         if (run["env_id"], run["algo"]) != (env_id, algo):
             raise RunError(f"{out}: existing run is {run['algo']} on {run['env_id']}; "
@@ -134,6 +135,10 @@ def train(
         section = load_hyperparams(algo, env_id, config)
         if n_envs:
             section["n_envs"] = n_envs
+        if section.get("pretrain"):  # a bad teacher fails before the run folder is written
+            from agents.imitation import teacher_policy
+
+            teacher_policy(section["pretrain"]["teacher"], env_id, section["env_kwargs"])
         steps = steps or int(section.get("n_timesteps", 100_000))
         run = {
             "env_id": env_id, "algo": algo, "env_kwargs": section["env_kwargs"], "hyperparams": section,
@@ -203,7 +208,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--n-envs", type=int, default=None, help="parallel environments (default: the config's)")
     p.add_argument("--eval-every", type=int, default=10_000, help="steps between held-out evaluations")
     p.add_argument("--eval-scenarios", default="dynamic_magnet,dynamic_clean")
-    p.add_argument("--eval-seeds", default="0:2", help="held-out trial seeds, e.g. 0:4 or 0,5,7")
+    p.add_argument("--eval-seeds", default=f"{VALIDATION_START}:{VALIDATION_START + 2}",
+                   help="held-out validation seeds for model selection, e.g. 5000:5004 (default %(default)s)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -187,7 +187,7 @@ class DetectorPolicy:
 
     env_id = "magenv/MagQSF-v0"
 
-    def __init__(self, features: Sequence[str] | None = None, detector: dict | None = None):
+    def __init__(self, features: Sequence[str] | None = None, detector: qsf.QSFDetector | dict | None = None):
         names = FEATURE_NAMES if features is None else tuple(features)
         for f in ("det_start", "det_keep", "active"):
             if f not in names:
@@ -195,7 +195,8 @@ class DetectorPolicy:
         self._i = {f: names.index(f) for f in ("det_start", "det_keep", "active")}
         self.env_kwargs = {} if features is None else {"features": list(names)}
         if detector is not None:
-            self.env_kwargs["detector"] = dataclasses.asdict(qsf.QSFDetector(**detector))  # checked here
+            det = detector if isinstance(detector, qsf.QSFDetector) else qsf.QSFDetector(**detector)  # checked here
+            self.env_kwargs["detector"] = dataclasses.asdict(det)
 
     def reset(self) -> None:
         pass

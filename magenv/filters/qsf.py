@@ -572,13 +572,15 @@ def initial_orientation(trial, init: str, params) -> np.ndarray:
     (the hand-held scenarios, whose walk starts in a disturbed field), else TRIAD."""
     if init not in INITS:
         raise ValueError(f"init must be one of {INITS}, got {init!r}")
+    why = f"init={init!r}"
     if init == "auto":
         init = "truth" if trial.meta.get(START_FROM_TRUTH) else "triad"
+        why = f"init='auto' and meta[{START_FROM_TRUTH!r}]"
     if init == "triad":
         return triad_init(trial.acc[0], trial.mag[0], params)
     q0 = np.asarray(trial.q_true[0], float)
     if not np.all(np.isfinite(q0)):
-        raise ValueError(f"trial {trial.name!r}: starting from truth needs a finite q_true[0]")
+        raise ValueError(f"trial {trial.name!r}: starting from truth ({why}) needs a finite q_true[0]")
     return q0
 
 

@@ -9,8 +9,8 @@ computes the features of the next sample j (read before it is fused).
 
 Features are dimensionless so that one scale suits every site: field
 quantities in units of the filter's magnetometer noise σ_m (µT) or of the
-detector threshold, angles in units of 90°, the gyro in revolutions per
-second. Table with meanings: ``magenv.envs.qsf.MagQSFEnv``.
+detector threshold, the dip deviation in units of 90°, the gyro in
+revolutions per second (the heading std stays in rad). Table with meanings: ``magenv.envs.qsf.MagQSFEnv``.
 """
 
 from __future__ import annotations
@@ -115,14 +115,15 @@ class QSFRunner(TrialRunner):
                 self.params, self.est, self.sig)
         error_sums(self.est, self.q_true, self.dist, i0, i1, self.err)
         self.pos, self.last_count, self.trust_prev = i1, i1 - i0, float(trust)
-        if not self.done:
-            self._features()
+        self._features()
         return self.last_count
 
     def _features(self) -> None:
-        tr, j, p = self.trial, self.pos, self.params
+        """Features of sample j = pos (the last sample once all are fused) and of the last fused sample."""
+        tr, p = self.trial, self.params
+        j = min(self.pos, tr.n - 1)
         q = self.x[0:4]
-        last = self.sig[j - 1] if j > 0 else np.zeros(qsf.NSIG)
+        last = self.sig[self.pos - 1] if self.pos > 0 else np.zeros(qsf.NSIG)
         active = self.ref[0] > 0.5
         m_e = rotate1(q, tr.mag[j])
         sigma_m = p[qsf.P_SM]
