@@ -1,6 +1,6 @@
 """Learning agents: SB3 algorithms built from plain YAML files, and trained agents loaded back as policies."""
 
-from agents.hyperparams import ALGORITHMS, ConfigError, load_hyperparams
-from agents.loading import AgentPolicy, RunError, load_agent
+from magenv.agents.hyperparams import ALGORITHMS, ConfigError, load_hyperparams
+from magenv.agents.loading import AgentPolicy, RunError, load_agent
 
 __all__ = ["ALGORITHMS", "AgentPolicy", "ConfigError", "RunError", "load_agent", "load_hyperparams"]

@@ -76,7 +76,7 @@ def load_hyperparams(algo: str, env_id: str, config_file: str | Path | None = No
     if not isinstance(section["env_kwargs"], dict):
         raise ConfigError(f"{path} [{env_id}]: env_kwargs must be a mapping")
     if "pretrain" in section:
-        from agents.imitation import check_pretrain
+        from magenv.agents.imitation import check_pretrain
 
         if algo != "ppo":
             raise ConfigError(f"{path} [{env_id}]: pretrain works with ppo only, not {algo}")

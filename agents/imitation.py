@@ -18,7 +18,8 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 
-from agents.hyperparams import ConfigError
+from magenv.agents.hyperparams import ConfigError
+from magenv.protocols import is_policy
 
 KEYS = {"teacher": str, "steps": int, "epochs": int, "learning_rate": float, "batch_size": int}
 DEFAULTS = {"epochs": 20, "learning_rate": 1e-3, "batch_size": 256}
@@ -42,16 +43,10 @@ def check_pretrain(spec, env_id: str) -> dict:
     return out
 
 
-def teacher_policy(name: str, env_id: str, env_kwargs: dict):
-    """The teacher: a Policy acting in ``env_id`` (``baselines.registry`` name) that can act in the env made
-    with ``env_kwargs`` (the options it needs, e.g. its features, must be among them)."""
-    from baselines.registry import make
-    from magenv.evaluation import is_policy
-
-    try:
-        teacher = make(name)
-    except ValueError as exc:
-        raise ConfigError(f"pretrain.teacher: {exc}") from None
+def check_teacher(teacher, name: str, env_id: str, env_kwargs: dict):
+    """``teacher`` (the method the config's ``pretrain.teacher`` names), checked: a Policy acting in ``env_id``
+    that can act in the env made with ``env_kwargs`` (the options it needs, e.g. its features, must be among
+    them). Returns it; raises ConfigError naming the problem."""
     if not is_policy(teacher) or teacher.env_id != env_id:
         where = getattr(teacher, "env_id", "no env (an estimator)")
         raise ConfigError(f"pretrain.teacher {name!r} must be a policy of {env_id}; it acts in {where}")
@@ -64,7 +59,7 @@ def teacher_policy(name: str, env_id: str, env_kwargs: dict):
 def demonstrations(env_id: str, env_kwargs: dict, teacher, steps: int, seed: int,
                    bounds) -> tuple[np.ndarray, np.ndarray]:
     """(observations (M, F), teacher actions rescaled to [-1, 1] (M, A)) over ``steps`` steps of the env
-    (``teacher`` from :func:`teacher_policy`)."""
+    (``teacher`` checked by :func:`check_teacher`)."""
     low, high = (np.asarray(b, np.float64) for b in bounds)
     env = gym.make(env_id, disable_env_checker=True, **env_kwargs)
     obs_list, act_list = [], []

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from agents.hyperparams import ConfigError, algorithm_class
+from magenv.agents.hyperparams import ConfigError, algorithm_class
 
 RUN_FILE = "run.yaml"
 
@@ -50,9 +50,9 @@ def read_run(run_dir: str | Path) -> dict:
 class AgentPolicy:
     """A trained SB3 agent acting on observations (deterministic actions).
 
-    Follows ``baselines.protocol.Policy``; recurrent agents keep their LSTM
+    Follows ``magenv.protocols.Policy``; recurrent agents keep their LSTM
     state between calls until ``reset()``. Agents act in [-1, 1] (see
-    ``agents.wrappers.normalized_actions``); ``action_bounds`` = (low, high)
+    ``magenv.agents.wrappers.normalized_actions``); ``action_bounds`` = (low, high)
     of the env's action space maps their actions back.
     """
 

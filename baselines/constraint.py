@@ -23,23 +23,20 @@ observation alone: w by eq. 16 from the ``mag_dev`` feature; the env applies
 eq. 18 for k. With one decision per sample (``decision_every=1``) it is the
 ``cf_constraint`` estimator up to float32 rounding of the observation.
 
-Paper check (Table 2)::
-
-    .venv/bin/python -m baselines.constraint --seeds 0:5
+Paper check (Table 2): ``magenv paper constraint --seeds 0:5``.
 """
 
 from __future__ import annotations
 
-import argparse
 from typing import Sequence
 
 import numpy as np
 
-from baselines.protocol import Estimate, Tunable
+from magenv.protocols import Estimate, Tunable
 from magenv.filters import constraint as cf
 from magenv.trial import Trial
 
-ENV_ID = "magenv/MagConstraint-v0"
+from magenv.envs import CONSTRAINT_ID as ENV_ID
 
 
 class _Base:
@@ -162,70 +159,6 @@ class ConstraintWeightRule(Tunable):
 
 
 def methods() -> dict:
-    """Name → factory for ``magenv compare`` (picked up by ``baselines.registry``)."""
+    """Name → factory for ``magenv compare`` (picked up by ``magenv.registry``)."""
     return {"strapdown": Strapdown, "cf_conventional": ConventionalCF, "cf_constraint": ConstraintCF,
             "cf_gated": gated, "constraint_rule": ConstraintWeightRule}
-
-
-# ------------------------------------------------------------------ paper check
-
-#: Jung & Lee 2019 Table 2, RMSE in degrees: test → method → (roll, pitch, yaw).
-PAPER_TABLE2 = {
-    "constraint_test1": {"strapdown": (9.01, 8.30, 8.27), "cf_conventional": (3.27, 3.28, 6.69),
-                         "cf_constraint": (0.81, 1.25, 1.16)},
-    "constraint_test2": {"strapdown": (9.39, 7.42, 8.49), "cf_conventional": (2.65, 4.06, 5.23),
-                         "cf_constraint": (0.95, 1.20, 1.29)},
-    "constraint_test3": {"strapdown": (5.28, 5.85, 5.96), "cf_conventional": (1.69, 1.72, 14.73),
-                         "cf_constraint": (1.53, 0.76, 1.65)},
-}
-
-
-TABLE2_METHODS = ("strapdown", "cf_conventional", "cf_constraint", "cf_gated")
-
-
-def table2(seeds: Sequence[int], methods_: Sequence[str] = TABLE2_METHODS) -> list[dict]:
-    """Roll / pitch / yaw RMSE (°, ZYX Euler angles of the earth-frame error quaternion,
-    ``magenv.metrics.euler_error``) of the methods on the three tests, mean over seeds
-    (``paper`` is NaN for methods not in the paper). Methods are ``magenv compare`` names (policies,
-    ``RULE_tuned`` and ``agent:RUN_DIR`` too)."""
-    from baselines import registry
-    from magenv import evaluation, metrics
-    from magenv.constraint_scenarios import make_trial
-
-    rows = []
-    runner = evaluation.PolicyRunner()
-    for test in PAPER_TABLE2:
-        trials = [make_trial(test, s) for s in seeds]
-        for name in methods_:
-            rms = []
-            for tr in trials:
-                q = evaluation.run_method(name, registry.make(name), tr, runner).q
-                e = metrics.euler_error(q, tr.q_true)  # [yaw, pitch, roll]
-                rms.append([metrics.rmse(e[:, 2], tr.score_mask), metrics.rmse(e[:, 1], tr.score_mask),
-                            metrics.rmse(e[:, 0], tr.score_mask)])
-            rms = np.array(rms)
-            rows.append({"test": test, "method": name, "sim": rms.mean(0), "sim_std": rms.std(0),
-                         "paper": np.array(PAPER_TABLE2[test].get(name, (np.nan,) * 3)),
-                         "ext_acc": float(np.mean([t.meta["mean_ext_acc"] for t in trials]))})
-    return rows
-
-
-def _main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description="Jung & Lee 2019 Table 2 on simulated trials")
-    ap.add_argument("--seeds", default="0:5", help="START:STOP (default %(default)s)")
-    ap.add_argument("--methods", default=",".join(TABLE2_METHODS),
-                    help="comma list of method names, e.g. adding agent:RUN_DIR (default %(default)s)")
-    args = ap.parse_args(argv)
-    a, b = (int(x) for x in args.seeds.split(":"))
-    rows = table2(range(a, b), args.methods.split(","))
-    print(f"Table 2 reproduced on seeds {a}..{b - 1} (RMSE °, simulation mean ± std over seeds | paper)")
-    print(f"{'test':<17} {'method':<16} {'roll':>16} {'pitch':>16} {'yaw':>16} {'avg':>13}")
-    for r in rows:
-        cells = [f"{m:5.2f}±{s:4.2f} |{p:5.2f}" for m, s, p in zip(r["sim"], r["sim_std"], r["paper"])]
-        print(f"{r['test']:<17} {r['method']:<16} {cells[0]:>16} {cells[1]:>16} {cells[2]:>16} "
-              f"{r['sim'].mean():5.2f} |{r['paper'].mean():5.2f}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(_main())

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from baselines.protocol import Estimate
+from magenv.protocols import Estimate
 from magenv.filters.kalman_model import ModelKF
 from magenv.filters.kalman_threshold import ThresholdKF
 from magenv.trial import Trial

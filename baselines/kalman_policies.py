@@ -2,7 +2,7 @@
 
 Each rule returns the magnetometer trust γ ∈ [0, 1] (the Kalman-gain
 multiplier of ``magenv.filters.kalman_trust``) and follows
-``baselines.rules.RulePolicy``: parameters as constructor arguments,
+``magenv.baselines.rules.RulePolicy``: parameters as constructor arguments,
 ``params``, ``PARAM_BOUNDS`` (for ``magenv tune``), ``from_params``. Physical
 values are read back from the observation through the env's fixed scales
 (``magenv.filters.kalman_env``): ‖m‖ − m0 = m0·norm_dev µT, dip deviation =
@@ -46,11 +46,11 @@ from typing import Sequence
 
 import numpy as np
 
-from baselines.rules import RulePolicy
+from magenv.baselines.rules import RulePolicy
 from magenv.filters.kalman_env import DIP_SCALE_DEG, FEATURE_NAMES, FIELD_SCALE_UT
 from magenv.filters.kalman_threshold import TH_DIP, TH_MAG
 
-ENV_ID = "magenv/MagKalman-v0"
+from magenv.envs import KALMAN_ID as ENV_ID
 
 
 class KalmanRule(RulePolicy):

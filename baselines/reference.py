@@ -39,7 +39,7 @@ from typing import Callable
 
 import numpy as np
 
-from baselines.protocol import Estimate, Estimator
+from magenv.protocols import Estimate, Estimator
 from magenv.quaternion import GRAVITY
 from magenv.trial import Trial
 
@@ -150,50 +150,3 @@ def methods() -> dict[str, Callable[[], Estimator]]:
     """Factories of the reference estimators by name, for ``compare``:
     ``{"vqf": VQF defaults, "fusion": Fusion as documented above}``."""
     return {"vqf": VQFEstimator, "fusion": FusionEstimator}
-
-
-# Dataset README (../shared/data/broad): causal VQF 2.1.2, default parameters,
-# RMSE total / heading / inclination, degrees.
-README_VQF = {
-    "02": (1.38, 1.31, 0.43), "05": (0.99, 0.92, 0.35), "07": (1.75, 1.43, 1.02),
-    "10": (1.80, 1.78, 0.30), "24": (1.55, 1.42, 0.61), "29": (2.38, 2.13, 1.06),
-    "30": (2.57, 2.25, 1.25), "32": (7.67, 7.65, 0.56), "34": (3.35, 3.29, 0.65),
-}
-
-
-def score_recordings(estimators: dict[str, Estimator] | None = None, folder=None) -> dict[str, dict]:
-    """RMSE (``magenv.metrics.Score``, degrees) of each estimator on each BROAD
-    recording, by the authors' protocol: ``{trial name: {method: Score}}``."""
-    from magenv import metrics
-    from magenv.recordings import list_recordings, load_recording
-
-    if estimators is None:
-        estimators = {
-            "vqf": VQFEstimator(), "vqf_norej": VQFEstimator(magDistRejectionEnabled=False),
-            "fusion": FusionEstimator(), "fusion_norej": FusionEstimator(magnetic_rejection=0.0),
-        }
-    table = {}
-    for path in list_recordings(folder):
-        trial = load_recording(path)
-        table[trial.name] = {k: metrics.score(e.run(trial).q, trial.q_true, trial.score_mask) for k, e in estimators.items()}
-    return table
-
-
-def main() -> None:
-    """Print the reference estimators' RMSE on the nine BROAD trials
-    (``python -m baselines.reference``)."""
-    table = score_recordings()
-    methods_ = list(next(iter(table.values())))
-    fmt = lambda s: f"{s.total:5.2f} /{s.heading:5.2f} /{s.inclination:5.2f}"
-    print("RMSE, degrees: total / heading / inclination over the movement mask (BROAD protocol)\n")
-    print(f"{'trial':6} {'README VQF':>20}  " + "  ".join(f"{m:>20}" for m in methods_))
-    for name, row in table.items():
-        ref = README_VQF.get(name[:2])
-        ref_s = f"{ref[0]:5.2f} /{ref[1]:5.2f} /{ref[2]:5.2f}" if ref else ""
-        print(f"{name[:6]:6} {ref_s:>20}  " + "  ".join(f"{fmt(row[m]):>20}" for m in methods_))
-    print(f"{'mean':6} {'':>20}  " + "  ".join(
-        f"{np.mean([r[m].total for r in table.values()]):5.2f}".rjust(20) for m in methods_))
-
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """Hand-crafted λ rules as policies of ``magenv/MagBlend-v0``, acting on the observation alone.
 
-Every rule follows ``baselines.protocol.Policy``, takes its parameters as
+Every rule follows ``magenv.protocols.Policy``, takes its parameters as
 constructor arguments (the defaults are the published values), exposes them
 as ``params`` and ``PARAM_BOUNDS`` (for ``magenv tune``), and rebuilds from
 them with ``from_params``. A rule reads physical values back from the
@@ -27,10 +27,10 @@ from typing import Sequence
 
 import numpy as np
 
-from baselines.protocol import Tunable
+from magenv.protocols import Tunable
 from magenv.filters.blend import DIP_SCALE_DEG, FEATURE_NAMES
 
-ENV_ID = "magenv/MagBlend-v0"
+from magenv.envs import BLEND_ID as ENV_ID
 
 
 class RulePolicy(Tunable):
@@ -134,3 +134,13 @@ class Threshold(RulePolicy):
 
 
 RULES: dict[str, type[RulePolicy]] = {"constant": ConstantLambda, "fan_lambda": FanLambda, "threshold": Threshold}
+
+
+def methods() -> dict:
+    """Name → factory of the blend rules for ``magenv compare``: the original filters and the published rules."""
+    return {
+        "mimu": lambda: ConstantLambda(0.0, stationary_hold=False),
+        "imu": lambda: ConstantLambda(1.0, stationary_hold=False),
+        "fan_lambda": FanLambda,
+        "threshold": Threshold,
+    }

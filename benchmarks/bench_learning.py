@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 
 import magenv  # noqa: F401
-from baselines import registry
+from magenv import registry
 from magenv import evaluation
-from train.compare import make_trials, print_table, select_methods
-from train.seeds import parse_seeds
-from train.train import held_out_trials, train
+from magenv.train.compare import make_trials, print_table, select_methods
+from magenv.train.seeds import parse_seeds
+from magenv.agents.training import held_out_trials, train
 
 ENV_ID = "magenv/MagBlend-v0"
 RULES = ["mimu", "imu", "fan_lambda", "fan_lambda_tuned", "threshold", "threshold_tuned"]
@@ -51,7 +51,7 @@ def main() -> None:
     scenarios = ("dynamic_magnet", "dynamic_clean")
     t0 = time.perf_counter()
     train(ENV_ID, args.algo, args.steps, out, eval_every=args.eval_every, eval_scenarios=scenarios,
-          eval_seeds=eval_seeds, progress_bar=True)
+          eval_seeds=eval_seeds, progress_bar=True, make_method=registry.make)
     wall = time.perf_counter() - t0
 
     # fan_lambda_tuned on the same evaluation trials the callback used

@@ -17,22 +17,6 @@ namespace, e.g. ``gymnasium.make("magenv/MagBlend-v0")``:
 __version__ = "0.1.0"
 
 
-def _register_envs() -> None:
-    from gymnasium.envs.registration import register, registry
+from magenv.envs import register_all
 
-    if "magenv/MagBlend-v0" not in registry:
-        register(id="magenv/MagBlend-v0", entry_point="magenv.envs.blend:MagBlendEnv",
-                 vector_entry_point="magenv.envs.blend:MagBlendVectorEnv")
-    if "magenv/MagKalman-v0" not in registry:
-        register(id="magenv/MagKalman-v0", entry_point="magenv.envs.kalman:MagKalmanEnv",
-                 vector_entry_point="magenv.envs.kalman:MagKalmanVectorEnv")
-
-    if "magenv/MagConstraint-v0" not in registry:
-        register(id="magenv/MagConstraint-v0", entry_point="magenv.envs.constraint:MagConstraintEnv",
-                 vector_entry_point="magenv.envs.constraint:MagConstraintVectorEnv")
-    if "magenv/MagQSF-v0" not in registry:
-        register(id="magenv/MagQSF-v0", entry_point="magenv.envs.qsf:MagQSFEnv",
-                 vector_entry_point="magenv.envs.qsf:MagQSFVectorEnv")
-
-
-_register_envs()
+register_all()

@@ -1,16 +1,18 @@
 """Run any method on the same trials and score it with ``magenv.metrics``.
 
-A method is a **Policy** (``baselines.protocol.Policy``: acts inside the env
+A method is a **Policy** (``magenv.protocols.Policy``: acts inside the env
 named by its ``env_id``, on observations only) or an **Estimator**
-(``run(trial) -> Estimate``). A policy is run on a given Trial by
+(``run(trial) -> Estimate``). Methods come in as objects (a dict name →
+method); only ``magenv.registry`` turns names into methods. A policy is run on a given Trial by
 ``env.reset(options={"trial": trial})`` and stepped to the end of the trial;
 its estimate is the env's per-sample estimate. Scores are RMSEs (degrees)
 over the trial's ``score_mask`` (``magenv.metrics.score``).
 
-Python use (the lead's demo and report)::
+Python use::
 
-    from magenv import evaluation
-    rows = evaluation.compare(["mimu", "imu", "fan_lambda"], trials)   # list of dicts, CSV_COLUMNS
+    from magenv import evaluation, registry
+    methods = {name: registry.make(name) for name in ("mimu", "imu", "fan_lambda")}
+    rows = evaluation.compare(methods, trials)   # list of dicts, CSV_COLUMNS
     evaluation.write_csv(rows, "out.csv")
 """
 
@@ -24,7 +26,8 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from magenv import metrics
-from magenv.trial import Trial
+from magenv.protocols import is_policy
+from magenv.trial import META_SCENARIO, Trial
 
 CSV_COLUMNS = ("method", "scenario", "n", "total_rmse_mean", "total_rmse_std", "heading_rmse_mean",
                "inclination_rmse_mean")
@@ -53,18 +56,9 @@ class Run:
     score: metrics.Score
 
 
-def is_policy(method) -> bool:
-    """True for a Policy (has ``env_id`` and is callable), False for an Estimator (has ``run``)."""
-    if hasattr(method, "env_id") and callable(method):
-        return True
-    if hasattr(method, "run"):
-        return False
-    raise TypeError(f"{method!r} is neither a Policy (env_id + __call__) nor an Estimator (run(trial))")
-
-
 def trial_label(trial: Trial) -> str:
     """Default table group of a trial: its scenario name, else its own name."""
-    return str(trial.meta.get("scenario", trial.name))
+    return str(trial.meta.get(META_SCENARIO, trial.name))
 
 
 class PolicyRunner:
@@ -125,18 +119,16 @@ def run_policy_on_trials(policy, trials: Sequence[Trial], env_id: str | None = N
     return [run_method(getattr(policy, "name", "policy"), policy, t, runner).score for t in trials]
 
 
-def resolve(methods) -> dict[str, Any]:
-    """Methods given as names (registry), a dict name → object, or a list mixing names and objects."""
-    from baselines import registry
-
+def named(methods) -> dict[str, Any]:
+    """Methods as a dict name → method: a dict as it is, or a sequence of method objects named by their
+    ``name`` attribute (else their class name). Names are the registry's business (``magenv.registry.make``)."""
     if isinstance(methods, dict):
         return dict(methods)
     out = {}
     for m in methods:
         if isinstance(m, str):
-            out[m] = registry.make(m)
-        else:
-            out[getattr(m, "name", type(m).__name__)] = m
+            raise TypeError(f"evaluation takes method objects, got the name {m!r}; use magenv.registry.make({m!r})")
+        out[getattr(m, "name", type(m).__name__)] = m
     return out
 
 
@@ -147,7 +139,7 @@ def evaluate(methods, trials: Iterable[Trial], env_kwargs: dict | None = None,
     ``env_kwargs`` are applied to every policy's env (e.g. ``{"decision_every": 1}``);
     ``labels`` gives each trial's table group (default ``trial_label``).
     """
-    methods = resolve(methods)
+    methods = named(methods)
     trials = list(trials)
     labels = [trial_label(t) for t in trials] if labels is None else list(labels)
     runner = PolicyRunner(None, env_kwargs)

@@ -53,7 +53,7 @@ import numpy as np
 
 from magenv import quaternion as quat
 from magenv.config_checks import apply_overrides, check_range
-from magenv.filters.qsf import START_FROM_TRUTH
+from magenv.trial import START_FROM_TRUTH
 from magenv.sim import earth
 from magenv.sim.handheld import MODES, Motion, ideal_readings
 from magenv.sim.indoor_field import random_indoor_field

@@ -16,6 +16,11 @@ import numpy as np
 
 FORMAT = "magenv-trial-1"
 
+# Keys of ``Trial.meta`` that magenv reads (any other key is free-form description).
+META_SCENARIO = "scenario"  # the scenario name; a trial's default group in tables
+META_SEED = "seed"  # the trial seed of a simulated trial
+START_FROM_TRUTH = "start_from_truth"  # True: the trial's protocol gives estimators the true initial orientation
+
 
 class TrialError(ValueError):
     """A trial (or a file meant to hold one) is malformed."""

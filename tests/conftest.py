@@ -22,6 +22,22 @@ from magenv.trial import Trial
 BROAD_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "broad"
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _own_user_data_dir(tmp_path_factory):
+    """Tests never read or write the user's magenv data (tuned rules): they get an empty folder of their own."""
+    import os
+
+    from magenv import registry
+
+    old = os.environ.get(registry.DATA_DIR_ENV)
+    os.environ[registry.DATA_DIR_ENV] = str(tmp_path_factory.mktemp("magenv-data"))
+    yield
+    if old is None:
+        os.environ.pop(registry.DATA_DIR_ENV, None)
+    else:
+        os.environ[registry.DATA_DIR_ENV] = old
+
+
 def kinematic_trial(
     seed: int = 0,
     duration: float = 20.0,

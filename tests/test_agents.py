@@ -3,8 +3,8 @@
 import pytest
 import yaml
 
-from agents import ConfigError, RunError, load_agent, load_hyperparams
-from agents.hyperparams import constructor_kwargs
+from magenv.agents import ConfigError, RunError, load_agent, load_hyperparams
+from magenv.agents.hyperparams import constructor_kwargs
 
 ENV = "magenv/MagBlend-v0"
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from baselines import registry, rules
-from baselines.protocol import Estimator, Policy
+from magenv import registry
+from magenv.baselines import rules
+from magenv.protocols import Estimator, Policy
 from magenv.envs.blend import MagBlendEnv
 from magenv.filters.blend import FEATURE_NAMES
 from tests.conftest import kinematic_trial
@@ -131,8 +132,9 @@ def test_register_is_one_line():
 def test_tuned_rules_are_discovered(tmp_path, monkeypatch):
     import json
 
-    monkeypatch.setattr(registry, "TUNED_DIR", tmp_path)
-    (tmp_path / "fan_lambda.json").write_text(json.dumps({"params": {"norm_tol": 0.2, "th_dip_deg": 7.0}}))
+    monkeypatch.setenv(registry.DATA_DIR_ENV, str(tmp_path))
+    registry.user_tuned_dir().mkdir(parents=True)
+    (registry.user_tuned_dir() / "fan_lambda.json").write_text(json.dumps({"params": {"norm_tol": 0.2, "th_dip_deg": 7.0}}))
     assert "fan_lambda_tuned" in registry.names()
     tuned = registry.make("fan_lambda_tuned")
     assert tuned.params == {"norm_tol": 0.2, "th_dip_deg": 7.0}

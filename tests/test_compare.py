@@ -7,11 +7,11 @@ import csv
 import numpy as np
 import pytest
 
-from baselines import registry
+from magenv import registry
 from magenv import evaluation, metrics
 from magenv.filters.blend import BlendEstimator
 from tests.conftest import kinematic_trial
-from train.cli import main
+from magenv.train.cli import main
 
 HEADER = "method,scenario,n,total_rmse_mean,total_rmse_std,heading_rmse_mean,inclination_rmse_mean"
 
@@ -23,7 +23,7 @@ def trials():
 
 
 def test_compare_rows_and_csv(trials, tmp_path):
-    rows = evaluation.compare(["mimu", "imu", "fan_lambda"], trials)
+    rows = evaluation.compare({n: registry.make(n) for n in ["mimu", "imu", "fan_lambda"]}, trials)
     assert {r["method"] for r in rows} == {"mimu", "imu", "fan_lambda"}
     assert all(r["n"] == 3 and r["scenario"] == "kinematic" for r in rows)
     # the table's numbers are the metrics module's, trial by trial
@@ -40,7 +40,7 @@ def test_compare_rows_and_csv(trials, tmp_path):
 
 def test_policy_and_estimator_paths_agree(trials):
     """A constant-λ policy in the env and the offline estimator give the same estimate."""
-    from baselines.rules import ConstantLambda
+    from magenv.baselines.rules import ConstantLambda
 
     runs = evaluation.evaluate({"pol": ConstantLambda(0.0), "est": BlendEstimator(0.0)}, trials[:1])
     np.testing.assert_array_equal(runs[0].q, runs[1].q)

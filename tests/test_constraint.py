@@ -1,5 +1,5 @@
 """The constraint filter (``magenv.filters.constraint``), its estimators and policy
-(``baselines.constraint``) and ``magenv/MagConstraint-v0``."""
+(``magenv.baselines.constraint``) and ``magenv/MagConstraint-v0``."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import magenv  # noqa: F401  (registers the envs)
-from baselines import constraint as bc
+from magenv.baselines import constraint as bc
 from magenv import constraint_scenarios as cs
-from magenv import metrics
+from magenv import metrics, registry
 from magenv import quaternion as quat
 from magenv.envs.constraint import MagConstraintEnv
 from magenv.filters import constraint as cf
@@ -174,7 +174,7 @@ def test_tuning_interface():
 
 
 def test_methods_are_in_the_registry():
-    from baselines import registry
+    from magenv import registry
 
     names = registry.names()
     for m in ("strapdown", "cf_conventional", "cf_constraint", "constraint_rule"):
@@ -281,9 +281,11 @@ def test_weight_one_ignores_the_magnetometer(short_trials):
 @pytest.mark.slow
 def test_table2_ordering():
     """Paper Table 2's ordering on 3 seeds: proposed < conventional in yaw, proposed best on average."""
-    rows = bc.table2(range(3))
+    from magenv import papers
+
+    rows = papers.table2(range(3))
     by = {(r["test"], r["method"]): r["sim"] for r in rows}
-    for test in bc.PAPER_TABLE2:
+    for test in papers.PAPER_TABLE2:
         assert by[(test, "cf_constraint")][2] < by[(test, "cf_conventional")][2]
         assert by[(test, "cf_constraint")].mean() < by[(test, "strapdown")].mean()
         assert by[(test, "cf_constraint")].mean() < by[(test, "cf_conventional")].mean()
@@ -309,7 +311,7 @@ def test_vector_env_replays_the_single_env(short_trials):
 def test_evaluation_runs_estimators_and_the_policy(short_trials):
     from magenv import evaluation
 
-    runs = evaluation.evaluate(["cf_constraint", "constraint_rule"], short_trials[:1], env_kwargs={"decision_every": 1})
+    runs = evaluation.evaluate({n: registry.make(n) for n in ["cf_constraint", "constraint_rule"]}, short_trials[:1], env_kwargs={"decision_every": 1})
     est, pol = runs
     assert est.score.total == pytest.approx(pol.score.total, abs=1e-3)
     np.testing.assert_allclose(pol.trust, est.trust, atol=1e-5)  # both the magnetometer's weight 1 − w

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from conftest import kinematic_trial
 
-from baselines import kalman as bk
-from baselines.protocol import Estimate, Estimator
+from magenv.baselines import kalman as bk
+from magenv.protocols import Estimate, Estimator
 from magenv import metrics
 from magenv import quaternion as quat
 from magenv.filters import kalman_trust as kt

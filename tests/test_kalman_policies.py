@@ -1,4 +1,4 @@
-"""Trust rules of ``magenv/MagKalman-v0`` (``baselines.kalman_policies``)."""
+"""Trust rules of ``magenv/MagKalman-v0`` (``magenv.baselines.kalman_policies``)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import csv
 import numpy as np
 import pytest
 
-from baselines import kalman_policies as kp
-from baselines import registry
-from baselines.protocol import Policy
+from magenv.baselines import kalman_policies as kp
+from magenv import registry
+from magenv.protocols import Policy
 from magenv import evaluation
 from magenv.filters.kalman_env import FEATURE_NAMES, N_FEATURES
 from tests.conftest import kinematic_trial
@@ -109,7 +109,7 @@ def test_compare_runs_the_rules_and_gating_beats_nominal():
     """On a short strong disturbance the gate and the adaptive rule beat the nominal filter by far."""
     trials = [kinematic_trial(seed=s, duration=8.0, disturbance_ut=25.0, disturbance_window=(3.0, 6.0))
               for s in range(2)]
-    runs = evaluation.evaluate(["kf_nominal", "kf_gate", "kf_adaptive", "kf_model"], trials)
+    runs = evaluation.evaluate({n: registry.make(n) for n in ["kf_nominal", "kf_gate", "kf_adaptive", "kf_model"]}, trials)
     rows = {r["method"]: r for r in evaluation.summarize(runs)}
     assert set(rows) == {"kf_nominal", "kf_gate", "kf_adaptive", "kf_model"}
     assert all(r["n"] == 2 for r in rows.values())
@@ -128,7 +128,7 @@ def test_compare_runs_the_rules_and_gating_beats_nominal():
 def test_magenv_compare_cli_runs_the_rules(tmp_path):
     """``magenv compare`` with the trust rules on a simulated trial: one row each; all three beat γ = 1 by far."""
     pytest.importorskip("magenv.scenarios")
-    from train.cli import main
+    from magenv.train.cli import main
 
     path = tmp_path / "kf.csv"
     code = main(["compare", "--scenario", "dynamic_magnet", "--seeds", "0:1", "--no-progress", "--csv", str(path),

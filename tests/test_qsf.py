@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from baselines import qsf as bq
+from magenv.baselines import qsf as bq
 from magenv import metrics
 from magenv import quaternion as quat
-from magenv.envs.qsf import DetectorPolicy, MagQSFEnv, MagQSFVectorEnv, decode_action
+from magenv.baselines.qsf import DetectorPolicy
+from magenv.envs.qsf import MagQSFEnv, MagQSFVectorEnv, decode_action
 from magenv.filters import qsf
 from magenv.filters.kalman_threshold import FilterError
 from magenv.trial import Trial
@@ -350,7 +351,7 @@ def test_features_are_scaled_and_report_the_period():
 
 
 def test_detector_thresholds_are_tunable():
-    from baselines.registry import rule_class
+    from magenv.registry import rule_class
 
     cls = rule_class("delay_magyq")
     assert cls().params == {"window_s": 0.5, "th_spread": 1.0, "th_drift": 2.0, "max_period_s": 10.0}
@@ -378,7 +379,7 @@ def test_detector_policy_with_thresholds_matches_the_tuned_estimator():
     done = False
     while not done:
         obs, _, _, done, _ = env.step(policy(obs))
-    from baselines.registry import rule_class
+    from magenv.registry import rule_class
 
     np.testing.assert_array_equal(env.estimate, rule_class("delay_magyq").from_params(thresholds).run(tr).q)
     with pytest.raises(ValueError, match="window_s must be a positive"):

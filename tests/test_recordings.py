@@ -18,22 +18,9 @@ from magenv.recordings import (
     list_recordings,
     load_recording,
 )
+from magenv.papers import README_VQF
 from magenv.trial import Trial, TrialError
 
-# README of ../shared/data/broad: causal VQF 2.1.2, default parameters, RMSE °
-# total / heading / inclination; second column with disturbance rejection off
-# (None where the README gives no figure).
-README_VQF = {
-    "02": ((1.38, 1.31, 0.43), (1.40, 1.34, 0.43)),
-    "05": ((0.99, 0.92, 0.35), (1.01, None, None)),
-    "07": ((1.75, 1.43, 1.02), (2.14, None, None)),
-    "10": ((1.80, 1.78, 0.30), (1.93, None, None)),
-    "24": ((1.55, 1.42, 0.61), (1.54, None, None)),
-    "29": ((2.38, 2.13, 1.06), (2.81, 2.60, 1.06)),
-    "30": ((2.57, 2.25, 1.25), (2.90, 2.62, 1.25)),
-    "32": ((7.67, 7.65, 0.56), (12.64, 12.62, 0.56)),
-    "34": ((3.35, 3.29, 0.65), (4.86, 4.81, 0.65)),
-}
 TOL = 0.05  # degrees; the README's figures are rounded to 0.01
 
 

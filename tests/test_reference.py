@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from baselines.protocol import Estimate, Estimator
-from baselines.reference import FusionEstimator, VQFEstimator, methods
+from magenv.protocols import Estimate, Estimator
+from magenv.baselines.reference import FusionEstimator, VQFEstimator, methods
 from magenv import metrics
 from magenv.recordings import find_recording, load_recording
 

@@ -1,13 +1,13 @@
 """magenv report: Markdown with the tables and the PNG plots."""
 
-from magenv import evaluation
+from magenv import evaluation, registry
 from magenv.scenarios import make_trial
-from train.report import write_report
+from magenv.train.report import write_report
 
 
 def test_report_has_tables_and_plots(tmp_path):
     trials = [make_trial("dynamic_magnet", s, duration=8.0) for s in (0, 1)] + [make_trial("dynamic_clean", 0, duration=8.0)]
-    runs = evaluation.evaluate(["mimu", "fan_lambda", "th_triad"], trials)
+    runs = evaluation.evaluate({n: registry.make(n) for n in ["mimu", "fan_lambda", "th_triad"]}, trials)
     path = write_report(runs, tmp_path / "report")
     text = path.read_text()
     assert "| dynamic_magnet | " in text and "| dynamic_clean | " in text

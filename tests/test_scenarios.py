@@ -179,7 +179,7 @@ def test_no_mujoco_instability_many_seeds_full_length():
 
 
 def test_cli_simulate_and_plot(tmp_path):
-    from train.cli import main
+    from magenv.train.cli import main
 
     out = tmp_path / "trial.h5"
     assert main(["simulate", "--scenario", "dynamic_magnet", "--seed", "1", "--set", "duration=4", "--out", str(out)]) == 0

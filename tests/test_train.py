@@ -6,10 +6,11 @@ import json
 import pytest
 import yaml
 
-from agents import load_agent
-from agents.loading import RunError
-from train.cli import main as cli
-from train.train import train
+from magenv.agents import load_agent
+from magenv.agents.loading import RunError
+from magenv.train.cli import main as cli
+from magenv import registry
+from magenv.agents.training import train
 
 ENV = "magenv/MagBlend-v0"
 SMALL = {
@@ -74,7 +75,7 @@ def test_pretrain_clones_the_teacher_before_rl(tmp_path):
     """Behaviour cloning: the cloned agent (then one small PPO update) acts like the teacher rule."""
     import numpy as np
 
-    from baselines.registry import make
+    from magenv.registry import make
     from magenv.evaluation import run_policy_on_trials
     from magenv.scenarios import make_trial
 
@@ -84,7 +85,7 @@ def test_pretrain_clones_the_teacher_before_rl(tmp_path):
     cfg.write_text(yaml.safe_dump({ENV: section}))
     out = tmp_path / "bc"
     train(ENV, "ppo", 1, out, config=cfg, eval_every=10_000, eval_scenarios=("dynamic_magnet",), eval_seeds=(0,),
-          progress_bar=False)
+          progress_bar=False, make_method=make)
     state = json.loads((out / "state.json").read_text())
     assert state["pretrain_mse"] < 0.05  # actions in [-1, 1]; an untrained actor is off by ~0.3
     agent, teacher = load_agent(out, which="last"), make("fan_lambda")
@@ -103,7 +104,7 @@ def test_pretrain_clones_the_teacher_before_rl(tmp_path):
 
 
 def test_pretrain_config_errors(tmp_path):
-    from agents import ConfigError, load_hyperparams
+    from magenv.agents import ConfigError, load_hyperparams
 
     cases = [({"teacher": "fan_lambda"}, "needs 'teacher' and 'steps'"),
              ({"teacher": "fan_lambda", "steps": 10, "epoch": 3}, "unknown key"),
@@ -118,8 +119,8 @@ def test_pretrain_config_errors(tmp_path):
         load_hyperparams("sac", ENV, cfg)
     cfg.write_text(yaml.safe_dump({ENV: {"pretrain": {"teacher": "aekf", "steps": 10}, **SMALL["ppo"]}}))
     with pytest.raises(ConfigError, match="must be a policy of magenv/MagBlend-v0"):
-        train(ENV, "ppo", 1, tmp_path / "x", config=cfg, progress_bar=False)
+        train(ENV, "ppo", 1, tmp_path / "x", config=cfg, progress_bar=False, make_method=registry.make)
     assert not (tmp_path / "x").exists()  # nothing written: the same folder can be used after fixing the config
     cfg.write_text(yaml.safe_dump({ENV: {"pretrain": {"teacher": "kf_gate", "steps": 10}, **SMALL["ppo"]}}))
     with pytest.raises(ConfigError, match="must be a policy of magenv/MagBlend-v0; it acts in magenv/MagKalman-v0"):
-        train(ENV, "ppo", 1, tmp_path / "x", config=cfg, progress_bar=False)
+        train(ENV, "ppo", 1, tmp_path / "x", config=cfg, progress_bar=False, make_method=registry.make)

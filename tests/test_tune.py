@@ -4,10 +4,10 @@ import json
 
 import pytest
 
-from baselines import registry
+from magenv import registry
 from magenv.scenarios import make_trial
-from train.cli import main as cli
-from train.tune import _to_params, _to_unit, tune_rule
+from magenv.train.cli import main as cli
+from magenv.baselines.tuning import _to_params, _to_unit, tune_rule
 
 
 def test_unit_mapping_round_trips_linear_and_log_bounds():
@@ -20,11 +20,12 @@ def test_unit_mapping_round_trips_linear_and_log_bounds():
 @pytest.mark.parametrize("rule", ["threshold", "constant"])  # two parameters (CMA-ES) and one (scalar search)
 def test_tuning_improves_on_the_training_trials_and_registers(tmp_path, monkeypatch, rule):
     trials = [make_trial("dynamic_magnet", 10_000, duration=10.0)]
-    record = tune_rule(rule, trials, iterations=3, popsize=4, progress=False)
+    record = tune_rule(rule, registry.rule_class(rule), trials, iterations=3, popsize=4, progress=False)
     assert set(record["params"]) == set(registry.rule_class(rule).PARAM_BOUNDS)
     assert record["objective_deg"] <= record["published_objective_deg"]
-    monkeypatch.setattr(registry, "TUNED_DIR", tmp_path)
-    (tmp_path / f"{rule}.json").write_text(json.dumps(record))
+    monkeypatch.setenv(registry.DATA_DIR_ENV, str(tmp_path))
+    registry.user_tuned_dir().mkdir(parents=True)
+    (registry.user_tuned_dir() / f"{rule}.json").write_text(json.dumps(record))
     tuned = registry.make(f"{rule}_tuned")
     assert tuned.params == pytest.approx(record["params"])
 

@@ -1,1 +1,1 @@
-"""Command-line entry points of magenv: ``magenv <command> …`` (see ``train.cli``)."""
+"""Command-line entry points of magenv: ``magenv <command> …`` (see ``magenv.train.cli``)."""

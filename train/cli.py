@@ -11,14 +11,15 @@ import importlib
 import sys
 
 COMMANDS = {
-    "simulate": ("train.simulate", "make one simulated trial and write it to HDF5"),
-    "plot": ("train.plot", "draw a trial file: orientation, rates, field norm and dip, magnet distance"),
-    "compare": ("train.compare", "run every method on the same trials and print the RMSE table"),
-    "train": ("train.train", "train a learning agent on an environment"),
-    "evaluate": ("train.evaluate", "score a trained agent on scenarios or recordings"),
-    "tune": ("train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
-    "report": ("train.report", "write a Markdown report with tables and plots"),
-    "demo": ("train.demo", "the main job: train briefly, then compare learned against hand-tuned weighting"),
+    "simulate": ("magenv.train.simulate", "make one simulated trial and write it to HDF5"),
+    "plot": ("magenv.train.plot", "draw a trial file: orientation, rates, field norm and dip, magnet distance"),
+    "compare": ("magenv.train.compare", "run every method on the same trials and print the RMSE table"),
+    "train": ("magenv.train.train", "train a learning agent on an environment"),
+    "evaluate": ("magenv.train.evaluate", "score a trained agent on scenarios or recordings"),
+    "tune": ("magenv.train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
+    "report": ("magenv.train.report", "write a Markdown report with tables and plots"),
+    "paper": ("magenv.train.paper", "print a paper check: the papers' tables reproduced in simulation"),
+    "demo": ("magenv.train.demo", "the main job: train briefly, then compare learned against hand-tuned weighting"),
 }
 
 

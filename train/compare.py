@@ -17,7 +17,8 @@ import argparse
 import math
 import sys
 
-from train.cli import CommandError
+from magenv.envs import BLEND_ID
+from magenv.train.cli import CommandError
 
 DEFAULT_METHODS = "mimu,imu,fan_lambda,threshold"
 
@@ -40,7 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def make_trials(scenarios: str | None, seeds: str, recordings: list[str]) -> tuple[list, list[str]]:
     """Trials and their table labels: every scenario (comma list) × seed, then each recording."""
-    from train.seeds import parse_seeds
+    from magenv.train.seeds import parse_seeds
 
     trials, labels = [], []
     names = [s.strip() for s in (scenarios or "").split(",") if s.strip()]
@@ -75,7 +76,7 @@ def make_trials(scenarios: str | None, seeds: str, recordings: list[str]) -> tup
 
 def select_methods(names: list[str]) -> dict:
     """Method objects by name (registry names, ``RULE_tuned``, ``agent:RUN_DIR``); unknown names list the known ones."""
-    from baselines import registry
+    from magenv import registry
 
     names = [m.strip() for m in names if m.strip()]
     if not names:
@@ -128,7 +129,7 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
 
 
 def run(args: argparse.Namespace) -> int:
-    from baselines import registry
+    from magenv import registry
     from magenv import evaluation
 
     if args.every is not None and args.every < 1:
@@ -139,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         env_kwargs["decision_every"] = args.every
     if args.no_hold:  # an option of the blend env only
         for method in methods.values():
-            if getattr(method, "env_id", None) == "magenv/MagBlend-v0":
+            if getattr(method, "env_id", None) == BLEND_ID:
                 method.env_kwargs = {**method.env_kwargs, "stationary_hold": False}
     scenarios = args.scenario if args.scenario is not None else ("" if args.recordings else "dynamic_magnet")
     trials, labels = make_trials(scenarios, args.seeds, args.recordings)

@@ -16,9 +16,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from train.cli import CommandError
+from magenv.train.cli import CommandError
 
-ENV_ID = "magenv/MagBlend-v0"
+from magenv.envs import BLEND_ID as ENV_ID
 RULES = ["mimu", "imu", "fan_lambda", "fan_lambda_tuned", "threshold", "threshold_tuned"]
 
 
@@ -31,17 +31,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from agents.hyperparams import ConfigError
-    from agents.loading import RunError
-    from baselines import registry
+    from magenv.agents.hyperparams import ConfigError
+    from magenv.agents.loading import RunError
+    from magenv import registry
     from magenv import evaluation
-    from train.compare import make_trials, print_table, run_comparison, select_methods
-    from train.train import train
+    from magenv.train.compare import make_trials, print_table, run_comparison, select_methods
+    from magenv.agents.training import train
 
     print(f"[1/2] training PPO on {ENV_ID} for {args.steps} steps -> {args.out}")
     try:
         train(ENV_ID, "ppo", args.steps, args.out, eval_every=max(args.steps // 6, 2048),
-              progress_bar=not args.no_progress)
+              progress_bar=not args.no_progress, make_method=registry.make)
     except (ConfigError, RunError) as exc:
         raise CommandError(str(exc)) from None
     available = set(registry.names())

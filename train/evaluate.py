@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from train.cli import CommandError
+from magenv.train.cli import CommandError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,9 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from agents.loading import RunError, load_agent
+    from magenv.agents.loading import RunError, load_agent
     from magenv import evaluation
-    from train.compare import make_trials, print_table, run_comparison
+    from magenv.train.compare import make_trials, print_table, run_comparison
 
     try:
         agent = load_agent(args.run_dir, which=args.which)

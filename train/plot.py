@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from train.cli import CommandError
+from magenv.train.cli import CommandError
 
 
 def add_arguments(parser) -> None:

@@ -120,8 +120,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from baselines import registry
-    from train.compare import make_trials, run_comparison, select_methods
+    from magenv import registry
+    from magenv.train.compare import make_trials, run_comparison, select_methods
 
     methods = select_methods(args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent])
     trials, labels = make_trials(args.scenario, args.seeds, args.recordings)

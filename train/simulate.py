@@ -10,7 +10,7 @@ import ast
 import time
 from pathlib import Path
 
-from train.cli import CommandError
+from magenv.train.cli import CommandError
 
 
 def add_arguments(parser) -> None:

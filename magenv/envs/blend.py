@@ -6,6 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
+from magenv.envs import BLEND_ID
 from magenv.envs.common import LoopVectorEnv, TrustEnv, scalar_action
 from magenv.filters import stationary as stat
 from magenv.filters.blend import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, BlendRunner
@@ -69,7 +70,7 @@ class MagBlendEnv(TrustEnv):
     | 12  | `stationary_frac` | fraction of window samples detected stationary                  | –                     | 0    | 1   |
 
     Physical values are recoverable: ‖m_j‖ = m0·(1 + obs[0]), dip deviation in
-    degrees = 90·obs[1] (``baselines.rules.FanLambda`` relies on this).
+    degrees = 90·obs[1] (``magenv.baselines.rules.FanLambda`` relies on this).
 
     ## Rewards
 
@@ -126,7 +127,7 @@ class MagBlendEnv(TrustEnv):
     - v0: initial version.
     """
 
-    env_name = "MagBlend-v0"
+    env_name = BLEND_ID.split("/")[1]
 
     def __init__(self, scenario="random", decision_every: int = 8, episode_seconds: float | None = None,
                  stationary_hold: bool = True, features: Sequence[str] | None = None,

@@ -7,6 +7,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from magenv.envs import CONSTRAINT_ID
 from magenv.envs.common import LoopVectorEnv, TrialSource, TrustEnv
 from magenv.filters import constraint as cf
 from magenv.trial import Trial
@@ -67,7 +68,7 @@ class MagConstraintEnv(TrustEnv):
     The agent sets the constraint weight w once every ``decision_every``
     samples (and, with ``control_gain``, the gain k). The paper sets w by
     eq. 16 from the field deviation and k by eq. 18; its rule is the baseline
-    ``baselines.constraint.ConstraintWeightRule``. w = 1 ignores the
+    ``magenv.baselines.constraint.ConstraintWeightRule``. w = 1 ignores the
     magnetometer (the heading then rests on the constraint, which only
     informs while the joint centre accelerates); w = 0 is the conventional CF.
     The world is fixed at ``reset()``; the policy changes only the estimate.
@@ -150,7 +151,7 @@ class MagConstraintEnv(TrustEnv):
     - v0: initial version.
     """
 
-    env_name = "MagConstraint-v0"
+    env_name = CONSTRAINT_ID.split("/")[1]
 
     def __init__(self, scenario="constraint_random", decision_every: int = 4, episode_seconds: float | None = None,
                  control_gain: bool = False, gain_max: float = 1.0, th2: float = cf.TH2, th3: float = cf.TH3,

@@ -6,6 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
+from magenv.envs import KALMAN_ID
 from magenv.envs.common import LoopVectorEnv, TrustEnv, scalar_action
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_env import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, KalmanRunner
@@ -81,7 +82,7 @@ class MagKalmanEnv(TrustEnv):
     Physical values are recoverable: m0 = 50·obs[18] µT, ‖m_j‖ − m0 = m0·obs[0]
     µT, dip deviation = 90·obs[1] degrees, NIS = 10^obs[6] − 1, ‖d̂_j‖ =
     m0·obs[16] µT
-    (``baselines.kalman_policies`` relies on this). ``model_dist`` comes from
+    (``magenv.baselines.kalman_policies`` relies on this). ``model_dist`` comes from
     a Gauss–Markov reference/disturbance Kalman filter on the magnetometer
     alone (Ligorio & Sabatini 2015, parameters ``model_c_a``, ``model_c_b``),
     which depends on the sensors only, so it is computed once per trial at
@@ -143,7 +144,7 @@ class MagKalmanEnv(TrustEnv):
     - v0: initial version.
     """
 
-    env_name = "MagKalman-v0"
+    env_name = KALMAN_ID.split("/")[1]
 
     def __init__(self, scenario="random", decision_every: int = 8, episode_seconds: float | None = None,
                  features: Sequence[str] | None = None, sigma_gyr: float = SIGMA_GYR, sigma_acc: float = SIGMA_ACC,

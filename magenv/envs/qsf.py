@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Sequence
 
 import numpy as np
 from gymnasium import spaces
 
+from magenv.envs import QSF_ID
 from magenv.envs.common import LoopVectorEnv, TrustEnv
 from magenv.filters import qsf
 from magenv.filters.qsf_env import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, VARIANTS, QSFRunner
@@ -133,7 +133,7 @@ class MagQSFEnv(TrustEnv):
     - v0: initial version.
     """
 
-    env_name = "MagQSF-v0"
+    env_name = QSF_ID.split("/")[1]
 
     def __init__(self, scenario="handheld_random", decision_every: int = 10, episode_seconds: float | None = None,
                  variant: str = "delay_magyq", init: str = "auto", features: Sequence[str] | None = None,
@@ -177,39 +177,6 @@ class MagQSFEnv(TrustEnv):
     def trust(self) -> np.ndarray:
         """(N,) trust of the magnetic update per sample (0 where none ran or not fused yet)."""
         return self._need_reset().sig[:, qsf.SIGNALS.index("trust")]
-
-
-class DetectorPolicy:
-    """The QSF detector as a policy of ``magenv/MagQSF-v0``: start where the detector starts, keep where it
-    keeps (start if no period is active), else no update; trust 1. With ``decision_every=1`` it reproduces
-    the ``delay_magyq`` estimator sample for sample. ``detector`` (thresholds, as the env's option) and
-    ``features`` become the env options it runs with (``env_kwargs``)."""
-
-    env_id = "magenv/MagQSF-v0"
-
-    def __init__(self, features: Sequence[str] | None = None, detector: qsf.QSFDetector | dict | None = None):
-        names = FEATURE_NAMES if features is None else tuple(features)
-        for f in ("det_start", "det_keep", "active"):
-            if f not in names:
-                raise ValueError(f"DetectorPolicy needs the observation feature {f!r}")
-        self._i = {f: names.index(f) for f in ("det_start", "det_keep", "active")}
-        self.env_kwargs = {} if features is None else {"features": list(names)}
-        if detector is not None:
-            det = detector if isinstance(detector, qsf.QSFDetector) else qsf.QSFDetector(**detector)  # checked here
-            self.env_kwargs["detector"] = dataclasses.asdict(det)
-
-    def reset(self) -> None:
-        pass
-
-    def __call__(self, obs) -> np.ndarray:
-        obs = np.asarray(obs)
-        if obs[self._i["det_start"]] > 0.5:
-            d = 1.0
-        elif obs[self._i["det_keep"]] > 0.5:
-            d = 0.0 if obs[self._i["active"]] > 0.5 else 1.0
-        else:
-            d = -1.0
-        return np.array([d, 1.0], np.float32)
 
 
 class MagQSFVectorEnv(LoopVectorEnv):

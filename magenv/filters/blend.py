@@ -283,7 +283,7 @@ class BlendEstimator:
         self.lam, self.hold, self.beta, self.kwargs = float(lam), hold, beta, kwargs
 
     def run(self, trial: Trial):
-        from baselines.protocol import Estimate
+        from magenv.protocols import Estimate
 
         runner = BlendRunner(trial, beta=self.beta, hold=self.hold, **self.kwargs)
         est = runner.run_all(self.lam)

@@ -36,7 +36,7 @@ Readings of the paper taken here (ALGORITHMS.md §C):
 Special cases: the conventional CF (Bachmann 1999, the paper's comparison) is
 w = 0 with a constant k; strapdown integration is k = 0.
 
-Used by the estimators in ``baselines.constraint`` (whole trials) and by
+Used by the estimators in ``magenv.baselines.constraint`` (whole trials) and by
 ``magenv/MagConstraint-v0`` (k samples per step) — same kernel.
 """
 

@@ -35,7 +35,7 @@ and its navigation frame is ENU (§3.2): that *is* magenv's convention
   Sensitivity found in simulation: with the paper's σ_a = 0.1 g, arm-swing
   accelerations corrupt the gyro-bias states of MAGYQ when few QSF periods
   are found (yaw errors of tens of degrees); σ_a ≈ 3 m/s² avoids it
-  (``python -m baselines.qsf paper sigma_acc=3.0``).
+  (``python -m magenv.baselines.qsf paper sigma_acc=3.0``).
 * AEKF magnetic update: ``z = m_Earth`` (hypothesis H0), ``h = q ⊗ y_m ⊗ q̄``,
   R = σ_m² I. (Bar-Itzhack & Oshman's AEKF has no bias states; ours shares
   MAGYQ's 11 states so that only the magnetic hypothesis differs.)
@@ -101,6 +101,7 @@ from magenv import quaternion as quat
 from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_cov1, right_matrix1
 from magenv.filters.solvers import triad1
 from magenv.quaternion import GRAVITY, from_rotvec1, mul1, normalize1, rotate1
+from magenv.trial import START_FROM_TRUTH
 
 MODE_AEKF, MODE_MAGYQ, MODE_DELAY = 0, 1, 2
 MODES = {"aekf": MODE_AEKF, "magyq": MODE_MAGYQ, "delay_magyq": MODE_DELAY}
@@ -562,7 +563,6 @@ def triad_init(acc0, mag0, params) -> np.ndarray:
 
 
 INITS = ("auto", "triad", "truth")
-START_FROM_TRUTH = "start_from_truth"  # Trial.meta key: the trial's protocol gives the initial orientation
 
 
 def initial_orientation(trial, init: str, params) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The two small protocols every method follows.
+"""The two small protocols every method follows (the bottom layer: envs, methods and evaluation use them).
 
 * A **Policy** acts inside an environment on the observation alone (a
   hand-crafted rule, or a trained agent loaded back): ``policy(obs) -> action``.
@@ -6,7 +6,7 @@
   policy: it runs a whole Trial and returns its orientation estimate.
 
 Either kind can be :class:`Tunable`: named parameters with search bounds,
-for ``magenv tune`` (``baselines.registry.tunable_rules``).
+for ``magenv tune`` (``magenv.registry.tunable_rules``).
 
 ``magenv.evaluation`` runs both kinds on the same trials and scores them with
 ``magenv.metrics``.
@@ -76,3 +76,15 @@ class Tunable:
         if unknown:
             raise ValueError(f"{cls.__name__} has no parameter(s) {sorted(unknown)}; known: {list(cls.PARAM_BOUNDS)}")
         return cls(**params, **kwargs)
+
+
+def is_policy(method) -> bool:
+    """True for a Policy (has ``env_id`` and is callable), False for an Estimator (has ``run``).
+
+    Raises TypeError for anything else.
+    """
+    if hasattr(method, "env_id") and callable(method):
+        return True
+    if hasattr(method, "run"):
+        return False
+    raise TypeError(f"{method!r} is neither a Policy (env_id + __call__) nor an Estimator (run(trial))")

@@ -1,0 +1,178 @@
+"""The one place that turns a method name into a method object (``magenv compare``, ``train``, ``tune``, ``report``).
+
+A *method* is anything ``magenv.evaluation`` can run on a Trial: a **Policy**
+(acts inside its env, ``magenv.protocols.Policy``) or an **Estimator**
+(``run(trial) -> Estimate``). A factory is a zero-argument callable returning
+a fresh one. ``names()`` lists them all:
+
+* every ``methods()`` table of the baseline modules in ``METHOD_MODULES``
+  (``mimu``, ``imu``, ``fan_lambda``, ``threshold``, the survey Kalman
+  filters, the Kalman-trust rules, the constraint and QSF filters, and the
+  outside references ``vqf`` and ``fusion``) — adding a method is one line
+  in its module's table;
+* ``RULE_tuned`` for every tunable rule with a tuned-parameter file
+  ``RULE.json`` (written by ``magenv tune``): looked up first in the user's
+  data directory (:func:`user_tuned_dir`), then among the files shipped in
+  the package (``magenv/baselines/tuned``);
+* ``register(name, factory)`` at run time (one line anywhere);
+* ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from importlib import resources
+from pathlib import Path
+from typing import Any, Callable
+
+from magenv.baselines import constraint, kalman, kalman_policies, qsf, reference, rules
+
+AGENT_PREFIX = "agent:"
+TUNED_SUFFIX = "_tuned"
+DATA_DIR_ENV = "MAGENV_DATA_DIR"
+METHOD_MODULES = (rules, kalman, kalman_policies, constraint, qsf, reference)
+#: methods that act with another rule's tuned parameters: name → (the rule whose file, factory(params))
+TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
+    "qsf_detector_tuned": ("delay_magyq", qsf.tuned_detector_policy),
+}
+
+_REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}
+
+
+class TunedParamsError(ValueError):
+    """A tuned-parameter file is missing, corrupt, or does not fit its rule."""
+
+
+def user_data_dir() -> Path:
+    """Where magenv writes user data: ``$MAGENV_DATA_DIR``, else ``$XDG_DATA_HOME/magenv``
+    (default ``~/.local/share/magenv``)."""
+    if os.environ.get(DATA_DIR_ENV):
+        return Path(os.environ[DATA_DIR_ENV])
+    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(base) / "magenv"
+
+
+def user_tuned_dir() -> Path:
+    """The default output folder of ``magenv tune`` (read before the packaged files)."""
+    return user_data_dir() / "tuned"
+
+
+def packaged_tuned_dir() -> Path:
+    """The tuned-parameter files shipped with magenv (``magenv/baselines/tuned``)."""
+    return Path(str(resources.files("magenv.baselines") / "tuned"))
+
+
+def register(name: str, factory: Callable[[], Any], description: str = "", overwrite: bool = False) -> None:
+    """Add a method. Raises ValueError if the name is taken (unless ``overwrite``)."""
+    if not overwrite and name in _REGISTERED:
+        raise ValueError(f"method {name!r} is already registered")
+    _REGISTERED[name] = (factory, description)
+
+
+def tunable_rules() -> dict[str, type]:
+    """Every method with tunable parameters (``PARAM_BOUNDS``, ``params``, ``from_params``), by name:
+    the λ rules, the Kalman-trust rules (policies), the constraint filter and Delay MAGYQ's QSF detector
+    (estimators)."""
+    return {**rules.RULES, **kalman_policies.RULES, "cf_constraint": constraint.ConstraintCF,
+            "delay_magyq": qsf.DetectedDelayMAGYQ}
+
+
+def rule_class(name: str) -> type:
+    """The class of a tunable rule name (``fan_lambda``, ``threshold``, ``kf_gate``, …)."""
+    table = tunable_rules()
+    try:
+        return table[name]
+    except KeyError:
+        raise ValueError(f"unknown rule {name!r}; known rules: {', '.join(table)}") from None
+
+
+def tuned_file(rule: str) -> Path | None:
+    """The tuned-parameter file of ``rule``: the user's, else the packaged one, else None."""
+    for folder in (user_tuned_dir(), packaged_tuned_dir()):
+        path = folder / f"{rule}.json"
+        if path.is_file():
+            return path
+    return None
+
+
+def tuned_params(rule: str) -> dict[str, float]:
+    """The parameters ``magenv tune`` wrote for ``rule``, checked name by name against the rule's
+    ``PARAM_BOUNDS`` (every one present, none unknown, each a finite number). Raises TunedParamsError."""
+    path = tuned_file(rule)
+    if path is None:
+        raise TunedParamsError(f"no tuned parameters for {rule!r} (looked in {user_tuned_dir()} and "
+                               f"{packaged_tuned_dir()}); run magenv tune --rule {rule}")
+    try:
+        params = json.loads(path.read_text())["params"]
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise TunedParamsError(f"{path}: corrupt tuned-parameter file ({type(exc).__name__}: {exc})") from None
+    if not isinstance(params, dict):
+        raise TunedParamsError(f"{path}: 'params' must be a mapping of parameter name to number")
+    bounds = rule_class(rule).PARAM_BOUNDS
+    missing, unknown = sorted(set(bounds) - set(params)), sorted(set(params) - set(bounds))
+    if missing or unknown:
+        raise TunedParamsError(f"{path}: parameters do not fit rule {rule!r}: missing {missing}, unknown {unknown}; "
+                               f"expected {sorted(bounds)}")
+    for key, value in params.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise TunedParamsError(f"{path}: parameter {key!r} must be a finite number, got {value!r}")
+    return {k: float(v) for k, v in params.items()}
+
+
+def _tuned() -> dict[str, tuple[Callable[[], Any], str]]:
+    """``RULE_tuned`` for every tunable rule with a tuned file, and the ``TUNED_VARIANTS``."""
+    builds = {rule + TUNED_SUFFIX: (rule, cls.from_params) for rule, cls in tunable_rules().items()}
+    builds.update(TUNED_VARIANTS)
+    out = {}
+    for name, (rule, build) in builds.items():
+        path = tuned_file(rule)
+        if path is not None:
+            out[name] = (lambda rule=rule, build=build, name=name: _named(build(tuned_params(rule)), name),
+                         f"{rule} with the parameters tuned by magenv tune ({path})")
+    return out
+
+
+def _named(method, name: str):
+    method.name = name
+    return method
+
+
+def _all() -> dict[str, tuple[Callable[[], Any], str]]:
+    table: dict[str, tuple[Callable[[], Any], str]] = {}
+    for module in METHOD_MODULES:
+        for name, factory in module.methods().items():
+            table[name] = (factory, (factory.__doc__ or module.__name__).strip().splitlines()[0])
+    table.update(_tuned())
+    table.update(_REGISTERED)
+    return table
+
+
+def names() -> list[str]:
+    """All known method names (``agent:RUN_DIR`` is accepted besides these)."""
+    return list(_all())
+
+
+def describe() -> dict[str, str]:
+    """Method name → one-line description."""
+    return {k: v[1] for k, v in _all().items()}
+
+
+def make(name: str):
+    """A fresh Policy or Estimator for a method name. Unknown names raise ValueError listing the known ones."""
+    if name.startswith(AGENT_PREFIX):
+        from magenv.agents.loading import load_agent
+
+        return load_agent(name[len(AGENT_PREFIX):])
+    table = _all()
+    if name not in table:
+        raise ValueError(f"unknown method {name!r}; known methods: {', '.join(table)} "
+                         f"(or {AGENT_PREFIX}RUN_DIR for a trained agent)")
+    method = table[name][0]()
+    if not hasattr(method, "name"):
+        try:
+            method.name = name
+        except AttributeError:
+            pass
+    return method
