@@ -22,7 +22,7 @@ from typing import Any, Sequence
 import gymnasium as gym
 import numpy as np
 
-from magenv.filters.common import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL
+from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL
 from magenv.seeding import draw_training_seed
 from magenv.trial import Trial
 
@@ -207,7 +207,7 @@ class TrustEnv(gym.Env):
     Subclasses call :meth:`_setup` in ``__init__`` and implement
     ``_make_runner(trial)``. A runner has ``feat`` (observation of the next
     sample), ``err`` (the last step's sums, indexed by
-    ``magenv.filters.common.E_*``), ``pos`` (next sample), ``done``,
+    ``magenv.metrics.E_*``), ``pos`` (next sample), ``done``,
     ``last_count``, ``has_dist``, ``est`` (N, 4) and ``q_true`` (N, 4).
     """
 

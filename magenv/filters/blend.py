@@ -31,7 +31,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from magenv.filters.common import N_ERR, TrialRunner, add_errors
+from magenv.filters.common import TrialRunner
+from magenv.metrics import N_ERR, add_errors
 from magenv.filters import stationary as stat
 from magenv.filters.stationary import stationary_peek1, stationary_step1
 from magenv.filters.madgwick import BETA_DEFAULT, MODE_IMU, MODE_MIMU, ecompass1, step_scalar
@@ -66,7 +67,7 @@ FEATURE_HIGH = np.array([f[2] for f in FEATURES], np.float32)
 # params vector layout (float64)
 P_BETA, P_DT, P_TH_A, P_TH_G, P_HOLD, P_M0, P_DIP0 = range(7)
 N_PARAMS = 7
-# err vector layout (E_*, N_ERR): magenv.filters.common
+# err vector layout (E_*, N_ERR): magenv.metrics
 
 
 @njit(cache=True, inline="always")
@@ -150,7 +151,7 @@ def advance(q, buf, ctr, gyr, acc, mag, q_true, dist, lam, lam_const, start, sto
             nb = np.sqrt(bw * bw + bx * bx + by * by + bz * bz)
             q[0], q[1], q[2], q[3] = bw / nb, bx / nb, by / nb, bz / nb
         est[i, 0], est[i, 1], est[i, 2], est[i, 3] = q[0], q[1], q[2], q[3]
-        add_errors(err, q[0], q[1], q[2], q[3], q_true[i], dist[i])  # against truth, as magenv.metrics
+        add_errors(err, q, q_true[i], dist[i])  # against truth, as magenv.metrics
     _features(q, buf, ctr, gyr, acc, mag, lam, start, stop, params, aux, feat)
 
 

@@ -45,7 +45,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from magenv.filters.common import N_ERR, TrialRunner, add_errors
+from magenv.filters.common import TrialRunner
+from magenv.metrics import N_ERR, add_errors
 from magenv.filters.madgwick import ecompass1
 from magenv.quaternion import GRAVITY, earth_field, normalize1, rotate, rotate1
 from magenv.trial import Trial
@@ -86,7 +87,7 @@ N_PARAMS = 11
 # aux layout per sample: [mag_dev Au, ‖Δq‖, w, k, con_mismatch m/s²]
 A_DEV, A_STEP, A_W, A_K, A_MIS = range(5)
 N_AUX = 5
-# err vector layout (E_*, N_ERR): magenv.filters.common
+# err vector layout (E_*, N_ERR): magenv.metrics
 # mode values for w_const / k_const
 FROM_ARRAY = -1.0  # read w[i] / k[i]
 BY_RULE = -2.0  # eq. 16 for w, eq. 18 for k (written into the array)
@@ -320,7 +321,7 @@ def advance(q, gyr, acc, mag, h_i, c_j, q_true, dist, w_arr, w_const, k_arr, k_c
         nn = np.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
         q[0], q[1], q[2], q[3] = nw / nn, nx / nn, ny / nn, nz / nn
         est[i, 0], est[i, 1], est[i, 2], est[i, 3] = q[0], q[1], q[2], q[3]
-        add_errors(err, q[0], q[1], q[2], q[3], q_true[i], dist[i])  # against truth, as magenv.metrics
+        add_errors(err, q, q_true[i], dist[i])  # against truth, as magenv.metrics
     _features(q, gyr, acc, mag, h_i, c_j, w_arr, k_arr, start, stop, params, aux, feat, F, dq)
 
 

@@ -24,7 +24,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from magenv.filters.common import N_ERR, TrialRunner, add_errors
+from magenv.filters.common import TrialRunner
+from magenv.metrics import N_ERR, add_errors
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_trust import run_k_kernel, step_kernel
 from magenv.filters.kalman_model import C_A, C_B, vec_step1
@@ -63,7 +64,7 @@ FEATURE_HIGH = np.array([f[2] for f in FEATURES], np.float32)
  F_ACC_MAX, F_GYRO_MEAN, F_INNOV_MEAN, F_NIS_MEAN, F_MODEL, F_MODEL_MAX, F_FIELD) = range(N_FEATURES)
 FIELD_SCALE_UT = 50.0  # field_ref unit, µT
 
-# err vector layout (E_*, N_ERR): magenv.filters.common
+# err vector layout (E_*, N_ERR): magenv.metrics
 # trust-KF params indices used here (kalman_trust.make_params layout)
 _P_M0, _P_DIP0 = 11, 12
 
@@ -125,7 +126,7 @@ def advance(q, p, gyr, acc, mag, dt, q_true, dist, mdist, trust, gamma, start, s
         return status, repairs
     for i in range(start, stop):
         trust[i] = gamma
-        add_errors(err, est[i, 0], est[i, 1], est[i, 2], est[i, 3], q_true[i], dist[i])  # as magenv.metrics
+        add_errors(err, est[i], q_true[i], dist[i])  # as magenv.metrics
     # peek at the next sample: prediction + acc update + mag innovation, γ = 0, on copies
     if stop < n:
         qc = q.copy()

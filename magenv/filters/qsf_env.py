@@ -4,7 +4,7 @@
 and the QSF detector's codes and spread (computed once at reset: they depend
 on the sensors only, row j on samples ≤ j). ``advance`` fuses the next
 samples with one decision (none / start / keep) and one trust, accumulates
-the error sums against truth (``magenv.filters.common.add_errors``) and
+the error sums against truth (``magenv.metrics.error_sums``) and
 computes the features of the next sample j (read before it is fused).
 
 Features are dimensionless so that one scale suits every site: field
@@ -21,7 +21,8 @@ import numpy as np
 from numba import njit
 
 from magenv.filters import qsf
-from magenv.filters.common import N_ERR, TrialRunner, add_errors
+from magenv.filters.common import TrialRunner
+from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
 
@@ -49,14 +50,6 @@ N_FEATURES = len(FEATURES)
 FEATURE_LOW = np.array([f[1] for f in FEATURES], np.float32)
 FEATURE_HIGH = np.array([f[2] for f in FEATURES], np.float32)
 VARIANTS = ("delay_magyq", "magyq")
-
-
-@njit(cache=True)
-def error_sums(est, q_true, dist, start, stop, err):
-    """Reset ``err`` (N_ERR,) to the error sums of samples ``start … stop−1`` (``add_errors``)."""
-    err[:] = 0.0
-    for i in range(start, stop):
-        add_errors(err, est[i, 0], est[i, 1], est[i, 2], est[i, 3], q_true[i], dist[i])
 
 
 class QSFRunner(TrialRunner):

@@ -1,0 +1,73 @@
+"""Observation features defined once: name, range, unit and meaning of each, and the scales they share.
+
+Each env module declares its observation as a :class:`FeatureTable`; the
+observation space's bounds, the kernels' feature indices, the table in the
+env's docstring (:meth:`FeatureTable.markdown`, filled in by
+:func:`document`) and the README's tables (checked against it by the tests)
+all come from that one declaration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Scales shared by the envs' features, so that a rule can recover physical values from an observation.
+DIP_SCALE_DEG = 90.0  # dip deviations in units of 90°
+GYRO_SCALE = 2.0 * np.pi  # rad/s: gyro norms in revolutions per second
+
+
+@dataclass(frozen=True)
+class Feature:
+    """One observation feature: its ``name``, the range it is clipped to, its ``unit`` (or scale) and ``meaning``."""
+
+    name: str
+    low: float
+    high: float
+    unit: str
+    meaning: str
+
+
+class FeatureTable:
+    """An env's observation features in order: names, float32 bounds, indices and the Markdown table."""
+
+    def __init__(self, *features: Feature):
+        names = [f.name for f in features]
+        if len(set(names)) != len(names):
+            raise ValueError(f"duplicate feature names in {names}")
+        self.features = tuple(features)
+        self.names: tuple[str, ...] = tuple(names)
+        self.low = np.array([f.low for f in features], np.float32)
+        self.high = np.array([f.high for f in features], np.float32)
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+    def index(self, name: str) -> int:
+        """Position of feature ``name`` in the full observation."""
+        return self.names.index(name)
+
+    def markdown(self) -> str:
+        """The table of the env docstring and the README: Num, Name, Meaning, Unit / scale, Min, Max."""
+        rows = ["| Num | Name | Meaning | Unit / scale | Min | Max |", "|---|---|---|---|---|---|"]
+        for i, f in enumerate(self.features):
+            rows.append(f"| {i} | `{f.name}` | {f.meaning} | {f.unit} | {f.low:g} | {f.high:g} |")
+        return "\n".join(rows)
+
+
+def document(table: FeatureTable, placeholder: str = "{observation_table}"):
+    """Class decorator: put ``table.markdown()`` (indented as the placeholder) in place of ``placeholder`` in
+    the class docstring, so ``help(env)`` shows the table that the code uses."""
+
+    def decorate(cls):
+        doc = cls.__doc__ or ""
+        for line in doc.splitlines():
+            if line.strip() == placeholder:
+                indent = line[: len(line) - len(line.lstrip())]
+                rendered = "\n".join(indent + row for row in table.markdown().splitlines())
+                cls.__doc__ = doc.replace(line, rendered)
+                return cls
+        raise ValueError(f"{cls.__name__}'s docstring has no line {placeholder!r}")
+
+    return decorate
