@@ -29,26 +29,26 @@ def _trial_source(scenario) -> tuple[str, Any]:
     if not isinstance(scenario, str):
         raise TypeError(f"scenario must be a two-link scenario name, a Trial or a list of Trials, "
                         f"got {type(scenario).__name__}")
-    from magenv import constraint_scenarios
+    from magenv import scenarios
 
     names = [s.strip() for s in scenario.split(",")]
-    bad = [n for n in names if n not in constraint_scenarios.SCENARIOS]
+    bad = [n for n in names if n not in scenarios.scenario_names("twolink")]
     if bad:
         raise ValueError(f"unknown two-link scenario(s) {', '.join(map(repr, bad))}; known: "
-                         f"{', '.join(constraint_scenarios.scenario_names())} (MagConstraint-v0 needs link j's "
+                         f"{', '.join(scenarios.scenario_names('twolink'))} (MagConstraint-v0 needs link j's "
                          f"sensor and orientation, which only these scenarios simulate)")
     return "scenario", names
 
 
 class TwoLinkSource(TrialSource):
-    """A :class:`~magenv.envs.common.TrialSource` of two-link trials (``magenv.constraint_scenarios``)."""
+    """A :class:`~magenv.envs.common.TrialSource` of two-link trials (``magenv.scenarios.twolink``)."""
 
     classify = staticmethod(_trial_source)
 
     def make_trial(self, name: str, seed: int) -> Trial:
-        from magenv import constraint_scenarios
+        from magenv import scenarios
 
-        return constraint_scenarios.make_trial(name, seed, **self.scenario_kwargs)
+        return scenarios.make_trial(name, seed, **self.scenario_kwargs)
 
 
 class MagConstraintEnv(TrustEnv):
@@ -126,7 +126,7 @@ class MagConstraintEnv(TrustEnv):
     ## Arguments
 
     - `scenario` (default `"constraint_random"`): a name from
-      ``magenv.constraint_scenarios.scenario_names()`` or a comma list of them
+      ``magenv.scenarios.scenario_names("twolink")`` or a comma list of them
       (a mixture: each reset picks one), trial seeds drawn at or above
       ``magenv.seeding.HELD_OUT_BELOW``; or a Trial or a list of Trials —
       each must carry link j's channels (``extra`` ``gyr_j``, ``acc_j``,
@@ -137,7 +137,7 @@ class MagConstraintEnv(TrustEnv):
     - `gain_max` (default 1.0): k = action[1]·gain_max with ``control_gain``.
     - `th2`, `th3`, `k_min`, `k_max` (defaults 0.25, 0.2, 0.01, 0.2): eq. 18 when k is not controlled.
     - `features` (default None = all): names of the observation features to keep, in order.
-    - `scenario_kwargs` (default None): overrides for ``constraint_scenarios.make_trial``.
+    - `scenario_kwargs` (default None): overrides for ``magenv.scenarios.make_trial``.
 
     `info` of each step: `t` (s), `sample`, `w`, `k` (mean over the step), `action_clipped`,
     `error_total` / `error_heading` / `error_inclination` (means over the step, °), `disturbance_norm`
