@@ -3,52 +3,14 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from magenv.envs import CONSTRAINT_ID
-from magenv.envs.common import LoopVectorEnv, TrialSource, TrustEnv
+from magenv.envs.common import LoopVectorEnv, TrustEnv
 from magenv.filters import constraint as cf
 from magenv.trial import Trial
-
-
-def _trial_source(scenario) -> tuple[str, Any]:
-    """("trials", [Trial…]) or ("scenario", [names]) — trials are checked for link j's channels.
-
-    A comma list of scenario names is a mixture: each reset picks one at random.
-    """
-    if isinstance(scenario, Trial):
-        scenario = [scenario]
-    if isinstance(scenario, (list, tuple)):
-        if not scenario or not all(isinstance(t, Trial) for t in scenario):
-            raise TypeError("scenario as a sequence must be a non-empty list of magenv.trial.Trial objects")
-        for t in scenario:
-            cf.require_two_link(t)
-        return "trials", list(scenario)
-    if not isinstance(scenario, str):
-        raise TypeError(f"scenario must be a two-link scenario name, a Trial or a list of Trials, "
-                        f"got {type(scenario).__name__}")
-    from magenv import scenarios
-
-    names = [s.strip() for s in scenario.split(",")]
-    bad = [n for n in names if n not in scenarios.scenario_names("twolink")]
-    if bad:
-        raise ValueError(f"unknown two-link scenario(s) {', '.join(map(repr, bad))}; known: "
-                         f"{', '.join(scenarios.scenario_names('twolink'))} (MagConstraint-v0 needs link j's "
-                         f"sensor and orientation, which only these scenarios simulate)")
-    return "scenario", names
-
-
-class TwoLinkSource(TrialSource):
-    """A :class:`~magenv.envs.common.TrialSource` of two-link trials (``magenv.scenarios.twolink``)."""
-
-    classify = staticmethod(_trial_source)
-
-    def make_trial(self, name: str, seed: int) -> Trial:
-        from magenv import scenarios
-
-        return scenarios.make_trial(name, seed, **self.scenario_kwargs)
 
 
 class MagConstraintEnv(TrustEnv):
@@ -160,7 +122,8 @@ class MagConstraintEnv(TrustEnv):
         if not (math.isfinite(gain_max) and gain_max > 0):
             raise ValueError(f"gain_max must be a positive number, got {gain_max!r}")
         self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    cf.FEATURE_NAMES, cf.FEATURE_LOW, cf.FEATURE_HIGH, 2 if control_gain else 1, TwoLinkSource)
+                    cf.FEATURE_NAMES, cf.FEATURE_LOW, cf.FEATURE_HIGH, 2 if control_gain else 1,
+                    world="twolink", require=cf.require_two_link)
         self.control_gain = bool(control_gain)
         self.gain_max = float(gain_max)
         self.filter_kwargs = dict(th2=float(th2), th3=float(th3), k_min=float(k_min), k_max=float(k_max))
