@@ -1,6 +1,6 @@
 """Jung & Lee 2019's three methods as Estimators, and its eq. 16 rule as a Policy.
 
-Estimators (``run(trial) -> Estimate``; a two-link trial, ``magenv.constraint_scenarios``):
+Estimators (``run(trial) -> Estimate``; a two-link trial, ``magenv.scenarios.twolink``):
 
 * ``strapdown`` — gyroscope integration only (eq. 17 with k = 0);
 * ``cf_conventional`` — the conventional CF (Bachmann 1999): one Gauss–Newton

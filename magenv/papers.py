@@ -49,7 +49,7 @@ def table2(seeds: Sequence[int], methods_: Sequence[str] = TABLE2_METHODS) -> li
     ``magenv.metrics.euler_error``) of the methods on the three tests, mean over seeds
     (``paper`` is NaN for methods not in the paper). Methods are ``magenv compare`` names (policies,
     ``RULE_tuned`` and ``agent:RUN_DIR`` too)."""
-    from magenv.constraint_scenarios import make_trial
+    from magenv.scenarios import make_trial
 
     rows = []
     runner = evaluation.PolicyRunner()
@@ -94,7 +94,7 @@ def qsf_table(seeds=(0, 1, 2, 3), free_seeds=(0,), **params) -> str:
     Seeds play the paper's subjects (four for texting and swinging, one for the free walk). ``params`` go to
     ``magenv.filters.qsf.make_params`` (e.g. ``sigma_acc=3.0`` for the sensitivity run).
     """
-    from magenv import handheld_scenarios as hs
+    from magenv.scenarios import make_trial
 
     sig = dict(params)
     groups = {"handheld_texting": seeds, "handheld_swinging": seeds, "handheld_free": free_seeds,
@@ -102,7 +102,7 @@ def qsf_table(seeds=(0, 1, 2, 3), free_seeds=(0,), **params) -> str:
     ests = {"aekf": bq.aekf, "magyq": bq.magyq, "delay_magyq": bq.delay_magyq}
     lines, pooled = [], {m: [] for m in ests}
     for name, sd in groups.items():
-        trials = [hs.make_trial(name, s) for s in sd]
+        trials = [make_trial(name, s) for s in sd]
         lines += [f"\n### {name} (seeds {list(sd)})\n", "| method | roll μ | roll σ | pitch μ | pitch σ | yaw μ | yaw σ "
                   "| mean abs yaw | paper roll μ/σ | paper pitch μ/σ | paper yaw μ/σ |",
                   "|---|---|---|---|---|---|---|---|---|---|---|"]

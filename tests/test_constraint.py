@@ -11,7 +11,7 @@ import pytest
 
 import magenv  # noqa: F401  (registers the envs)
 from magenv.baselines import constraint as bc
-from magenv import constraint_scenarios as cs
+from magenv import scenarios as cs
 from magenv import metrics, registry
 from magenv import quaternion as quat
 from magenv.envs.constraint import MagConstraintEnv

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magenv import handheld_scenarios as hs
 from magenv import quaternion as quat
+from magenv.scenarios import configure, get_scenario, handheld, make_trial
 from magenv.sim.handheld import MODES, Motion, ideal_readings
 from magenv.sim.indoor_field import IndoorField, random_indoor_field
 from magenv.sim.magnet import dipole_field
@@ -91,9 +91,9 @@ def test_walker_travels_at_the_configured_speed():
 
 
 def test_scenarios_are_deterministic_and_seed_dependent():
-    a = hs.make_trial("handheld_random", 5, duration=10.0)
-    b = hs.make_trial("handheld_random", 5, duration=10.0)
-    c = hs.make_trial("handheld_random", 6, duration=10.0)
+    a = make_trial("handheld_random", 5, duration=10.0)
+    b = make_trial("handheld_random", 5, duration=10.0)
+    c = make_trial("handheld_random", 6, duration=10.0)
     for k in ("gyr", "acc", "mag", "q_true"):
         assert np.array_equal(getattr(a, k), getattr(b, k))
     assert not np.array_equal(a.mag, c.mag)
@@ -102,12 +102,12 @@ def test_scenarios_are_deterministic_and_seed_dependent():
 @pytest.mark.parametrize("name,duration", [("handheld_texting", 120.0), ("handheld_swinging", 120.0),
                                            ("handheld_free", 780.0)])
 def test_paper_scenarios_defaults(name, duration):
-    cfg = hs.get_scenario(name)
+    cfg = get_scenario(name)
     assert cfg.rate == 100.0 and cfg.duration == duration and cfg.treadmill_prob == 1.0
 
 
 def test_trial_channels_and_disturbance():
-    tr = hs.make_trial("handheld_texting", 0, duration=5.0)
+    tr = make_trial("handheld_texting", 0, duration=5.0)
     assert tr.n == 500 and tr.rate == 100.0
     # truth disturbance is the field minus the Earth field, in the sensor frame
     field_e = quat.rotate(tr.q_true, tr.truth["mag_disturbance"]) + quat.earth_field(tr.field_norm, tr.field_dip)
@@ -118,10 +118,10 @@ def test_trial_channels_and_disturbance():
 
 def test_bad_scenario_arguments_raise():
     with pytest.raises(ValueError, match="unknown hand-held scenario"):
-        hs.make_trial("nope", 0)
+        handheld.WORLD.make_trial("nope", 0)
     with pytest.raises(ValueError, match="unknown parameter"):
-        hs.make_trial("handheld_texting", 0, wobble=3)
+        make_trial("handheld_texting", 0, wobble=3)
     with pytest.raises(ValueError):
-        hs.make_trial("handheld_texting", -1)
+        make_trial("handheld_texting", -1)
     with pytest.raises(ValueError):
-        hs.configure("handheld_texting", modes=("dancing",))
+        configure("handheld_texting", modes=("dancing",))

@@ -310,7 +310,7 @@ def test_vector_env_replays_single_envs():
 
 def test_start_follows_the_trial_protocol():
     """init="auto": hand-held trials (walk starts in a disturbed field) start from truth, others from TRIAD."""
-    from magenv import handheld_scenarios as hs
+    from magenv import scenarios as hs
 
     hand = hs.make_trial("handheld_texting", 0, duration=2.0)
     other = _env_trial()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -10,11 +11,11 @@ import pytest
 from magenv import quaternion as quat
 from magenv import scenarios
 from magenv.sim.sensors import SensorConfig
-from magenv.trial import Trial
+from magenv.trial import META_SCENARIO, META_SEED, Trial
 
 SHORT = dict(duration=12.0)
-# The gimbal's own scenarios (other families, e.g. the two-link world, have their own tests).
-GIMBAL = [n for n in scenarios.scenario_names() if scenarios.family_of(n) is None]
+# The gimbal's own scenarios (the other worlds have their own tests).
+GIMBAL = scenarios.scenario_names("gimbal")
 
 
 def test_scenario_names_and_configs():
@@ -32,6 +33,38 @@ def test_unknown_scenario_lists_known_names():
         scenarios.make_trial("nope", 0)
     with pytest.raises(ValueError, match="stationary_magnet"):
         scenarios.get_scenario("Dynamic_Magnet")
+
+
+def test_registry_lists_every_worlds_scenarios():
+    names = scenarios.scenario_names()
+    assert list(scenarios.WORLDS) == ["gimbal", "twolink", "handheld"]
+    assert names == [n for world in scenarios.WORLDS.values() for n in world.names()]
+    assert len(set(names)) == len(names)
+    assert {"dynamic_magnet", "constraint_test2", "handheld_texting"} <= set(names)
+    for world in scenarios.WORLDS.values():
+        assert scenarios.scenario_names(world.name) == world.names() != []
+        for name in world.names():
+            assert scenarios.world_of(name) == world.name
+            assert scenarios.get_scenario(name) is world.get(name)
+
+
+@pytest.mark.parametrize("name", ["dynamic_clean", "constraint_test1", "handheld_texting"])
+def test_every_world_writes_the_trial_meta_keys(name):
+    tr = scenarios.make_trial(name, 3, duration=4.0)
+    assert tr.name == f"{name}#3"
+    assert tr.meta[META_SCENARIO] == name and tr.meta[META_SEED] == 3
+    assert json.loads(json.dumps(tr.meta)) == tr.meta  # plain JSON types
+    assert tr.meta["config"]["duration"] == 4.0
+
+
+def test_unknown_names_list_the_known_ones():
+    with pytest.raises(ValueError, match="unknown scenario 'nope'; known scenarios: stationary_magnet, .*"
+                                         "constraint_test1, .*handheld_random"):
+        scenarios.world_of("nope")
+    with pytest.raises(ValueError, match="unknown world 'moon'; known worlds: gimbal, twolink, handheld"):
+        scenarios.scenario_names("moon")
+    with pytest.raises(ValueError, match="unknown two-link scenario 'dynamic_magnet'; known: constraint_test1, "):
+        scenarios.WORLDS["twolink"].make_trial("dynamic_magnet", 0)
 
 
 @pytest.mark.parametrize("overrides, match", [

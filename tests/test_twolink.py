@@ -1,13 +1,13 @@
-"""The two-link world (``magenv.sim.twolink``) and its scenarios (``magenv.constraint_scenarios``)."""
+"""The two-link world (``magenv.sim.twolink``) and its scenarios (``magenv.scenarios.twolink``)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from magenv import constraint_scenarios as cs
 from magenv import quaternion as quat
 from magenv.filters.constraint import joint_vectors
+from magenv.scenarios import make_trial, twolink
 from magenv.sim import twolink as tl
 
 #: every noise and bias of the sensor model off, and no deliberate gyro bias
@@ -17,7 +17,7 @@ NOISE_FREE = dict(gyr_noise_dps=0.0, gyr_drift_dps=0.0, acc_noise=0.0, acc_bias=
 @pytest.fixture(scope="module")
 def clean():
     """Test 2 motion, 20 s, noise-free sensors."""
-    return cs.make_trial("constraint_test2", 3, duration=20.0, **NOISE_FREE)
+    return make_trial("constraint_test2", 3, duration=20.0, **NOISE_FREE)
 
 
 def test_lever_arms_are_the_papers():
@@ -52,7 +52,7 @@ def test_joint_centre_geometry():
     rng = np.random.default_rng(0)
     n = int(5.0 * tl.PHYSICS_RATE)
     env = tl.envelope(np.arange(n) / tl.PHYSICS_RATE, [(0.5, 1.0)])
-    cmd = tl.smooth_motion(rng, 5.0, tl.PHYSICS_RATE, env, np.array(cs.BASE_AMPLITUDE), (0.2, 0.6))
+    cmd = tl.smooth_motion(rng, 5.0, tl.PHYSICS_RATE, env, np.array(twolink.BASE_AMPLITUDE), (0.2, 0.6))
     run = tl.simulate_twolink(cmd, 100.0, 499)
     r_i, r_j = tl.lever_arms()
     np.testing.assert_allclose(run.p_i + quat.rotate(run.q_i, np.broadcast_to(r_i, run.p_i.shape)), run.p_c, atol=1e-9)
@@ -63,16 +63,16 @@ def test_joint_centre_geometry():
 
 def test_paper_gyro_bias_is_added():
     kw = dict(duration=5.0, gyr_noise_dps=0.0, gyr_drift_dps=0.0)
-    with_bias = cs.make_trial("constraint_test1", 0, **kw)
-    without = cs.make_trial("constraint_test1", 0, gyro_bias=(0.0, 0.0, 0.0), **kw)
-    np.testing.assert_allclose(with_bias.gyr - without.gyr, np.tile(cs.PAPER_GYRO_BIAS, (with_bias.n, 1)), atol=1e-15)
+    with_bias = make_trial("constraint_test1", 0, **kw)
+    without = make_trial("constraint_test1", 0, gyro_bias=(0.0, 0.0, 0.0), **kw)
+    np.testing.assert_allclose(with_bias.gyr - without.gyr, np.tile(twolink.PAPER_GYRO_BIAS, (with_bias.n, 1)), atol=1e-15)
     np.testing.assert_array_equal(with_bias.extra["gyr_j"], without.extra["gyr_j"])  # only link i's gyro
 
 
 def test_same_name_and_seed_same_trial():
-    a = cs.make_trial("constraint_random", 11, duration=10.0)
-    b = cs.make_trial("constraint_random", 11, duration=10.0)
-    c = cs.make_trial("constraint_random", 12, duration=10.0)
+    a = make_trial("constraint_random", 11, duration=10.0)
+    b = make_trial("constraint_random", 11, duration=10.0)
+    c = make_trial("constraint_random", 12, duration=10.0)
     for key in ("gyr", "acc", "mag", "q_true"):
         np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
     for group in ("extra", "truth"):
@@ -87,7 +87,7 @@ def test_same_name_and_seed_same_trial():
     ("constraint_test1", 0.9, 5, 15.0), ("constraint_test2", 2.0, 5, 15.0), ("constraint_test3", 1.9, 1, 30.0)])
 def test_table1_conditions(name, target, n_dist, dist_s):
     """Mean external acceleration and the tool's approaches after the paper's Table 1."""
-    tr = cs.make_trial(name, 0)
+    tr = make_trial(name, 0)
     assert tr.meta["mean_ext_acc"] == pytest.approx(target, rel=0.15)
     assert len(tr.meta["approach_starts_s"]) == n_dist
     assert sum(tr.meta["approach_holds_s"]) == pytest.approx(dist_s)
@@ -103,7 +103,7 @@ def test_table1_conditions(name, target, n_dist, dist_s):
 
 
 def test_random_family_varies_and_has_still_stretches():
-    trials = [cs.make_trial("constraint_random", s, duration=40.0) for s in range(4)]
+    trials = [make_trial("constraint_random", s, duration=40.0) for s in range(4)]
     still = [t.truth["stationary"][int(5 * t.rate):].mean() for t in trials]  # after the start rest
     assert max(still) > 0.05
     assert len({round(t.meta["mean_ext_acc"], 3) for t in trials}) == 4
@@ -112,10 +112,10 @@ def test_random_family_varies_and_has_still_stretches():
 
 def test_bad_scenario_input():
     with pytest.raises(ValueError, match="unknown two-link scenario"):
-        cs.make_trial("constraint_nope", 0)
+        twolink.WORLD.make_trial("constraint_nope", 0)
     with pytest.raises(ValueError, match="unknown parameter"):
-        cs.make_trial("constraint_test1", 0, bogus=1)
+        make_trial("constraint_test1", 0, bogus=1)
     with pytest.raises(ValueError, match="seed"):
-        cs.make_trial("constraint_test1", -1)
+        make_trial("constraint_test1", -1)
     with pytest.raises(ValueError, match="tool_near"):
-        cs.make_trial("constraint_test1", 0, tool_near=-0.1)
+        make_trial("constraint_test1", 0, tool_near=-0.1)

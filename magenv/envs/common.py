@@ -1,7 +1,8 @@
 """Pieces every magenv trust environment shares: where trials come from, argument and action checks, a loop VectorEnv.
 
 * :class:`TrialSource` — the ``scenario`` argument (a scenario name or a comma
-  list of names, ``"recording:PATH"``, a Trial or a list of Trials) and the
+  list of names, ``"recording:PATH"``, a Trial or a list of Trials; or only
+  one world's scenarios and Trials with the channels an env needs) and the
   draw of one trial per ``reset`` from the env's ``np_random``.
 * :func:`cut_trial` — the ``episode_seconds`` option.
 * :func:`check_env_args` — ``decision_every``, ``episode_seconds``, ``render_mode``.
@@ -17,7 +18,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -29,32 +30,40 @@ from magenv.trial import Trial
 RECORDING_PREFIX = "recording:"
 
 
-def trial_source(scenario) -> tuple[str, Any]:
+def trial_source(scenario, world: str | None = None,
+                 require: Callable[[Trial], None] | None = None) -> tuple[str, Any]:
     """Classify the ``scenario`` argument: ("trials", [Trial…]), ("recording", path) or ("scenario", [names]).
 
-    A comma list of scenario names is a mixture: each reset picks one at random.
+    A comma list of scenario names is a mixture: each reset picks one at random. ``world`` (a key of
+    ``magenv.scenarios.WORLDS``) admits only that world's scenario names (no recordings); ``require`` checks
+    each given Trial (raising, e.g., ValueError naming the channels it lacks).
     """
     if isinstance(scenario, Trial):
-        return "trials", [scenario]
+        scenario = [scenario]
     if isinstance(scenario, (list, tuple)):
         if not scenario or not all(isinstance(t, Trial) for t in scenario):
             raise TypeError("scenario as a sequence must be a non-empty list of magenv.trial.Trial objects")
+        for trial in scenario if require is not None else ():
+            require(trial)
         return "trials", list(scenario)
     if not isinstance(scenario, str):
-        raise TypeError(f"scenario must be a scenario name, 'recording:PATH', a Trial or a list of Trials, "
-                        f"got {type(scenario).__name__}")
-    if scenario.startswith(RECORDING_PREFIX):
+        what = "a scenario name, 'recording:PATH'" if world is None else f"a scenario name of the {world!r} world"
+        raise TypeError(f"scenario must be {what}, a Trial or a list of Trials, got {type(scenario).__name__}")
+    if world is None and scenario.startswith(RECORDING_PREFIX):
         return "recording", scenario[len(RECORDING_PREFIX):]
     try:
         from magenv import scenarios
     except ImportError as exc:  # the simulator module is missing
         raise RuntimeError(f"scenario {scenario!r} needs magenv.scenarios, which cannot be imported ({exc}); "
                            "pass a list of Trials or 'recording:PATH' instead") from None
-    known = list(scenarios.scenario_names())
+    known = scenarios.scenario_names(world)
     names = [s.strip() for s in scenario.split(",")]
     bad = [n for n in names if n not in known]
     if bad:
-        raise ValueError(f"unknown scenario(s) {', '.join(map(repr, bad))}; known scenarios: {', '.join(known)}")
+        kind = "" if world is None else f"{scenarios.WORLDS[world].label} "
+        only = "" if world is None else f" (this env takes only {kind}trials)"
+        raise ValueError(f"unknown {kind}scenario(s) {', '.join(map(repr, bad))}; "
+                         f"known {kind}scenarios: {', '.join(known)}{only}")
     return "scenario", names
 
 
@@ -64,6 +73,9 @@ class TrialSource:
     Args:
         scenario: see :func:`trial_source`.
         scenario_kwargs: overrides passed to ``magenv.scenarios.make_trial``.
+        prefetch: make the next reset's trial ahead (below).
+        world, require: restrict the source to one world's scenarios and check given Trials
+            (see :func:`trial_source`).
 
     Draws (all from ``rng``, so ``reset(seed=s)`` fixes the trial): one of the
     given Trials; or, for scenarios, the scenario of a mixture and then a trial
@@ -77,8 +89,9 @@ class TrialSource:
     reseeded, the guess misses and the trial is made on the spot.
     """
 
-    def __init__(self, scenario, scenario_kwargs: dict | None = None, prefetch: bool = False):
-        self.kind, self.source = self.classify(scenario)
+    def __init__(self, scenario, scenario_kwargs: dict | None = None, prefetch: bool = False,
+                 world: str | None = None, require: Callable[[Trial], None] | None = None):
+        self.kind, self.source = trial_source(scenario, world, require)
         self.label = scenario if isinstance(scenario, str) else "trials"
         self.scenario_kwargs = dict(scenario_kwargs or {})
         self._recording: Trial | None = None
@@ -129,11 +142,6 @@ class TrialSource:
             nxt = self._pick(copy.deepcopy(rng))  # what the next reset draws unless the env is reseeded
             self._pending = (nxt, self._ahead(nxt))
         return trial
-
-    @staticmethod
-    def classify(scenario) -> tuple[str, Any]:
-        """(kind, source) of the ``scenario`` argument; :func:`trial_source` (subclasses: another family)."""
-        return trial_source(scenario)
 
     def make_trial(self, name: str, seed: int) -> Trial:
         """Trial ``seed`` of scenario ``name`` (``magenv.scenarios.make_trial`` with ``scenario_kwargs``)."""
@@ -216,10 +224,12 @@ class TrustEnv(gym.Env):
 
     def _setup(self, scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
                names: tuple[str, ...], low: np.ndarray, high: np.ndarray, action_dim: int = 1,
-               source: type[TrialSource] = TrialSource, prefetch: bool = False) -> None:
-        """Check the common arguments; set ``k_steps``, ``trials``, ``scenario``, ``features``, the spaces."""
+               prefetch: bool = False, world: str | None = None,
+               require: Callable[[Trial], None] | None = None) -> None:
+        """Check the common arguments; set ``k_steps``, ``trials`` (a :class:`TrialSource`), ``scenario``,
+        ``features``, the spaces."""
         self.k_steps = check_env_args(self.env_name, decision_every, episode_seconds, render_mode)
-        self.trials = source(scenario, scenario_kwargs, prefetch=prefetch)
+        self.trials = TrialSource(scenario, scenario_kwargs, prefetch=prefetch, world=world, require=require)
         self.scenario = self.trials.label
         self.episode_seconds = episode_seconds
         self.features, self._idx, self._all, self.observation_space = select_features(features, names, low, high)

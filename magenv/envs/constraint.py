@@ -3,52 +3,14 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from magenv.envs import CONSTRAINT_ID
-from magenv.envs.common import LoopVectorEnv, TrialSource, TrustEnv
+from magenv.envs.common import LoopVectorEnv, TrustEnv
 from magenv.filters import constraint as cf
 from magenv.trial import Trial
-
-
-def _trial_source(scenario) -> tuple[str, Any]:
-    """("trials", [Trial…]) or ("scenario", [names]) — trials are checked for link j's channels.
-
-    A comma list of scenario names is a mixture: each reset picks one at random.
-    """
-    if isinstance(scenario, Trial):
-        scenario = [scenario]
-    if isinstance(scenario, (list, tuple)):
-        if not scenario or not all(isinstance(t, Trial) for t in scenario):
-            raise TypeError("scenario as a sequence must be a non-empty list of magenv.trial.Trial objects")
-        for t in scenario:
-            cf.require_two_link(t)
-        return "trials", list(scenario)
-    if not isinstance(scenario, str):
-        raise TypeError(f"scenario must be a two-link scenario name, a Trial or a list of Trials, "
-                        f"got {type(scenario).__name__}")
-    from magenv import constraint_scenarios
-
-    names = [s.strip() for s in scenario.split(",")]
-    bad = [n for n in names if n not in constraint_scenarios.SCENARIOS]
-    if bad:
-        raise ValueError(f"unknown two-link scenario(s) {', '.join(map(repr, bad))}; known: "
-                         f"{', '.join(constraint_scenarios.scenario_names())} (MagConstraint-v0 needs link j's "
-                         f"sensor and orientation, which only these scenarios simulate)")
-    return "scenario", names
-
-
-class TwoLinkSource(TrialSource):
-    """A :class:`~magenv.envs.common.TrialSource` of two-link trials (``magenv.constraint_scenarios``)."""
-
-    classify = staticmethod(_trial_source)
-
-    def make_trial(self, name: str, seed: int) -> Trial:
-        from magenv import constraint_scenarios
-
-        return constraint_scenarios.make_trial(name, seed, **self.scenario_kwargs)
 
 
 class MagConstraintEnv(TrustEnv):
@@ -126,7 +88,7 @@ class MagConstraintEnv(TrustEnv):
     ## Arguments
 
     - `scenario` (default `"constraint_random"`): a name from
-      ``magenv.constraint_scenarios.scenario_names()`` or a comma list of them
+      ``magenv.scenarios.scenario_names("twolink")`` or a comma list of them
       (a mixture: each reset picks one), trial seeds drawn at or above
       ``magenv.seeding.HELD_OUT_BELOW``; or a Trial or a list of Trials —
       each must carry link j's channels (``extra`` ``gyr_j``, ``acc_j``,
@@ -137,7 +99,7 @@ class MagConstraintEnv(TrustEnv):
     - `gain_max` (default 1.0): k = action[1]·gain_max with ``control_gain``.
     - `th2`, `th3`, `k_min`, `k_max` (defaults 0.25, 0.2, 0.01, 0.2): eq. 18 when k is not controlled.
     - `features` (default None = all): names of the observation features to keep, in order.
-    - `scenario_kwargs` (default None): overrides for ``constraint_scenarios.make_trial``.
+    - `scenario_kwargs` (default None): overrides for ``magenv.scenarios.make_trial``.
 
     `info` of each step: `t` (s), `sample`, `w`, `k` (mean over the step), `action_clipped`,
     `error_total` / `error_heading` / `error_inclination` (means over the step, °), `disturbance_norm`
@@ -160,7 +122,8 @@ class MagConstraintEnv(TrustEnv):
         if not (math.isfinite(gain_max) and gain_max > 0):
             raise ValueError(f"gain_max must be a positive number, got {gain_max!r}")
         self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    cf.FEATURE_NAMES, cf.FEATURE_LOW, cf.FEATURE_HIGH, 2 if control_gain else 1, TwoLinkSource)
+                    cf.FEATURE_NAMES, cf.FEATURE_LOW, cf.FEATURE_HIGH, 2 if control_gain else 1,
+                    world="twolink", require=cf.require_two_link)
         self.control_gain = bool(control_gain)
         self.gain_max = float(gain_max)
         self.filter_kwargs = dict(th2=float(th2), th3=float(th3), k_min=float(k_min), k_max=float(k_max))

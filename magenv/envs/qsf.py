@@ -110,7 +110,7 @@ class MagQSFEnv(TrustEnv):
     ## Arguments
 
     - `scenario` (default `"handheld_random"`): any scenario name of ``magenv.scenarios`` (the
-      hand-held family ``magenv.handheld_scenarios`` is the intended one) or a comma list of them,
+      hand-held world ``magenv.scenarios.handheld`` is the intended one) or a comma list of them,
       `"recording:PATH"`, a Trial or a list of Trials. Scenario trials use training seeds
       only (``magenv.seeding.draw_training_seed``).
     - `decision_every` (default 10): samples per step.

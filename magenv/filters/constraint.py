@@ -55,7 +55,7 @@ from magenv.trial import Trial
 TH1, TH2, TH3, K_MIN, K_MAX = 0.15, 0.25, 0.2, 0.01, 0.2
 #: eq. 18: a step at least this large is "abnormally large" (k = 0).
 STEP_ABNORMAL = 10.0
-#: Trial.extra keys a two-link trial must carry (``magenv.constraint_scenarios``).
+#: Trial.extra keys a two-link trial must carry (``magenv.scenarios.twolink``).
 EXTRA_KEYS = ("gyr_j", "acc_j", "q_j")
 
 # Observation features: (name, low, high); see magenv.envs.constraint for meanings and units.
@@ -104,7 +104,7 @@ def require_two_link(trial: Trial) -> None:
         raise MissingChannelsError(
             f"trial {trial.name!r} has no second-sensor channel(s) {', '.join(f'extra[{k!r}]' for k in missing)}; "
             f"the constraint filter needs link j's gyroscope (gyr_j, rad/s), accelerometer (acc_j, m/s²) and true "
-            f"orientation (q_j) — make two-link trials with magenv.constraint_scenarios.make_trial")
+            f"orientation (q_j) — make two-link trials with magenv.scenarios.make_trial")
     for key, cols in (("gyr_j", 3), ("acc_j", 3), ("q_j", 4)):
         arr = np.asarray(trial.extra[key])
         if arr.shape != (trial.n, cols) or not np.all(np.isfinite(arr)):
@@ -376,7 +376,7 @@ class ConstraintRunner(TrialRunner):
     """One two-link trial's arrays and the filter state; steps it k samples at a time.
 
     Args:
-        trial: a two-link Trial (``extra`` gyr_j, acc_j, q_j; see ``magenv.constraint_scenarios``).
+        trial: a two-link Trial (``extra`` gyr_j, acc_j, q_j; see ``magenv.scenarios.twolink``).
         lever_i, lever_j: r_i, r_j (m, sensor frames); None = ``trial.meta['lever_i_m'/'lever_j_m']``.
         th1, th2, th3, k_min, k_max: eqs. 16 and 18.
         q0: initial orientation; None = e-compass of the first sample (never truth).

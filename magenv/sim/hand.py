@@ -6,7 +6,8 @@ A, B, C of Figure 8 it comes close for a few seconds, at D it stays about a
 minute. The path here: the magnet starts far, descends with a smooth
 (half-cosine) profile, holds, rises again; a small hand tremor (a few mm,
 1–4 Hz) and a slow lateral sway are added, and the disc's axis (its moment)
-points roughly down with a small wobble.
+points roughly down with a small wobble. :func:`tool_path`: a tool brought in
+sideways (the two-link world).
 """
 
 from __future__ import annotations
@@ -63,6 +64,40 @@ def hand_path(
     tilt_p = rng.uniform(0, 2 * np.pi, 2)
     return _path(np.ascontiguousarray(t, dtype=float), app, far, near, tremor_m, sway_m,
                  trem_f, trem_p, sway_f, sway_p, tilt_f, tilt_p)
+
+
+def tool_path(t: np.ndarray, approaches: list[Approach], far: float, near: float, azimuth: float,
+               rng: np.random.Generator, tremor_m: float = 0.003, sway_m: float = 0.02):
+    """A hand-held magnetised tool brought in sideways: offset from the sensor (N, 3) m and unit moment
+    direction (N, 3), world (the two-link world's tool; ``t`` (N,) s).
+
+    Along the horizontal direction ``azimuth`` (rad from east) the distance
+    goes far → near (half-cosine over ``travel``), holds, and back; a hand
+    tremor (three 1–4 Hz sines per axis, ``tremor_m``) and a slow sway
+    (0.05–0.2 Hz, ``sway_m``, across the approach) are added. The moment
+    points from the tool towards the sensor with a ±15° wobble (0.1–0.5 Hz).
+    """
+    d = np.full(len(t), far)
+    for a in approaches:
+        u = (t - a.start) / a.travel
+        down = (u >= 0) & (u < 1)
+        d[down] = np.minimum(d[down], near + (far - near) * 0.5 * (1 + np.cos(np.pi * u[down])))
+        d[(t >= a.start + a.travel) & (t <= a.start + a.travel + a.hold)] = near
+        u = (t - a.start - a.travel - a.hold) / a.travel
+        up = (u > 0) & (u < 1)
+        d[up] = np.minimum(d[up], near + (far - near) * 0.5 * (1 - np.cos(np.pi * u[up])))
+    along = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
+    across = np.array([-np.sin(azimuth), np.cos(azimuth), 0.0])
+    up = np.array([0.0, 0.0, 1.0])
+    f, ph = rng.uniform(1.0, 4.0, (3, 3)), rng.uniform(0.0, 2 * np.pi, (3, 3))
+    tremor = tremor_m / 3 * np.sin(2 * np.pi * f[None] * t[:, None, None] + ph[None]).sum(-1)
+    sf, sp = rng.uniform(0.05, 0.2, 2), rng.uniform(0.0, 2 * np.pi, 2)
+    sway = sway_m * np.sin(2 * np.pi * sf[None] * t[:, None] + sp[None])
+    offset = d[:, None] * along + sway[:, :1] * across + sway[:, 1:] * up + tremor
+    wf, wp = rng.uniform(0.1, 0.5, 2), rng.uniform(0.0, 2 * np.pi, 2)
+    wob = np.deg2rad(15.0) * np.sin(2 * np.pi * wf[None] * t[:, None] + wp[None])
+    axis = -along + wob[:, :1] * across + wob[:, 1:] * up
+    return offset, axis / np.linalg.norm(axis, axis=1, keepdims=True)
 
 
 @njit(cache=True)

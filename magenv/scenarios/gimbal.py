@@ -1,10 +1,4 @@
-"""Named scenarios: a scenario + a seed → one simulated Trial, always the same.
-
-Public API::
-
-    make_trial(name, seed, **overrides) -> Trial
-    scenario_names() -> list[str]
-    get_scenario(name) -> config (a frozen dataclass)
+"""The gimbal world (Fan et al. 2017): a 3-axis gimbal with a MIMU, magnets near it; configs, planning, simulation.
 
 Scenarios (Fan et al. 2017 §3; the randomised family for training):
 
@@ -35,19 +29,28 @@ Earth field, sensor) spawned from ``numpy.random.SeedSequence(seed)``, so
 changing e.g. a noise level does not change the motion.
 
 Adding a scenario: write a config dataclass (subclass :class:`ScenarioConfig`)
-and a planner ``(cfg, rngs) -> Plan``, and register both in ``_REGISTRY``.
+and a planner ``(cfg, rngs) -> Plan``; add the config to ``SCENARIOS`` and the
+planner to ``_PLANNERS`` (by config class).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.config_checks import apply_overrides, check_intervals, check_number, check_range, config_json
+from magenv.scenarios.checks import (
+    check_instance,
+    check_intervals,
+    check_number,
+    check_numbers,
+    check_range,
+    check_shared_fields,
+)
+from magenv.scenarios.world import STATIONARY_RATE, World, trial_meta, trial_name
 from magenv.sim import base_paths, earth, indoor, profiles
 from magenv.sim.gimbal import PHYSICS_RATE, Tube, simulate_gimbal
 from magenv.sim.hand import Approach, hand_path
@@ -56,9 +59,8 @@ from magenv.sim.rowops import norms, to_sensor
 from magenv.sim.sensors import SensorConfig, apply_sensor_model
 from magenv.trial import Trial
 
-#: A sample counts as truly stationary when the gimbal turns slower than this, rad/s.
-STATIONARY_RATE = 1e-3
-#: ...and its sensor moves slower than this, m/s.
+#: A sample counts as stationary when the gimbal turns slower than ``STATIONARY_RATE`` (rad/s) and its sensor
+#: moves slower than this, m/s.
 STATIONARY_SPEED = 1e-3
 
 
@@ -67,7 +69,7 @@ STATIONARY_SPEED = 1e-3
 
 @dataclasses.dataclass(frozen=True)
 class ScenarioConfig:
-    """Parameters every scenario has.
+    """Parameters every gimbal scenario has.
 
     Attributes:
         duration: trial length, s.
@@ -89,12 +91,7 @@ class ScenarioConfig:
         check_number("duration", self.duration, 0.0, 3600.0, lo_open=True)
         check_number("rate", self.rate, 1.0, 10000.0)
         check_number("physics_rate", self.physics_rate, 100.0, 20000.0)
-        check_number("field_norm", self.field_norm, 0.0, 1000.0, lo_open=True)
-        check_number("field_dip", self.field_dip, -90.0, 90.0)
-        if not isinstance(self.sensor, SensorConfig):
-            raise ValueError(f"sensor must be a SensorConfig, got {type(self.sensor).__name__}")
-        if self.duration * self.rate < 2:
-            raise ValueError(f"duration × rate must give at least 2 samples, got {self.duration} s × {self.rate} Hz")
+        check_shared_fields(self)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,16 +172,12 @@ class DynamicMagnetConfig(ScenarioConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if len(self.rates_dps) != 3:
-            raise ValueError(f"rates_dps must be 3 rates (Z, Y, X) in °/s, got {self.rates_dps!r}")
-        for i, r in enumerate(self.rates_dps):
-            check_number(f"rates_dps[{i}]", r, -2000.0, 2000.0)
+        check_numbers("rates_dps", self.rates_dps, 3, -2000.0, 2000.0, "rates (Z, Y, X) in °/s")
         check_number("rate_jitter", self.rate_jitter, 0.0, 0.9)
         check_number("start_rest", self.start_rest, 0.0, 3600.0)
         check_number("ramp", self.ramp, 0.01, 60.0)
         check_number("end_rest", self.end_rest, 0.0, 3600.0)
-        if not isinstance(self.tube, Tube):
-            raise ValueError(f"tube must be a magenv.sim.gimbal.Tube, got {type(self.tube).__name__}")
+        check_instance("tube", self.tube, Tube)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -568,75 +561,10 @@ def _plan_gait_field(cfg: GaitFieldConfig, rngs) -> Plan:
                 meta, base=base, sources=(pos, mom))
 
 
-# ------------------------------------------------------------------ registry
-
-_REGISTRY: dict[str, tuple[ScenarioConfig, Callable]] = {
-    "stationary_magnet": (StationaryMagnetConfig(), _plan_stationary_magnet),
-    "dynamic_clean": (DynamicCleanConfig(), _plan_dynamic_clean),
-    "dynamic_magnet": (DynamicMagnetConfig(), _plan_dynamic_magnet),
-    "random": (RandomConfig(), _plan_random),
-    # Survey scenarios (issue 4, item 7).
-    "manual_routines": (ManualRoutinesConfig(), _plan_manual_routines),
-    "gait_field": (GaitFieldConfig(), _plan_gait_field),
-}
-
-
-#: Modules holding further scenario families (other worlds than the gimbal), each with
-#: ``SCENARIOS`` (name → config), ``get_scenario``, ``configure`` and ``make_trial``.
-FAMILY_MODULES = ("magenv.constraint_scenarios", "magenv.handheld_scenarios")
-
-
-def family_of(name: str):
-    """The family module that owns scenario ``name``, or None for the gimbal's own."""
-    import importlib
-
-    for module in FAMILY_MODULES:
-        family = importlib.import_module(module)
-        if name in family.SCENARIOS:
-            return family
-    return None
-
-
-def scenario_names() -> list[str]:
-    """Names of all scenarios, in a stable order."""
-    import importlib
-
-    return list(_REGISTRY) + [n for m in FAMILY_MODULES for n in importlib.import_module(m).SCENARIOS]
-
-
-def get_scenario(name: str) -> ScenarioConfig:
-    """The default config of scenario ``name``; ValueError lists the known names."""
-    if name not in _REGISTRY:
-        family = family_of(name)
-        if family is not None:
-            return family.get_scenario(name)
-        raise ValueError(f"unknown scenario {name!r}; known scenarios: {', '.join(scenario_names())}")
-    return _REGISTRY[name][0]
-
-
-def configure(name: str, **overrides) -> ScenarioConfig:
-    """Scenario ``name``'s config with ``overrides`` applied (config or sensor fields)."""
-    family = family_of(name) if name not in _REGISTRY else None
-    if family is not None:
-        return family.configure(name, **overrides)
-    return apply_overrides(name, get_scenario(name), overrides)
-
-
-def make_trial(name: str, seed: int, **overrides) -> Trial:
-    """Simulate scenario ``name`` with ``seed`` (int ≥ 0): the same Trial bit for bit every time."""
-    family = family_of(name) if name not in _REGISTRY else None
-    if family is not None:
-        return family.make_trial(name, seed, **overrides)
-    cfg = configure(name, **overrides)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be an integer ≥ 0, got {seed!r}")
-    rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(4)]
-    plan = _REGISTRY[name][1](cfg, rngs)
-    return _simulate(plan, cfg, f"{name}#{int(seed)}", name, int(seed), rngs[3])
-
-
-def _simulate(plan: Plan, cfg: ScenarioConfig, trial_name: str, scenario: str, seed: int, r_sensor) -> Trial:
-    """Run the gimbal, add the fields (paper §2.5.3) and the sensor model."""
+def _simulate(scenario: str, cfg: ScenarioConfig, seed: int, rngs: list[np.random.Generator]) -> Trial:
+    """Plan the trial, run the gimbal, add the fields (paper §2.5.3) and the sensor model (``rngs``: motion,
+    magnet, Earth field, sensor)."""
+    plan = _PLANNERS[type(cfg)](cfg, rngs)
     n = int(round(cfg.duration * cfg.rate))
     run = simulate_gimbal(plan.profile, plan.tube, cfg.rate, n, base=plan.base)
     t = np.arange(n) / cfg.rate
@@ -655,14 +583,14 @@ def _simulate(plan: Plan, cfg: ScenarioConfig, trial_name: str, scenario: str, s
     else:
         b_mag = np.zeros((n, 3))
         dist = np.full(n, np.inf)
-    gyr, acc, mag = apply_sensor_model(run.gyr, run.acc, b_earth + b_mag, cfg.rate, plan.sensor, r_sensor)
+    gyr, acc, mag = apply_sensor_model(run.gyr, run.acc, b_earth + b_mag, cfg.rate, plan.sensor, rngs[3])
     # At rest: not turning and (on a moving base) not travelling.
     step = np.diff(run.p_imu, axis=0, prepend=run.p_imu[:1])
     stationary = (norms(run.gyr) < STATIONARY_RATE) & (norms(step) * cfg.rate < STATIONARY_SPEED)
-    meta = {"scenario": scenario, "seed": seed, "magnet": plan.magnet, "moment_am2": float(plan.moment),
-            "physics_steps": run.physics_steps, **config_json(plan.meta), "config": config_json(cfg)}
+    meta = trial_meta(scenario, seed, cfg, {"magnet": plan.magnet, "moment_am2": float(plan.moment),
+                                            "physics_steps": run.physics_steps, **plan.meta})
     return Trial(
-        name=trial_name, rate=cfg.rate, gyr=gyr, acc=acc, mag=mag, q_true=run.q,
+        name=trial_name(scenario, seed), rate=cfg.rate, gyr=gyr, acc=acc, mag=mag, q_true=run.q,
         field_norm=plan.field[0], field_dip=plan.field[1],
         truth={
             "mag_disturbance": b_mag,
@@ -675,10 +603,27 @@ def _simulate(plan: Plan, cfg: ScenarioConfig, trial_name: str, scenario: str, s
     )
 
 
-#: The mixture the shipped agents train on and the shipped rules are tuned on:
-#: Fan et al.'s three protocols, trial seeds at or above
-#: ``magenv.seeding.HELD_OUT_BELOW`` (evaluation uses lower seeds). ``random``
-#: is left out: its trials start from a disturbed field, so their error is
-#: dominated by an initial heading offset no trust choice can remove, and
-#: their returns (up to ~20° per step) drown the protocols' (~1°).
-TRAINING_MIX = "dynamic_magnet,dynamic_clean,stationary_magnet"
+# ------------------------------------------------------------------ the world
+
+#: The gimbal's scenarios: name → default config.
+SCENARIOS: dict[str, ScenarioConfig] = {
+    "stationary_magnet": StationaryMagnetConfig(),
+    "dynamic_clean": DynamicCleanConfig(),
+    "dynamic_magnet": DynamicMagnetConfig(),
+    "random": RandomConfig(),
+    # Survey scenarios (issue 4, item 7).
+    "manual_routines": ManualRoutinesConfig(),
+    "gait_field": GaitFieldConfig(),
+}
+
+#: The planner of each config class: (cfg, rngs) → Plan.
+_PLANNERS: dict[type, Callable] = {
+    StationaryMagnetConfig: _plan_stationary_magnet,
+    DynamicCleanConfig: _plan_dynamic_clean,
+    DynamicMagnetConfig: _plan_dynamic_magnet,
+    RandomConfig: _plan_random,
+    ManualRoutinesConfig: _plan_manual_routines,
+    GaitFieldConfig: _plan_gait_field,
+}
+
+WORLD = World("gimbal", "gimbal", SCENARIOS, _simulate, n_streams=4)

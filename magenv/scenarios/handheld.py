@@ -1,11 +1,5 @@
-"""Hand-held pedestrian scenarios (Combettes & Renaudin 2016 §5.2): a walker in a static indoor field.
-
-Public API (mirrors ``magenv.scenarios``)::
-
-    make_trial(name, seed, **overrides) -> Trial
-    scenario_names() -> list[str]
-    get_scenario(name) -> HandheldConfig
-    configure(name, **overrides) -> HandheldConfig
+"""The hand-held world (Combettes & Renaudin 2016 §5.2): a walker's hand-held MIMU in a static indoor field;
+configs and simulation.
 
 Scenarios, all at 100 Hz (the paper's ADIS-16488 rate):
 
@@ -32,7 +26,7 @@ stale from the walk itself. Truth channels:
 starts inside the disturbed field, so, as in the paper (§5.3), the trial
 gives the QSF filters their true initial orientation: ``meta["start_from_truth"]``
 (``magenv.filters.qsf.initial_orientation``, their ``init="auto"``); the
-other families' methods start from their own e-compass as everywhere.
+other worlds' methods start from their own e-compass as everywhere.
 
 A name + a seed → the same Trial bit for bit: four independent random
 streams (motion, field, Earth location, sensor) are spawned from
@@ -52,13 +46,13 @@ import dataclasses
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.config_checks import apply_overrides, check_range
-from magenv.trial import START_FROM_TRUTH
+from magenv.scenarios.checks import check_number, check_range, check_shared_fields
+from magenv.scenarios.world import World, trial_meta, trial_name
 from magenv.sim import earth
 from magenv.sim.handheld import MODES, Motion, ideal_readings
 from magenv.sim.indoor_field import random_indoor_field
 from magenv.sim.sensors import SensorConfig, apply_sensor_model
-from magenv.trial import Trial
+from magenv.trial import START_FROM_TRUTH, Trial
 
 #: Nantes (IFSTTAR, the paper's lab), approximate IGRF values: 47 µT, dip 61°.
 NANTES = (47.0, 61.0)
@@ -111,9 +105,9 @@ class HandheldConfig:
     sensor: SensorConfig = HANDHELD_SENSOR
 
     def __post_init__(self) -> None:
-        if not (0 < self.duration <= 7200 and 1 <= self.rate <= 10000 and self.duration * self.rate >= 2):
-            raise ValueError(f"need 0 < duration ≤ 7200 s, 1 ≤ rate ≤ 10000 Hz and ≥ 2 samples, "
-                             f"got {self.duration!r} s, {self.rate!r} Hz")
+        check_number("duration", self.duration, 0.0, 7200.0, lo_open=True)
+        check_number("rate", self.rate, 1.0, 10000.0)
+        check_shared_fields(self)
         if not self.modes or any(m not in MODES for m in self.modes):
             raise ValueError(f"modes must be a non-empty tuple of {MODES}, got {self.modes!r}")
         check_range("segment_s", self.segment_s, 1.0)
@@ -126,52 +120,14 @@ class HandheldConfig:
         check_range("n_wires", self.n_wires, 0, 20)
         check_range("wire_current_a", self.wire_current_a, 0.0, 1000.0)
         check_range("noise_scale", self.noise_scale, 0.0, 100.0)
-        if not 0.0 <= self.treadmill_prob <= 1.0:
-            raise ValueError(f"treadmill_prob must be in [0, 1], got {self.treadmill_prob!r}")
-        if not 0.0 <= self.transition_s <= self.segment_s[0]:
-            raise ValueError(f"transition_s must be in [0, segment_s low], got {self.transition_s!r}")
-        if not (0 < self.field_norm < 1000 and -90 <= self.field_dip <= 90):
-            raise ValueError(f"field_norm must be in (0, 1000) µT and field_dip in [-90, 90]°, "
-                             f"got {self.field_norm!r}, {self.field_dip!r}")
-        if not isinstance(self.sensor, SensorConfig):
-            raise ValueError(f"sensor must be a SensorConfig, got {type(self.sensor).__name__}")
+        check_number("treadmill_prob", self.treadmill_prob, 0.0, 1.0)
+        check_number("transition_s", self.transition_s, 0.0, self.segment_s[0])
 
 
-SCENARIOS: dict[str, HandheldConfig] = {
-    "handheld_texting": HandheldConfig(modes=("texting",)),
-    "handheld_swinging": HandheldConfig(modes=("swinging",)),
-    "handheld_free": HandheldConfig(duration=780.0, modes=MODES, speed_mps=(1.0, 1.7), segment_s=(20.0, 90.0)),
-    "handheld_corridor": HandheldConfig(modes=("texting",), treadmill_prob=0.0),
-    "handheld_random": HandheldConfig(duration=60.0, modes=MODES, segment_s=(8.0, 40.0), speed_mps=(0.8, 1.8),
-                                      step_hz=(1.5, 2.2), path_m=(3.0, 8.0), n_dipoles=(0, 8),
-                                      dipole_ut=(1.0, 25.0), n_wires=(0, 3), random_location=True,
-                                      noise_scale=(0.5, 2.0), treadmill_prob=0.5),
-}
-
-
-def scenario_names() -> list[str]:
-    """Names of the hand-held scenarios."""
-    return list(SCENARIOS)
-
-
-def get_scenario(name: str) -> HandheldConfig:
-    """Default config of ``name``; ValueError lists the known names."""
-    if name not in SCENARIOS:
-        raise ValueError(f"unknown hand-held scenario {name!r}; known: {', '.join(SCENARIOS)}")
-    return SCENARIOS[name]
-
-
-def configure(name: str, **overrides) -> HandheldConfig:
-    """``name``'s config with overrides (config fields or ``SensorConfig`` fields)."""
-    return apply_overrides(name, get_scenario(name), overrides)
-
-
-def make_trial(name: str, seed: int, **overrides) -> Trial:
-    """Simulate hand-held scenario ``name`` with ``seed`` (int ≥ 0): the same Trial bit for bit every time."""
-    cfg = configure(name, **overrides)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be an integer ≥ 0, got {seed!r}")
-    r_motion, r_field, r_loc, r_sensor = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(4)]
+def _simulate(scenario: str, cfg: HandheldConfig, seed: int, rngs: list[np.random.Generator]) -> Trial:
+    """Walk, place the field's sources, read the ideal sensor and add its errors (``rngs``: motion, field,
+    Earth location, sensor)."""
+    r_motion, r_field, r_loc, r_sensor = rngs
     n = int(round(cfg.duration * cfg.rate))
     t = np.arange(n) / cfg.rate
     motion = Motion(r_motion, cfg.modes, cfg.duration, cfg.segment_s, cfg.transition_s,
@@ -190,13 +146,13 @@ def make_trial(name: str, seed: int, **overrides) -> Trial:
     p, q, gyr, acc, mag, b_e = ideal_readings(motion, t, field)
     scale = float(r_sensor.uniform(*cfg.noise_scale))
     gyr_m, acc_m, mag_m = apply_sensor_model(gyr, acc, mag, cfg.rate, cfg.sensor.scaled(scale), r_sensor)
-    meta = {"scenario": name, "seed": int(seed), "modes": motion.mode_names, START_FROM_TRUTH: True,
-            "mode_bounds_s": [float(b) for b in motion.bounds], "speed_mps": motion.speed,
-            "step_hz": motion.f_step, "treadmill": not motion.travel, "noise_scale": scale, "n_dipoles": int(len(field.dipole_pos)),
-            "n_wires": int(len(field.wire_point)), "min_source_distance_m": field.min_source_distance(p_visit),
-            "config": _json(dataclasses.asdict(cfg))}
+    meta = trial_meta(scenario, seed, cfg, {
+        "modes": motion.mode_names, START_FROM_TRUTH: True, "mode_bounds_s": motion.bounds, "speed_mps": motion.speed,
+        "step_hz": motion.f_step, "treadmill": not motion.travel, "noise_scale": scale,
+        "n_dipoles": len(field.dipole_pos), "n_wires": len(field.wire_point),
+        "min_source_distance_m": field.min_source_distance(p_visit)})
     return Trial(
-        name=f"{name}#{int(seed)}", rate=cfg.rate, gyr=gyr_m, acc=acc_m, mag=mag_m, q_true=q,
+        name=trial_name(scenario, seed), rate=cfg.rate, gyr=gyr_m, acc=acc_m, mag=mag_m, q_true=q,
         field_norm=norm, field_dip=dip,
         truth={"mag_disturbance": quat.rotate_inv(q, b_e - b_earth), "position": p,
                "mode": motion.mode_index(t), "stationary": np.zeros(n, bool)},
@@ -204,11 +160,16 @@ def make_trial(name: str, seed: int, **overrides) -> Trial:
     )
 
 
-def _json(v):
-    if isinstance(v, dict):
-        return {k: _json(x) for k, x in v.items()}
-    if isinstance(v, (tuple, list)):
-        return [_json(x) for x in v]
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    return v
+#: The hand-held scenarios: name → default config.
+SCENARIOS: dict[str, HandheldConfig] = {
+    "handheld_texting": HandheldConfig(modes=("texting",)),
+    "handheld_swinging": HandheldConfig(modes=("swinging",)),
+    "handheld_free": HandheldConfig(duration=780.0, modes=MODES, speed_mps=(1.0, 1.7), segment_s=(20.0, 90.0)),
+    "handheld_corridor": HandheldConfig(modes=("texting",), treadmill_prob=0.0),
+    "handheld_random": HandheldConfig(duration=60.0, modes=MODES, segment_s=(8.0, 40.0), speed_mps=(0.8, 1.8),
+                                      step_hz=(1.5, 2.2), path_m=(3.0, 8.0), n_dipoles=(0, 8),
+                                      dipole_ut=(1.0, 25.0), n_wires=(0, 3), random_location=True,
+                                      noise_scale=(0.5, 2.0), treadmill_prob=0.5),
+}
+
+WORLD = World("handheld", "hand-held", SCENARIOS, _simulate, n_streams=4)

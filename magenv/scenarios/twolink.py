@@ -1,11 +1,4 @@
-"""Two-link scenarios (Jung & Lee 2019): a scenario + a seed → one Trial, always the same.
-
-Public API (same shape as ``magenv.scenarios``)::
-
-    make_trial(name, seed, **overrides) -> Trial
-    scenario_names() -> list[str]
-    get_scenario(name) -> ConstraintConfig
-    configure(name, **overrides) -> ConstraintConfig
+"""The two-link world (Jung & Lee 2019): two links on a spherical joint, a MIMU on each; configs, planning, simulation.
 
 Scenarios (the paper's Table 1 and a training family):
 
@@ -58,10 +51,17 @@ import dataclasses
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.config_checks import apply_overrides, check_intervals, check_number, check_range, config_json
-from magenv.sim import earth
+from magenv.scenarios.checks import (
+    check_intervals,
+    check_number,
+    check_numbers,
+    check_range,
+    check_shared_fields,
+)
+from magenv.scenarios.world import STATIONARY_RATE, World, trial_meta, trial_name
+from magenv.sim import earth, indoor
 from magenv.sim import twolink as tl
-from magenv.sim.hand import Approach
+from magenv.sim.hand import Approach, tool_path
 from magenv.sim.magnet import dipole_field
 from magenv.sim.sensors import SensorConfig, apply_sensor_model
 from magenv.trial import Trial
@@ -80,8 +80,6 @@ BASE_AMPLITUDE = (0.08, 0.08, 0.04, 0.4, 0.25, 0.3, 0.5, 0.5, 0.5)
 LAB_RADIUS = 0.25
 #: How much of the sensor's swing about its 1 s mean position the tool-holding hand ignores.
 TOOL_FOLLOW = 0.5
-#: A sample counts as stationary when both gyros (noise-free) read less than this, rad/s.
-STATIONARY_RATE = 1e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,18 +130,9 @@ class ConstraintConfig:
         check_number("duration", self.duration, 1.0, 3600.0)
         check_number("rate", self.rate, 10.0, 2000.0)
         check_number("physics_rate", self.physics_rate, self.rate, 20000.0)
-        check_number("field_norm", self.field_norm, 0.0, 1000.0, lo_open=True)
-        check_number("field_dip", self.field_dip, -90.0, 90.0)
-        if not isinstance(self.sensor, SensorConfig):
-            raise ValueError(f"sensor must be a SensorConfig, got {type(self.sensor).__name__}")
-        if len(self.gyro_bias) != 3:
-            raise ValueError(f"gyro_bias must be 3 numbers (rad/s), got {self.gyro_bias!r}")
-        for i, b in enumerate(self.gyro_bias):
-            check_number(f"gyro_bias[{i}]", b, -1.0, 1.0)
-        if len(self.amplitude) != tl.N_JOINTS:
-            raise ValueError(f"amplitude must have {tl.N_JOINTS} entries ({', '.join(tl.JOINTS)}), got {self.amplitude!r}")
-        for i, a in enumerate(self.amplitude):
-            check_number(f"amplitude[{i}]", a, 0.0, 1.5)
+        check_shared_fields(self)
+        check_numbers("gyro_bias", self.gyro_bias, 3, -1.0, 1.0, "numbers (rad/s)")
+        check_numbers("amplitude", self.amplitude, tl.N_JOINTS, 0.0, 1.5, f"amplitudes ({', '.join(tl.JOINTS)})")
         check_number("motion_scale", self.motion_scale, 0.0, 3.0)
         if self.target_ext_acc is not None:
             check_number("target_ext_acc", self.target_ext_acc, 0.0, 20.0, lo_open=True)
@@ -209,32 +198,6 @@ class ConstraintRandomConfig(ConstraintConfig):
         check_number("gyro_bias_max", self.gyro_bias_max, 0.0, 1.0)
 
 
-SCENARIOS: dict[str, ConstraintConfig] = {
-    "constraint_test1": ConstraintConfig(motion_scale=0.5, target_ext_acc=0.9),
-    "constraint_test2": ConstraintConfig(motion_scale=1.0, target_ext_acc=2.0),
-    "constraint_test3": ConstraintConfig(duration=60.0, motion_scale=1.0, target_ext_acc=1.9,
-                                         disturbances=((13.0, 30.0),), jitter_s=0.0),
-    "constraint_random": ConstraintRandomConfig(),
-}
-
-
-def scenario_names() -> list[str]:
-    """Names of the two-link scenarios, in a stable order."""
-    return list(SCENARIOS)
-
-
-def get_scenario(name: str) -> ConstraintConfig:
-    """The default config of ``name``; ValueError lists the known names."""
-    if name not in SCENARIOS:
-        raise ValueError(f"unknown two-link scenario {name!r}; known: {', '.join(SCENARIOS)}")
-    return SCENARIOS[name]
-
-
-def configure(name: str, **overrides) -> ConstraintConfig:
-    """Scenario ``name``'s config with ``overrides`` (config fields or ``SensorConfig`` fields)."""
-    return apply_overrides(name, get_scenario(name), overrides)
-
-
 # ------------------------------------------------------------------ planning
 
 
@@ -297,79 +260,6 @@ def _plan_random(cfg: ConstraintRandomConfig, rngs) -> _Plan:
     return _Plan(cmd, apps, near, moment, lab, field, cfg.sensor.scaled(noise), bias, meta)
 
 
-# ------------------------------------------------------------------ fields
-
-
-def _lab_field(rng: np.random.Generator, p0: np.ndarray, strength_ut: float, n_src: int = 3):
-    """A weak lab field: a function p (N, 3) → field (N, 3) µT, world, zero at ``p0``, with mean
-    |field| ``strength_ut`` over the sphere of radius ``LAB_RADIUS`` about p0."""
-    dirs = rng.normal(size=(n_src, 3))
-    dirs[:, 2] = -np.abs(dirs[:, 2])  # mostly below and around (floor, benches)
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    pos = p0 + dirs * rng.uniform(0.4, 0.9, (n_src, 1))
-    mom = rng.normal(size=(n_src, 3))
-    src = [(pos[k][None], mom[k][None]) for k in range(n_src)]
-    ref = _field_at(p0[None], src)
-
-    def raw(p):
-        return _field_at(p, src) - ref
-
-    probe = _sphere(40) * LAB_RADIUS + p0
-    mean = np.linalg.norm(raw(probe), axis=1).mean()
-    scale = strength_ut / mean if mean > 0 else 0.0
-    return lambda p: scale * raw(p)
-
-
-def _sphere(n: int) -> np.ndarray:
-    """n roughly even unit vectors (Fibonacci sphere)."""
-    k = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * k / n
-    phi = np.pi * (1.0 + 5 ** 0.5) * k
-    r = np.sqrt(1.0 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def _field_at(p: np.ndarray, sources: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """Sum of dipole fields (µT, world) at points p (N, 3); a source is (pos (N|1, 3), moment (N|1, 3))."""
-    out = np.zeros_like(p)
-    for pos, mom in sources:
-        out += dipole_field(np.ascontiguousarray(p - pos), np.ascontiguousarray(np.broadcast_to(mom, p.shape)))
-    return out
-
-
-def _tool_path(t: np.ndarray, approaches: list[Approach], far: float, near: float, azimuth: float,
-               rng: np.random.Generator, tremor_m: float = 0.003, sway_m: float = 0.02):
-    """The hand-held tool's offset from the sensor (N, 3) m and moment direction (N, 3), world.
-
-    Along the horizontal direction ``azimuth`` (rad from east) the distance
-    goes far → near (half-cosine over ``travel``), holds, and back; a hand
-    tremor (three 1–4 Hz sines per axis, ``tremor_m``) and a slow sway
-    (0.05–0.2 Hz, ``sway_m``, across the approach) are added. The moment
-    points from the tool towards the sensor with a ±15° wobble (0.1–0.5 Hz).
-    """
-    d = np.full(len(t), far)
-    for a in approaches:
-        u = (t - a.start) / a.travel
-        down = (u >= 0) & (u < 1)
-        d[down] = np.minimum(d[down], near + (far - near) * 0.5 * (1 + np.cos(np.pi * u[down])))
-        d[(t >= a.start + a.travel) & (t <= a.start + a.travel + a.hold)] = near
-        u = (t - a.start - a.travel - a.hold) / a.travel
-        up = (u > 0) & (u < 1)
-        d[up] = np.minimum(d[up], near + (far - near) * 0.5 * (1 - np.cos(np.pi * u[up])))
-    along = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
-    across = np.array([-np.sin(azimuth), np.cos(azimuth), 0.0])
-    up = np.array([0.0, 0.0, 1.0])
-    f, ph = rng.uniform(1.0, 4.0, (3, 3)), rng.uniform(0.0, 2 * np.pi, (3, 3))
-    tremor = tremor_m / 3 * np.sin(2 * np.pi * f[None] * t[:, None, None] + ph[None]).sum(-1)
-    sf, sp = rng.uniform(0.05, 0.2, 2), rng.uniform(0.0, 2 * np.pi, 2)
-    sway = sway_m * np.sin(2 * np.pi * sf[None] * t[:, None] + sp[None])
-    offset = d[:, None] * along + sway[:, :1] * across + sway[:, 1:] * up + tremor
-    wf, wp = rng.uniform(0.1, 0.5, 2), rng.uniform(0.0, 2 * np.pi, 2)
-    wob = np.deg2rad(15.0) * np.sin(2 * np.pi * wf[None] * t[:, None] + wp[None])
-    axis = -along + wob[:, :1] * across + wob[:, 1:] * up
-    return offset, axis / np.linalg.norm(axis, axis=1, keepdims=True)
-
-
 def _smooth(x: np.ndarray, k: int) -> np.ndarray:
     """Centred moving average of rows (edges padded)."""
     if k < 2:
@@ -382,17 +272,10 @@ def _smooth(x: np.ndarray, k: int) -> np.ndarray:
 # ------------------------------------------------------------------ trials
 
 
-def make_trial(name: str, seed: int, **overrides) -> Trial:
-    """Simulate two-link scenario ``name`` with ``seed`` (int ≥ 0): the same Trial bit for bit every time."""
-    cfg = configure(name, **overrides)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be an integer ≥ 0, got {seed!r}")
-    rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(6)]
-    plan = (_plan_random if isinstance(cfg, ConstraintRandomConfig) else _plan_fixed)(cfg, rngs)
-    return _simulate(plan, cfg, name, int(seed), rngs)
-
-
-def _simulate(plan: _Plan, cfg: ConstraintConfig, scenario: str, seed: int, rngs) -> Trial:
+def _simulate(scenario: str, cfg: ConstraintConfig, seed: int, rngs: list[np.random.Generator]) -> Trial:
+    """Plan the trial, run the two links, add the fields and both sensor models (``rngs``: motion, tool,
+    lab, field, sensor i, sensor j)."""
+    plan = _PLANNERS[type(cfg)](cfg, rngs)
     r_tool, r_lab, r_si, r_sj = rngs[1], rngs[2], rngs[4], rngs[5]
     n = int(round(cfg.duration * cfg.rate))
     run = tl.simulate_twolink(plan.command, cfg.rate, n)
@@ -406,22 +289,22 @@ def _simulate(plan: _Plan, cfg: ConstraintConfig, scenario: str, seed: int, rngs
     t = np.arange(n) / cfg.rate
     m0 = plan.field[0]
     b_earth = quat.earth_field(*plan.field)
-    lab = _lab_field(r_lab, run.p_i[0], plan.lab * m0)
+    lab = indoor.lab_field(r_lab, run.p_i[0], plan.lab * m0, LAB_RADIUS)
     # The tool: a hand path (far → near → far) about link i's sensor, from a
     # random horizontal direction.
     az = r_tool.uniform(-np.pi, np.pi)
-    offset, axis = _tool_path(t, plan.approaches, cfg.tool_far, plan.tool_near, az, r_tool)
+    offset, axis = tool_path(t, plan.approaches, cfg.tool_far, plan.tool_near, az, r_tool)
     # The hand follows the moving sensor only loosely (half of its swing
     # about the 1 s mean) and never comes closer than half of tool_near.
     rel = offset + TOOL_FOLLOW * (_smooth(run.p_i, int(round(cfg.rate))) - run.p_i)
     d = np.linalg.norm(rel, axis=1, keepdims=True)
     rel *= np.sqrt(d * d + (0.5 * plan.tool_near) ** 2) / d
     p_tool = run.p_i + rel
-    tool = [(p_tool, plan.tool_moment * axis)]
+    m_tool = plan.tool_moment * axis
     fields = {}
     for s, p, q in (("i", run.p_i, run.q_i), ("j", run.p_j, run.q_j)):
         b_lab = lab(p)
-        b_tool = _field_at(p, tool)
+        b_tool = dipole_field(p - p_tool, m_tool)
         fields[s] = (quat.rotate_inv(q, b_earth + b_lab + b_tool), quat.rotate_inv(q, b_lab + b_tool),
                      quat.rotate_inv(q, b_tool))
     gyr_i, acc_i, mag_i = apply_sensor_model(run.gyr_i, run.acc_i, fields["i"][0], cfg.rate, plan.sensor, r_si)
@@ -430,18 +313,30 @@ def _simulate(plan: _Plan, cfg: ConstraintConfig, scenario: str, seed: int, rngs
     ext = np.linalg.norm(quat.rotate(run.q_i, run.acc_i) - quat.gravity_up(), axis=1)
     still = (np.linalg.norm(run.gyr_i, axis=1) < STATIONARY_RATE) & (np.linalg.norm(run.gyr_j, axis=1) < STATIONARY_RATE)
     r_i, r_j = tl.lever_arms()
-    meta = {
-        "scenario": scenario, "seed": seed, "lever_i_m": r_i.tolist(), "lever_j_m": r_j.tolist(),
-        "gyro_bias_rad_s": plan.gyro_bias.tolist(), "mean_ext_acc": float(ext.mean()),
+    meta = trial_meta(scenario, seed, cfg, {
+        "lever_i_m": r_i, "lever_j_m": r_j, "gyro_bias_rad_s": plan.gyro_bias, "mean_ext_acc": ext.mean(),
         "approach_starts_s": [a.start for a in plan.approaches], "approach_holds_s": [a.hold for a in plan.approaches],
-        "tool_azimuth_rad": float(az), "physics_steps": run.physics_steps, **plan.meta,
-        "config": config_json(cfg),
-    }
+        "tool_azimuth_rad": az, "physics_steps": run.physics_steps, **plan.meta})
     return Trial(
-        name=f"{scenario}#{seed}", rate=cfg.rate, gyr=gyr_i, acc=acc_i, mag=mag_i, q_true=run.q_i,
+        name=trial_name(scenario, seed), rate=cfg.rate, gyr=gyr_i, acc=acc_i, mag=mag_i, q_true=run.q_i,
         field_norm=plan.field[0], field_dip=plan.field[1],
         truth={"mag_disturbance": fields["i"][1], "tool_field": fields["i"][2],
                "tool_distance": np.linalg.norm(p_tool - run.p_i, axis=1), "ext_acc": ext, "stationary": still},
         extra={"gyr_j": gyr_j, "acc_j": acc_j, "mag_j": mag_j, "q_j": run.q_j},
         meta=meta,
     )
+
+
+#: The two-link scenarios: name → default config.
+SCENARIOS: dict[str, ConstraintConfig] = {
+    "constraint_test1": ConstraintConfig(motion_scale=0.5, target_ext_acc=0.9),
+    "constraint_test2": ConstraintConfig(motion_scale=1.0, target_ext_acc=2.0),
+    "constraint_test3": ConstraintConfig(duration=60.0, motion_scale=1.0, target_ext_acc=1.9,
+                                         disturbances=((13.0, 30.0),), jitter_s=0.0),
+    "constraint_random": ConstraintRandomConfig(),
+}
+
+#: The planner of each config class: (cfg, rngs) → _Plan.
+_PLANNERS = {ConstraintConfig: _plan_fixed, ConstraintRandomConfig: _plan_random}
+
+WORLD = World("twolink", "two-link", SCENARIOS, _simulate, n_streams=6)

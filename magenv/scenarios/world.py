@@ -1,0 +1,113 @@
+"""What every world's scenarios share: :class:`World`, one world's table of named scenarios and the way a
+config and a seed become a Trial, and the ``meta`` every simulated Trial carries.
+
+A world module (``gimbal``, ``twolink``, ``handheld``) writes frozen config dataclasses (each with
+``duration`` s, ``rate`` Hz, ``field_norm`` µT, ``field_dip`` ° and ``sensor``, a SensorConfig), a table
+``SCENARIOS`` (name → default config) and a function ``simulate(name, cfg, seed, streams) -> Trial``, and
+exports ``WORLD = World(...)``; ``magenv.scenarios`` puts the worlds behind one registry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from magenv.sim.sensors import SensorConfig
+from magenv.trial import META_SCENARIO, META_SEED, Trial
+
+#: A sample counts as stationary when the true (noise-free) angular rate is below this, rad/s.
+STATIONARY_RATE = 1e-3
+
+
+@dataclasses.dataclass(frozen=True)
+class World:
+    """One world's named scenarios: a scenario name + a seed → the same Trial bit for bit, every time.
+
+    Attributes:
+        name: the world's key in the registry (``"gimbal"``, ``"twolink"``, ``"handheld"``).
+        label: the world in messages (``"two-link"``).
+        scenarios: scenario name → default config (a frozen dataclass).
+        simulate: (scenario name, config, seed, streams) → Trial, where ``streams`` are ``n_streams``
+            independent generators spawned from ``numpy.random.SeedSequence(seed)`` (so changing, e.g., a
+            noise level does not change the motion).
+        n_streams: how many streams ``simulate`` draws from.
+    """
+
+    name: str
+    label: str
+    scenarios: Mapping[str, Any]
+    simulate: Callable[[str, Any, int, list[np.random.Generator]], Trial]
+    n_streams: int
+
+    def names(self) -> list[str]:
+        """This world's scenario names, in a stable order."""
+        return list(self.scenarios)
+
+    def get(self, name: str):
+        """The default config of scenario ``name``; ValueError lists this world's scenarios."""
+        if name not in self.scenarios:
+            raise ValueError(f"unknown {self.label} scenario {name!r}; known: {', '.join(self.scenarios)}")
+        return self.scenarios[name]
+
+    def configure(self, name: str, **overrides):
+        """Scenario ``name``'s config with ``overrides`` applied (see :func:`apply_overrides`)."""
+        return apply_overrides(name, self.get(name), overrides)
+
+    def make_trial(self, name: str, seed: int, **overrides) -> Trial:
+        """Simulate scenario ``name`` with ``seed`` (int ≥ 0) and ``overrides``."""
+        cfg = self.configure(name, **overrides)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed must be an integer ≥ 0, got {seed!r}")
+        streams = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(self.n_streams)]
+        return self.simulate(name, cfg, int(seed), streams)
+
+
+def apply_overrides(name: str, cfg, overrides: dict):
+    """Scenario config ``cfg`` (of scenario ``name``) with ``overrides`` applied.
+
+    A key is a field of the config, or else of its ``sensor`` (a
+    ``SensorConfig``); an unknown key or a bad value raises ValueError naming it.
+    """
+    own = {f.name for f in dataclasses.fields(cfg)}
+    sensor_fields = {f.name for f in dataclasses.fields(SensorConfig)}
+    unknown = sorted(k for k in overrides if k not in own and k not in sensor_fields)
+    if unknown:
+        raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} for scenario {name!r}; "
+                         f"known: {', '.join(sorted(own))}; sensor: {', '.join(sorted(sensor_fields))}")
+    sensor_over = {k: v for k, v in overrides.items() if k not in own}
+    cfg_over = {k: v for k, v in overrides.items() if k in own}
+    try:
+        if sensor_over:
+            cfg_over["sensor"] = dataclasses.replace(cfg_over.get("sensor", cfg.sensor), **sensor_over)
+        return dataclasses.replace(cfg, **cfg_over)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"scenario {name!r}: bad parameter value: {exc}") from None
+
+
+def trial_name(scenario: str, seed: int) -> str:
+    """A simulated trial's name: ``"scenario#seed"``."""
+    return f"{scenario}#{seed}"
+
+
+def trial_meta(scenario: str, seed: int, cfg, drawn: dict) -> dict:
+    """A simulated trial's ``meta``, in JSON types: the scenario and seed (under ``magenv.trial``'s keys),
+    what the world drew or measured (``drawn``) and the whole config under ``"config"``."""
+    return {META_SCENARIO: scenario, META_SEED: seed, **config_json(drawn), "config": config_json(cfg)}
+
+
+def config_json(value):
+    """``value`` (a config dataclass, dict, sequence, array or number) as plain JSON types, recursively."""
+    if dataclasses.is_dataclass(value):
+        return {k: config_json(v) for k, v in dataclasses.asdict(value).items()}
+    if isinstance(value, dict):
+        return {k: config_json(v) for k, v in value.items()}
+    if isinstance(value, (tuple, list, np.ndarray)):
+        return [config_json(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value)
+    if isinstance(value, (np.integer, int)) and not isinstance(value, bool):
+        return int(value)
+    return value
