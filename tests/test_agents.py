@@ -38,7 +38,7 @@ def test_missing_section_and_algorithm(tmp_path):
 def test_bad_activation_is_named(tmp_path):
     cfg = tmp_path / "ppo.yaml"
     cfg.write_text(yaml.safe_dump({ENV: {"policy_kwargs": {"activation_fn": "swish"}}}))
-    with pytest.raises(ConfigError, match="activation_fn 'swish' unknown"):
+    with pytest.raises(ConfigError, match="policy_kwargs.activation_fn must be 'tanh' or .*, got 'swish'"):
         constructor_kwargs(load_hyperparams("ppo", ENV, cfg))
 
 

@@ -108,7 +108,7 @@ def test_pretrain_config_errors(tmp_path):
 
     cases = [({"teacher": "fan_lambda"}, "needs 'teacher' and 'steps'"),
              ({"teacher": "fan_lambda", "steps": 10, "epoch": 3}, "unknown key"),
-             ({"teacher": "fan_lambda", "steps": -5}, "steps must be a positive int")]
+             ({"teacher": "fan_lambda", "steps": -5}, "pretrain: steps must be an integer ≥ 1, got -5")]
     for spec, msg in cases:
         cfg = tmp_path / "ppo.yaml"
         cfg.write_text(yaml.safe_dump({ENV: {"pretrain": spec}}))
