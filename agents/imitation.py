@@ -18,29 +18,22 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 
-from magenv.agents.hyperparams import ConfigError
+from magenv.agents.hyperparams import NAME, POSITIVE, POSITIVE_INT, ConfigError, check_value
 from magenv.protocols import is_policy
 
-KEYS = {"teacher": str, "steps": int, "epochs": int, "learning_rate": float, "batch_size": int}
+RULES = {"teacher": NAME, "steps": POSITIVE_INT, "epochs": POSITIVE_INT, "learning_rate": POSITIVE,
+         "batch_size": POSITIVE_INT}
 DEFAULTS = {"epochs": 20, "learning_rate": 1e-3, "batch_size": 256}
 
 
-def check_pretrain(spec, env_id: str) -> dict:
+def check_pretrain(spec) -> dict:
     """The validated ``pretrain`` mapping of a config section (defaults filled in)."""
     if not isinstance(spec, dict):
-        raise ConfigError(f"pretrain must be a mapping with keys {sorted(KEYS)}, got {spec!r}")
-    unknown = sorted(set(spec) - set(KEYS))
+        raise ConfigError(f"pretrain must be a mapping with keys {sorted(RULES)}, got {spec!r}")
+    unknown = sorted(map(str, set(spec) - set(RULES)))
     if unknown or "teacher" not in spec or "steps" not in spec:
-        raise ConfigError(f"pretrain: needs 'teacher' and 'steps'; unknown key(s) {unknown}; known {sorted(KEYS)}")
-    out = {**DEFAULTS, **spec}
-    for key, typ in KEYS.items():
-        v = out[key]
-        if typ is str and not isinstance(v, str):
-            raise ConfigError(f"pretrain.{key} must be a method name, got {v!r}")
-        if typ in (int, float) and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0
-                                    or (typ is int and int(v) != v)):
-            raise ConfigError(f"pretrain.{key} must be a positive {typ.__name__}, got {v!r}")
-    return out
+        raise ConfigError(f"pretrain: needs 'teacher' and 'steps'; unknown key(s) {unknown}; known {sorted(RULES)}")
+    return {key: check_value("pretrain", key, value, RULES[key]) for key, value in {**DEFAULTS, **spec}.items()}
 
 
 def check_teacher(teacher, name: str, env_id: str, env_kwargs: dict):

@@ -1,36 +1,45 @@
-"""A trained agent's run folder, and loading the agent back as a Policy.
+"""A trained agent's run folder, and loading the agent back as a Policy — without unpickling anything.
 
 Run folder layout (written by ``magenv train``)::
 
     runs/NAME/
-      run.yaml          env id, env kwargs, algorithm, hyperparameters, seed, steps
-      state.json        progress for resume: timesteps done, best held-out score
-      best_model.zip    the model with the lowest held-out RMSE so far
-      last_model.zip    the model at the end of the latest run or checkpoint
-      checkpoints/      periodic snapshots (and SAC's replay buffer)
-      evaluations.csv   held-out RMSE at each evaluation
-      tb/               TensorBoard logs
+      run.yaml             env id, env kwargs, algorithm, hyperparameters, seed, steps: what rebuilds the agent
+      state.json           progress (a readable copy of the last checkpoint's): timesteps, best held-out score
+      best.safetensors     policy weights with the lowest held-out RMSE so far
+      last.safetensors     the latest checkpoint: weights, optimizer state, reward statistics, progress
+      replay_buffer.safetensors   SAC's replay buffer at the latest checkpoint
+      checkpoints/         policy weights at each evaluation (step_T.safetensors)
+      best_model.zip, last_model.zip   the same models as SB3 files, for SB3 users (never read by default)
+      evaluations.csv      held-out RMSE at each evaluation
+      tb/                  TensorBoard logs
+
+Loading reads YAML (``yaml.safe_load``), JSON and safetensors arrays only
+(``magenv.agents.weights``): the policy is rebuilt from ``run.yaml`` and the
+weights are loaded into it, so a run folder from someone else cannot run
+code. SB3's ``.zip`` files (and ``.pkl`` files of older run folders) hold
+pickles, which can; they are read only with ``trust_pickle=True``.
 """
 
 from __future__ import annotations
 
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from magenv.agents.hyperparams import ConfigError, algorithm_class
+from magenv.agents.hyperparams import SEED_RANGE, ConfigError, algorithm_class, check_section, constructor_kwargs
+from magenv.agents.weights import RunError, load_policy
 
 RUN_FILE = "run.yaml"
+WEIGHTS = {"best": "best.safetensors", "last": "last.safetensors"}
+SB3_EXPORTS = {"best": "best_model.zip", "last": "last_model.zip"}
 
-
-class RunError(ValueError):
-    """A run folder is missing, incomplete or corrupt, or does not fit the request."""
+__all__ = ["RUN_FILE", "AgentPolicy", "RunError", "build_model", "load_agent", "read_run"]
 
 
 def read_run(run_dir: str | Path) -> dict:
-    """The ``run.yaml`` of a run folder, checked for the keys that loading needs."""
+    """The ``run.yaml`` of a run folder, checked: the keys loading needs, the hyperparameters value by value
+    (``magenv.agents.hyperparams.check_section``). Raises RunError naming the file and the problem."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise RunError(f"{run_dir}: no such run folder")
@@ -39,11 +48,30 @@ def read_run(run_dir: str | Path) -> dict:
         raise RunError(f"{run_dir}: not a magenv run folder (no {RUN_FILE})")
     try:
         run = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise RunError(f"{path}: corrupt ({exc})") from None
-    missing = [k for k in ("env_id", "algo", "env_kwargs") if not isinstance(run, dict) or k not in run]
+    missing = [k for k in ("env_id", "algo", "env_kwargs", "hyperparams") if not isinstance(run, dict) or k not in run]
     if missing:
         raise RunError(f"{path}: missing key(s) {', '.join(missing)}")
+    if not isinstance(run["env_id"], str) or not isinstance(run["env_kwargs"], dict):
+        raise RunError(f"{path}: env_id must be a name and env_kwargs a mapping")
+    seed = run.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
+        raise RunError(f"{path}: seed must be an integer from {SEED_RANGE[0]} to {SEED_RANGE[1]}, got {seed!r}")
+    bounds = run.get("action_bounds")
+    if bounds is not None:
+        try:
+            low, high = (np.asarray(b, dtype=float) for b in bounds)
+            ok = low.shape == high.shape and low.ndim == 1 and np.all(np.isfinite(low) & np.isfinite(high) & (low < high))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise RunError(f"{path}: action_bounds must be [low, high], two equal-length lists of finite numbers "
+                           f"with low < high, got {bounds!r}")
+    try:
+        run["hyperparams"] = check_section(run["algo"], run["hyperparams"], f"{path}: hyperparams")
+    except ConfigError as exc:
+        raise RunError(str(exc)) from None
     return run
 
 
@@ -53,14 +81,17 @@ class AgentPolicy:
     Follows ``magenv.protocols.Policy``; recurrent agents keep their LSTM
     state between calls until ``reset()``. Agents act in [-1, 1] (see
     ``magenv.agents.wrappers.normalized_actions``); ``action_bounds`` = (low, high)
-    of the env's action space maps their actions back.
+    of the env's action space maps their actions back. ``source`` is the file
+    the weights came from, ``which`` the model (``best`` or ``last``).
     """
 
-    def __init__(self, model, env_id: str, env_kwargs: dict, name: str, action_bounds=None):
+    def __init__(self, model, env_id: str, env_kwargs: dict, name: str, action_bounds=None,
+                 source: str = "", which: str = ""):
         self.model = model
         self.env_id = env_id
         self.env_kwargs = dict(env_kwargs)
         self.name = name
+        self.source, self.which = source, which
         self._bounds = None if action_bounds is None else tuple(np.asarray(b, np.float32) for b in action_bounds)
         self.reset()
 
@@ -79,30 +110,85 @@ class AgentPolicy:
         return action
 
 
-def load_agent(run_dir: str | Path, env_id: str | None = None, which: str = "best") -> AgentPolicy:
+def _spaces_env(env_id: str, env_kwargs: dict, n_envs: int):
+    """A vector env with the spaces of ``env_id`` (actions in [-1, 1], as in training) that cannot step:
+    enough to build an agent that only acts."""
+    import gymnasium as gym
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    import magenv  # noqa: F401  (registers the environments)
+    from magenv.agents.wrappers import normalized_actions
+
+    env = normalized_actions(gym.make(env_id, disable_env_checker=True, **env_kwargs))
+    spaces = env.observation_space, env.action_space
+    env.close()
+
+    class Spaces(gym.Env):
+        observation_space, action_space = spaces
+
+        def reset(self, *, seed=None, options=None):
+            raise RuntimeError("a loaded agent acts on observations; it has no env of its own to step")
+
+        step = reset
+
+    return DummyVecEnv([Spaces] * n_envs)
+
+
+def build_model(run: dict, env=None, where: str = "", **extra):
+    """The SB3 agent that ``run`` (a checked run.yaml) describes, untrained: on ``env`` (a vector env),
+    else on a stand-in with the env's spaces; ``extra`` goes to the constructor (seed, tensorboard_log).
+    The algorithm's own refusals are RunErrors naming ``where``."""
+    cls = algorithm_class(run["algo"])
+    section = run["hyperparams"]
+    if env is None:
+        try:
+            env = _spaces_env(run["env_id"], run["env_kwargs"], section["n_envs"])
+        except Exception as exc:  # the env's own checks of env_kwargs, or an unknown env id
+            raise RunError(f"{where}: cannot make env {run['env_id']} with {run['env_kwargs']} "
+                           f"({type(exc).__name__}: {exc})") from None
+    try:
+        return cls(env=env, device="cpu", **constructor_kwargs(section), **extra)
+    except (AssertionError, ValueError, TypeError, KeyError) as exc:
+        raise RunError(f"{where}: {run['algo']} refuses the hyperparameters ({type(exc).__name__}: {exc})") from None
+
+
+def load_agent(run_dir: str | Path, env_id: str | None = None, which: str = "best",
+               trust_pickle: bool = False) -> AgentPolicy:
     """Load the ``best`` (lowest held-out RMSE) or ``last`` model of a run folder.
 
-    Raises RunError if the folder is missing or corrupt, or if ``env_id`` is
-    given and differs from the env the agent was trained on.
+    ``best`` falls back to ``last`` when the run has not been evaluated yet
+    (``AgentPolicy.which`` says which was loaded). Only arrays are read; a
+    folder holding only SB3 ``.zip`` models (an older magenv, or SB3 itself)
+    needs ``trust_pickle=True``, which unpickles them — only for folders
+    whose author you trust.
+
+    Raises RunError if the folder is missing, corrupt or pickle-only, or if
+    ``env_id`` is given and differs from the env the agent was trained on.
     """
     run_dir = Path(run_dir)
     run = read_run(run_dir)
     if env_id is not None and env_id != run["env_id"]:
         raise RunError(f"{run_dir}: agent was trained on {run['env_id']}, cannot act in {env_id}")
-    if which not in ("best", "last"):
+    if which not in WEIGHTS:
         raise RunError(f"which must be 'best' or 'last', got {which!r}")
-    path = run_dir / f"{which}_model.zip"
-    if which == "best" and not path.is_file():
-        path = run_dir / "last_model.zip"
-    if not path.is_file():
-        raise RunError(f"{run_dir}: no trained model ({which}_model.zip) in the run folder")
-    try:
-        cls = algorithm_class(run["algo"])
-    except ConfigError as exc:
-        raise RunError(f"{run_dir / RUN_FILE}: {exc}") from None
-    try:
-        model = cls.load(path, device="cpu")
-    except (zipfile.BadZipFile, EOFError, KeyError, ValueError, RuntimeError) as exc:
-        raise RunError(f"{path}: corrupt model file ({type(exc).__name__}: {exc})") from None
-    bounds = run.get("action_bounds")
-    return AgentPolicy(model, run["env_id"], run["env_kwargs"], name=f"agent:{run_dir.name}", action_bounds=bounds)
+    order = [which, "last"] if which == "best" else [which]
+    found = next((w for w in order if (run_dir / WEIGHTS[w]).is_file()), None)
+    if found is not None:
+        path = run_dir / WEIGHTS[found]
+        model = build_model(run, where=str(run_dir / RUN_FILE))
+        load_policy(model, path)
+    else:
+        found = next((w for w in order if (run_dir / SB3_EXPORTS[w]).is_file()), None)
+        if found is None:
+            raise RunError(f"{run_dir}: no trained model ({WEIGHTS[which]}) in the run folder")
+        path = run_dir / SB3_EXPORTS[found]
+        if not trust_pickle:
+            raise RunError(f"{run_dir}: holds its model only as an SB3 file ({path.name}), which carries pickled "
+                           "Python objects that can run code when loaded; if you trust whoever wrote the folder, "
+                           "load it with trust_pickle=True (--trust-pickle)")
+        try:
+            model = algorithm_class(run["algo"]).load(path, device="cpu")
+        except Exception as exc:  # anything the unpickled file raises
+            raise RunError(f"{path}: corrupt model file ({type(exc).__name__}: {exc})") from None
+    return AgentPolicy(model, run["env_id"], run["env_kwargs"], name=f"agent:{run_dir.name}",
+                       action_bounds=run.get("action_bounds"), source=str(path), which=found)

@@ -14,6 +14,10 @@ Python use::
     methods = {name: registry.make(name) for name in ("mimu", "imu", "fan_lambda")}
     rows = evaluation.compare(methods, trials)   # list of dicts, CSV_COLUMNS
     evaluation.write_csv(rows, "out.csv")
+
+With ``keep_going=True`` a method that cannot run a trial (it raises) does
+not stop the others: its Run carries the reason in ``error``, and its row in
+the table has NaN figures and the reason under ``"error"``.
 """
 
 from __future__ import annotations
@@ -45,15 +49,17 @@ class Run:
         lam: (N,) λ per sample for MagBlend policies, else None.
         trust: (N,) the method's magnetometer trust (1 − λ for MagBlend), or None.
         score: RMSE (°) over the trial's score mask.
+        error: why the method could not run the trial (``evaluate(keep_going=True)``); q and score are then None.
     """
 
     method: str
     trial: Trial
     label: str
-    q: np.ndarray
+    q: np.ndarray | None
     lam: np.ndarray | None
     trust: np.ndarray | None
-    score: metrics.Score
+    score: metrics.Score | None
+    error: str | None = None
 
 
 def trial_label(trial: Trial) -> str:
@@ -133,11 +139,13 @@ def named(methods) -> dict[str, Any]:
 
 
 def evaluate(methods, trials: Iterable[Trial], env_kwargs: dict | None = None,
-             labels: Sequence[str] | None = None, progress: Callable[[str, Trial], None] | None = None) -> list[Run]:
+             labels: Sequence[str] | None = None, progress: Callable[[str, Trial], None] | None = None,
+             keep_going: bool = False) -> list[Run]:
     """Every method on every trial (same trials for all). ``progress(method, trial)`` is called after each run.
 
     ``env_kwargs`` are applied to every policy's env (e.g. ``{"decision_every": 1}``);
-    ``labels`` gives each trial's table group (default ``trial_label``).
+    ``labels`` gives each trial's table group (default ``trial_label``). With ``keep_going``, a method
+    that raises on a trial gets a Run with the reason in ``error`` and the others go on.
     """
     methods = named(methods)
     trials = list(trials)
@@ -146,19 +154,36 @@ def evaluate(methods, trials: Iterable[Trial], env_kwargs: dict | None = None,
     runs = []
     for trial, label in zip(trials, labels):
         for name, method in methods.items():
-            runs.append(run_method(name, method, trial, runner, label))
+            try:
+                runs.append(run_method(name, method, trial, runner, label))
+            except Exception as exc:  # keep_going: whatever stops this method on this trial, the rest go on
+                if not keep_going:
+                    raise
+                runs.append(Run(name, trial, label, None, None, None, None, f"{type(exc).__name__}: {exc}"))
             if progress is not None:
                 progress(name, trial)
     return runs
 
 
 def summarize(runs: Sequence[Run]) -> list[dict]:
-    """One row per (method, label) with ``CSV_COLUMNS``; std is the sample std (ddof 1; NaN for n = 1)."""
-    groups: dict[tuple[str, str], list[metrics.Score]] = {}
+    """One row per (method, label) with ``CSV_COLUMNS``; std is the sample std (ddof 1; NaN for n = 1).
+
+    A group where the method failed on some trial has NaN figures (a mean over fewer trials would not pair
+    with the other methods') and the reasons under ``"error"``."""
+    groups: dict[tuple[str, str], list[Run]] = {}
     for r in runs:
-        groups.setdefault((r.method, r.label), []).append(r.score)
+        groups.setdefault((r.method, r.label), []).append(r)
     rows = []
-    for (method, label), scores in groups.items():
+    for (method, label), group in groups.items():
+        failed = [r.error for r in group if r.error is not None]
+        if failed:
+            nan = float("nan")
+            rows.append({"method": method, "scenario": label, "n": len(group), "total_rmse_mean": nan,
+                         "total_rmse_std": nan, "heading_rmse_mean": nan, "inclination_rmse_mean": nan,
+                         "error": f"failed on {len(failed)} of {len(group)} trial(s): "
+                                  + "; ".join(dict.fromkeys(failed))})
+            continue
+        scores = [r.score for r in group]
         tot = np.array([s.total for s in scores])
         rows.append({
             "method": method, "scenario": label, "n": len(scores),
@@ -171,13 +196,14 @@ def summarize(runs: Sequence[Run]) -> list[dict]:
 
 
 def compare(methods, trials: Iterable[Trial], env_kwargs: dict | None = None,
-            labels: Sequence[str] | None = None, progress=None) -> list[dict]:
+            labels: Sequence[str] | None = None, progress=None, keep_going: bool = False) -> list[dict]:
     """``summarize(evaluate(...))``: the comparison table as a list of dicts (``CSV_COLUMNS``)."""
-    return summarize(evaluate(methods, trials, env_kwargs, labels, progress))
+    return summarize(evaluate(methods, trials, env_kwargs, labels, progress, keep_going))
 
 
 def write_csv(rows: Sequence[dict], path: str | Path) -> Path:
-    """Write rows with exactly the header ``CSV_COLUMNS`` (floats to 4 decimals, degrees)."""
+    """Write rows with exactly the header ``CSV_COLUMNS`` (floats to 4 decimals, degrees; ``nan`` where a
+    method failed — the reason is in the row's ``"error"``, not in the file)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as f:
@@ -197,6 +223,7 @@ def plot_runs(runs: Sequence[Run], path: str | Path, title: str | None = None) -
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    runs = [r for r in runs if r.error is None]
     fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(9, 6))
     for r in runs:
         t = r.trial.t

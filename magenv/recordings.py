@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magenv.trial import Trial, TrialError, open_hdf5
+from magenv.trial import Trial, TrialError, as_text, check_rate, open_hdf5, read_datasets, unit_truth
 
 BERLIN_FIELD_NORM = 44.5  # µT, documented local field (README of the data)
 BERLIN_FIELD_DIP = 69.0  # degrees, positive down
@@ -129,21 +129,19 @@ def estimate_field(gyr, acc, mag, rate: float) -> tuple[float, float, str]:
     return BERLIN_FIELD_NORM, BERLIN_FIELD_DIP, "documented"
 
 
-def _text(value) -> str:
-    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
-
-
 def load_recording(path: str | Path) -> Trial:
     """Read one BROAD HDF5 file into a ``Trial`` (see the module docstring).
 
     ``Trial.name`` is the file stem; ``meta`` holds ``source`` ("BROAD"),
     ``file``, ``info``, ``field_source`` and ``initial_rest_s`` (length of the
-    rest used for the field, s). NaN rows of ``opt_quat`` stay NaN.
+    rest used for the field, s). NaN rows of ``opt_quat`` stay NaN; rows off
+    unit norm by at most ``magenv.trial.UNIT_TOL`` are normalised, with a warning.
 
     Raises:
-        TrialError: naming the file and the problem — missing file, not HDF5,
-            a missing dataset or ``sampling_rate``, wrong shapes or lengths,
-            NaN/inf in a sensor channel, a non-positive rate.
+        TrialError: naming the file and the problem — missing file, not HDF5 or
+            corrupt, a missing dataset or ``sampling_rate``, fewer than 2 rows,
+            wrong shapes or lengths, NaN/inf in a sensor channel, a rate outside
+            ``magenv.trial.RATE_RANGE``, truth off unit norm, no sample to score.
     """
     import h5py
 
@@ -154,16 +152,13 @@ def load_recording(path: str | Path) -> Trial:
             raise TrialError(f"{path}: missing dataset(s) {', '.join(missing)} (a BROAD file needs {', '.join(REQUIRED)})")
         if "sampling_rate" not in f.attrs:
             raise TrialError(f"{path}: missing attribute sampling_rate")
-        try:
-            rate = float(np.asarray(f.attrs["sampling_rate"]).reshape(()))
-        except (TypeError, ValueError):
-            raise TrialError(f"{path}: attribute sampling_rate is not a number: {f.attrs['sampling_rate']!r}") from None
-        data = {k: f[k][()] for k in REQUIRED}
-        info = _text(f.attrs.get("info", ""))
+        rate = check_rate(f.attrs["sampling_rate"], f"{path}: attribute sampling_rate")
+        data = read_datasets(f, path, REQUIRED)
+        info = as_text(f.attrs.get("info", ""))
 
-    if not (np.isfinite(rate) and rate > 0):
-        raise TrialError(f"{path}: sampling_rate must be a positive number of Hz, got {rate!r}")
     n = len(data["imu_gyr"]) if np.ndim(data["imu_gyr"]) else -1
+    if 0 <= n < 2:
+        raise TrialError(f"{path}: dataset imu_gyr has {n} row(s); a recording needs at least 2")
     shapes = {"imu_gyr": (n, 3), "imu_acc": (n, 3), "imu_mag": (n, 3), "opt_quat": (n, 4), "opt_pos": (n, 3), "movement": (n,)}
     bad = [f"{k} {np.shape(data[k])} (expected {shapes[k]})" for k in REQUIRED if np.shape(data[k]) != shapes[k]]
     if bad:
@@ -179,20 +174,38 @@ def load_recording(path: str | Path) -> Trial:
     movement = data["movement"]
     if not (movement.dtype == bool or np.all(np.isin(movement, (0, 1)))):
         raise TrialError(f"{path}: dataset movement must be boolean, got dtype {movement.dtype}")
+    movement = movement.astype(bool)
+    q_true = unit_truth(data["opt_quat"], f"{path}: dataset opt_quat")
+    truth_rows = ~np.isnan(q_true).any(axis=1)
+    if not np.any(movement & truth_rows):
+        raise TrialError(f"{path}: no sample to score: dataset movement marks {int(movement.sum())} of {n} "
+                         f"samples and opt_quat has truth in {int(truth_rows.sum())}, none in common")
 
     field_norm, field_dip, field_source = estimate_field(data["imu_gyr"], data["imu_acc"], data["imu_mag"], rate)
     rest = initial_rest(data["imu_gyr"], rate)
     try:
         return Trial(
             name=path.stem, rate=rate,
-            gyr=data["imu_gyr"], acc=data["imu_acc"], mag=data["imu_mag"], q_true=data["opt_quat"],
-            field_norm=field_norm, field_dip=field_dip, score_mask=movement.astype(bool),
+            gyr=data["imu_gyr"], acc=data["imu_acc"], mag=data["imu_mag"], q_true=q_true,
+            field_norm=field_norm, field_dip=field_dip, score_mask=movement,
             truth={"opt_pos": data["opt_pos"]},
             meta={"source": "BROAD", "file": str(path), "info": info, "field_source": field_source,
                   "initial_rest_s": (rest.stop - rest.start) / rate},
         )
     except TrialError as exc:
         raise TrialError(f"{path}: {exc}") from None
+
+
+def load_trial_file(path: str | Path) -> Trial:
+    """A trial file of either kind: magenv's own (``Trial.save``, told by its ``format`` attribute) or a
+    BROAD recording. Raises TrialError naming the file and the problem."""
+    path = Path(path)
+    with open_hdf5(path) as f:
+        own, broad = "format" in f.attrs, any(k in f for k in REQUIRED)
+    if not own and not broad:
+        raise TrialError(f"{path}: neither a magenv trial (no attribute format) nor a BROAD recording "
+                         f"(none of the datasets {', '.join(REQUIRED)})")
+    return Trial.load(path) if own else load_recording(path)
 
 
 def load_all(folder: str | Path | None = None) -> list[Trial]:

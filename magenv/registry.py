@@ -159,12 +159,13 @@ def describe() -> dict[str, str]:
     return {k: v[1] for k, v in _all().items()}
 
 
-def make(name: str):
-    """A fresh Policy or Estimator for a method name. Unknown names raise ValueError listing the known ones."""
+def make(name: str, trust_pickle: bool = False):
+    """A fresh Policy or Estimator for a method name. Unknown names raise ValueError listing the known ones.
+    ``trust_pickle`` is for ``agent:RUN_DIR`` only: see ``magenv.agents.load_agent``."""
     if name.startswith(AGENT_PREFIX):
         from magenv.agents.loading import load_agent
 
-        return load_agent(name[len(AGENT_PREFIX):])
+        return load_agent(name[len(AGENT_PREFIX):], trust_pickle=trust_pickle)
     table = _all()
     if name not in table:
         raise ValueError(f"unknown method {name!r}; known methods: {', '.join(table)} "

@@ -8,34 +8,97 @@ orientation maps sensor → ENU earth.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 FORMAT = "magenv-trial-1"
+RATE_RANGE = (1.0, 100_000.0)  # Hz: the sampling rates a trial may have
+UNIT_TOL = 1e-3  # truth quaternions this close to unit norm are normalised (with a warning); farther: refused
+UNIT_QUIET = 1e-6  # deviations below this (float rounding) are left as they are, silently
 
 # Keys of ``Trial.meta`` that magenv reads (any other key is free-form description).
 META_SCENARIO = "scenario"  # the scenario name; a trial's default group in tables
 META_SEED = "seed"  # the trial seed of a simulated trial
 START_FROM_TRUTH = "start_from_truth"  # True: the trial's protocol gives estimators the true initial orientation
+DATASETS = ("gyr", "acc", "mag", "q_true", "score_mask")  # the per-sample arrays of a trial file
 
 
 class TrialError(ValueError):
     """A trial (or a file meant to hold one) is malformed."""
 
 
+def check_rate(rate, what: str) -> float:
+    """``rate`` as Hz, a finite number in ``RATE_RANGE``; else TrialError naming ``what`` (e.g. the attribute)."""
+    lo, hi = RATE_RANGE
+    try:
+        value = float(np.asarray(rate, dtype=float).reshape(()))
+    except (TypeError, ValueError):
+        raise TrialError(f"{what} must be a sampling rate in Hz, got {rate!r}") from None
+    if not (np.isfinite(value) and lo <= value <= hi):
+        raise TrialError(f"{what} must be a sampling rate from {lo:g} to {hi:g} Hz, got {value!r}")
+    return value
+
+
+def unit_truth(q: np.ndarray, what: str) -> np.ndarray:
+    """True orientations ``q`` (N, 4) checked for unit norm. A row with a NaN is missing truth and stays;
+    a row off unit norm by more than ``UNIT_QUIET`` and at most ``UNIT_TOL`` is normalised, with a warning;
+    farther off, or ±inf, is a TrialError naming ``what`` and the first bad row."""
+    q = np.asarray(q, float)
+    inf_rows = np.flatnonzero(np.isinf(q).any(axis=1))
+    if inf_rows.size:
+        raise TrialError(f"{what}: truth quaternion row {inf_rows[0]} is infinite ({q[inf_rows[0]].tolist()})")
+    present = ~np.isnan(q).any(axis=1)
+    norm = np.where(present, np.linalg.norm(np.where(present[:, None], q, 0.0), axis=1), 1.0)
+    dev = np.round(np.abs(norm - 1.0), 12)  # a truth scaled by exactly 1 + UNIT_TOL is within it
+    worst = float(dev.max(initial=0.0))
+    if worst > UNIT_TOL:
+        row = int(np.argmax(dev))
+        raise TrialError(f"{what}: truth quaternions must have unit norm; row {row} has norm {norm[row]:.6g} "
+                         f"({int((dev > UNIT_TOL).sum())} row(s) off by more than {UNIT_TOL:g})")
+    if worst > UNIT_QUIET:
+        warnings.warn(f"{what}: truth quaternions off unit norm by up to {worst:.2g}; normalised", stacklevel=3)
+        q = q / norm[:, None]
+    return q
+
+
+def read_datasets(f, path: Path, keys) -> dict:
+    """``{key: f[key][()]}`` for an open HDF5 file or group; one that cannot be read is a TrialError naming it."""
+    out = {}
+    for key in keys:
+        try:
+            out[key] = f[key][()]
+        except (OSError, KeyError, RuntimeError, TypeError, AttributeError) as exc:
+            raise TrialError(f"{path}: cannot read dataset {key} ({type(exc).__name__}: {exc})") from None
+    return out
+
+
+def as_text(value) -> str:
+    """An HDF5 attribute (str or bytes) as text."""
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+
+
+@contextlib.contextmanager
 def open_hdf5(path: Path):
-    """``h5py.File(path, "r")``; TrialError naming the file if it does not exist or is not HDF5."""
+    """``with open_hdf5(path) as f``: the file open for reading. A missing file, a file that is not HDF5, and
+    a read that fails inside the block (a corrupt file) are TrialErrors naming the file."""
     import h5py
 
     if not path.is_file():
         raise TrialError(f"{path}: no such file")
     try:
-        return h5py.File(path, "r")
+        f = h5py.File(path, "r")
     except OSError as exc:
         raise TrialError(f"{path}: not an HDF5 file ({exc})") from None
+    try:
+        with f:
+            yield f
+    except (OSError, KeyError, RuntimeError) as exc:
+        raise TrialError(f"{path}: cannot read the file (corrupt? {type(exc).__name__}: {exc})") from None
 
 
 @dataclasses.dataclass(eq=False)
@@ -75,8 +138,7 @@ class Trial:
     meta: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.rate) and self.rate > 0):
-            raise TrialError(f"trial {self.name!r}: rate must be a positive number of Hz, got {self.rate!r}")
+        self.rate = check_rate(self.rate, f"trial {self.name!r}: rate")
         n = len(self.gyr) if hasattr(self.gyr, "__len__") else -1
         for key, cols in (("gyr", 3), ("acc", 3), ("mag", 3), ("q_true", 4)):
             arr = np.ascontiguousarray(getattr(self, key), dtype=float)
@@ -85,6 +147,7 @@ class Trial:
             if key != "q_true" and not np.all(np.isfinite(arr)):
                 raise TrialError(f"trial {self.name!r}: {key} contains NaN or inf")
             setattr(self, key, arr)
+        self.q_true = unit_truth(self.q_true, f"trial {self.name!r}: q_true")
         if n < 2:
             raise TrialError(f"trial {self.name!r}: needs at least 2 samples, got {n}")
         mask = np.ones(n, bool) if self.score_mask is None else np.asarray(self.score_mask, bool)
@@ -104,6 +167,11 @@ class Trial:
     def n(self) -> int:
         """Number of samples."""
         return len(self.gyr)
+
+    @property
+    def n_scored(self) -> int:
+        """Samples that count in a score: inside ``score_mask`` and with truth (no NaN in ``q_true``)."""
+        return int(np.count_nonzero(self.score_mask & ~np.isnan(self.q_true).any(axis=1)))
 
     @property
     def dt(self) -> float:
@@ -144,7 +212,7 @@ class Trial:
             f.attrs["field_norm"] = self.field_norm
             f.attrs["field_dip"] = self.field_dip
             f.attrs["meta"] = json.dumps(self.meta)
-            for key in ("gyr", "acc", "mag", "q_true", "score_mask"):
+            for key in DATASETS:
                 f.create_dataset(key, data=getattr(self, key))
             for group in ("truth", "extra"):
                 g = f.create_group(group)
@@ -154,23 +222,44 @@ class Trial:
 
     @classmethod
     def load(cls, path: str | Path) -> "Trial":
-        """Read a trial written by ``save``. Raises TrialError naming the file and the problem."""
+        """Read a trial written by ``save``. Raises TrialError naming the file and the problem: a missing or
+        malformed attribute or dataset, a corrupt file, a bad rate or truth, no sample to score."""
         path = Path(path)
         with open_hdf5(path) as f:
-            if f.attrs.get("format") != FORMAT:
-                raise TrialError(f"{path}: not a magenv trial (attribute format={f.attrs.get('format')!r}, expected {FORMAT!r})")
-            missing = [k for k in ("gyr", "acc", "mag", "q_true", "score_mask") if k not in f]
+            fmt = f.attrs.get("format")
+            if fmt is None or as_text(fmt) != FORMAT:
+                raise TrialError(f"{path}: not a magenv trial (attribute format={fmt!r}, expected {FORMAT!r}; "
+                                 "a BROAD recording loads with magenv.recordings.load_recording)")
+            missing = [f"dataset {k}" for k in DATASETS if k not in f]
+            missing += [f"attribute {k}" for k in ("name", "rate", "field_norm", "field_dip") if k not in f.attrs]
             if missing:
-                raise TrialError(f"{path}: missing dataset(s) {', '.join(missing)}")
+                raise TrialError(f"{path}: missing {', '.join(missing)}")
+            numbers = {}
+            for key in ("field_norm", "field_dip"):
+                try:
+                    numbers[key] = float(np.asarray(f.attrs[key], dtype=float).reshape(()))
+                except (TypeError, ValueError):
+                    raise TrialError(f"{path}: attribute {key} is not a number: {f.attrs[key]!r}") from None
+            rate = check_rate(f.attrs["rate"], f"{path}: attribute rate")
             try:
-                return cls(
-                    name=str(f.attrs["name"]), rate=float(f.attrs["rate"]),
-                    gyr=f["gyr"][()], acc=f["acc"][()], mag=f["mag"][()], q_true=f["q_true"][()],
-                    field_norm=float(f.attrs["field_norm"]), field_dip=float(f.attrs["field_dip"]),
-                    score_mask=f["score_mask"][()],
-                    truth={k: v[()] for k, v in f.get("truth", {}).items()},
-                    extra={k: v[()] for k, v in f.get("extra", {}).items()},
-                    meta=json.loads(f.attrs.get("meta", "{}")),
-                )
-            except TrialError as exc:
-                raise TrialError(f"{path}: {exc}") from None
+                meta = json.loads(as_text(f.attrs.get("meta", "{}")))
+            except json.JSONDecodeError as exc:
+                raise TrialError(f"{path}: attribute meta is not valid JSON ({exc})") from None
+            if not isinstance(meta, dict):
+                raise TrialError(f"{path}: attribute meta must be a JSON object, got {type(meta).__name__}")
+            data = read_datasets(f, path, DATASETS)
+            groups = {}
+            for group in ("truth", "extra"):
+                g = f.get(group, {})
+                if not hasattr(g, "keys"):
+                    raise TrialError(f"{path}: {group} must be a group of datasets")
+                groups[group] = read_datasets(g, path, list(g.keys()))
+            name = as_text(f.attrs["name"])
+        try:
+            trial = cls(name=name, rate=rate, **data, **numbers, **groups, meta=meta)
+        except TrialError as exc:
+            raise TrialError(f"{path}: {exc}") from None
+        if trial.n_scored == 0:
+            raise TrialError(f"{path}: no sample to score (score_mask and the rows of q_true with truth have "
+                             "none in common)")
+        return trial

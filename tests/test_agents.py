@@ -38,7 +38,7 @@ def test_missing_section_and_algorithm(tmp_path):
 def test_bad_activation_is_named(tmp_path):
     cfg = tmp_path / "ppo.yaml"
     cfg.write_text(yaml.safe_dump({ENV: {"policy_kwargs": {"activation_fn": "swish"}}}))
-    with pytest.raises(ConfigError, match="activation_fn 'swish' unknown"):
+    with pytest.raises(ConfigError, match="policy_kwargs.activation_fn must be 'tanh' or .*, got 'swish'"):
         constructor_kwargs(load_hyperparams("ppo", ENV, cfg))
 
 
@@ -51,12 +51,15 @@ def test_run_folder_errors(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
     (run / "run.yaml").write_text(yaml.safe_dump({"env_id": ENV, "algo": "ppo", "env_kwargs": {}}))
+    with pytest.raises(RunError, match="missing key.*hyperparams"):
+        load_agent(run)
+    (run / "run.yaml").write_text(yaml.safe_dump({"env_id": ENV, "algo": "ppo", "env_kwargs": {}, "hyperparams": {}}))
     with pytest.raises(RunError, match="trained on magenv/MagBlend-v0, cannot act in magenv/MagKalman-v0"):
         load_agent(run, env_id="magenv/MagKalman-v0")
     with pytest.raises(RunError, match="no trained model"):
         load_agent(run)
-    (run / "best_model.zip").write_bytes(b"this is not a zip file")
-    with pytest.raises(RunError, match="corrupt model file"):
+    (run / "best.safetensors").write_bytes(b"this is not a weights file")
+    with pytest.raises(RunError, match="best.safetensors: corrupt weights file"):
         load_agent(run)
     (run / "run.yaml").write_text("env_id: [unclosed")
     with pytest.raises(RunError, match="corrupt"):

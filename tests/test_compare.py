@@ -88,3 +88,20 @@ def test_cli_on_a_simulated_scenario(tmp_path, capsys):
     lines = out.read_text().splitlines()
     assert lines[0] == HEADER and len(lines) == 3
     assert all(line.split(",")[1] == "dynamic_clean" for line in lines[1:])
+
+
+def test_compare_keeps_going_past_a_method_that_cannot_run(tmp_path, capsys):
+    """A two-link estimator on a one-sensor trial: its cell is n/a with the reason, the rest is complete, exit 1."""
+    out = tmp_path / "k.csv"
+    code = main(["compare", "--scenario", "dynamic_clean", "--seeds", "0,1", "--methods", "mimu,cf_constraint,imu",
+                 "--csv", str(out), "--no-progress"])
+    text = capsys.readouterr().out
+    assert code == 1
+    assert "n/a: cf_constraint on dynamic_clean: failed on 2 of 2 trial(s): MissingChannelsError" in text
+    with open(out) as f:
+        rows = {r["method"]: r for r in csv.DictReader(f)}
+    assert ",".join(next(iter(rows.values())).keys()) == HEADER and set(rows) == {"mimu", "imu", "cf_constraint"}
+    assert np.isfinite(float(rows["mimu"]["total_rmse_mean"])) and np.isfinite(float(rows["imu"]["total_rmse_mean"]))
+    assert np.isnan(float(rows["cf_constraint"]["total_rmse_mean"])) and rows["cf_constraint"]["n"] == "2"
+    with pytest.raises(Exception, match="gyr_j"):  # without keep_going, evaluation raises as before
+        evaluation.evaluate({"cf": registry.make("cf_constraint")}, [kinematic_trial(duration=1.0)])

@@ -85,7 +85,8 @@ def test_earth_field_falls_back_without_rest():
 # --------------------------------------------------------------- bad input
 
 
-def _write(path, n=100, drop=(), rate=100.0, **override):
+def write_recording(path, n=100, drop=(), rate=100.0, **override):
+    """A small BROAD-layout file at ``path``: ``n`` rows at rest, every dataset but ``drop``, ``override``s."""
     data = {
         "imu_gyr": np.zeros((n, 3)), "imu_acc": np.tile([0, 0, 9.81], (n, 1)), "imu_mag": np.tile([0, 16.0, -41.7], (n, 1)),
         "opt_quat": np.tile([1.0, 0, 0, 0], (n, 1)), "opt_pos": np.zeros((n, 3)), "movement": np.ones(n, bool),
@@ -103,7 +104,7 @@ def _write(path, n=100, drop=(), rate=100.0, **override):
 def test_good_synthetic_file_loads(tmp_path):
     q = np.tile([1.0, 0, 0, 0], (100, 1))
     q[10:20] = np.nan
-    t = load_recording(_write(tmp_path / "ok.hdf5", opt_quat=q))
+    t = load_recording(write_recording(tmp_path / "ok.hdf5", opt_quat=q))
     assert t.n == 100 and t.rate == 100.0 and np.isnan(t.q_true[10:20]).all()
 
 
@@ -121,24 +122,24 @@ def test_not_hdf5(tmp_path):
 
 @pytest.mark.parametrize("field", REQUIRED)
 def test_missing_dataset(tmp_path, field):
-    p = _write(tmp_path / "lacks.hdf5", drop=(field,))
+    p = write_recording(tmp_path / "lacks.hdf5", drop=(field,))
     with pytest.raises(TrialError, match=rf"lacks.hdf5: missing dataset\(s\) {field}"):
         load_recording(p)
 
 
 def test_missing_rate(tmp_path):
     with pytest.raises(TrialError, match="norate.hdf5: missing attribute sampling_rate"):
-        load_recording(_write(tmp_path / "norate.hdf5", rate=None))
+        load_recording(write_recording(tmp_path / "norate.hdf5", rate=None))
 
 
 def test_bad_rate(tmp_path):
-    with pytest.raises(TrialError, match="zerorate.hdf5: sampling_rate must be a positive"):
-        load_recording(_write(tmp_path / "zerorate.hdf5", rate=0.0))
+    with pytest.raises(TrialError, match="zerorate.hdf5: attribute sampling_rate must be a sampling rate from 1 to 100000 Hz"):
+        load_recording(write_recording(tmp_path / "zerorate.hdf5", rate=0.0))
 
 
 @pytest.mark.parametrize("field,shape", [("imu_acc", (99, 3)), ("opt_quat", (100, 3)), ("movement", (101,)), ("opt_pos", (100, 2))])
 def test_mismatched_lengths(tmp_path, field, shape):
-    p = _write(tmp_path / "short.hdf5", **{field: np.zeros(shape, bool if field == "movement" else float)})
+    p = write_recording(tmp_path / "short.hdf5", **{field: np.zeros(shape, bool if field == "movement" else float)})
     with pytest.raises(TrialError, match=rf"short.hdf5: mismatched shapes or lengths: {field}"):
         load_recording(p)
 
@@ -147,7 +148,7 @@ def test_mismatched_lengths(tmp_path, field, shape):
 def test_nan_in_sensor(tmp_path, field):
     x = np.ones((100, 3))
     x[42, 1] = np.nan
-    p = _write(tmp_path / "nan.hdf5", **{field: x})
+    p = write_recording(tmp_path / "nan.hdf5", **{field: x})
     with pytest.raises(TrialError, match=rf"nan.hdf5: sensor channel {field} has NaN/inf in 1 row\(s\), first at row 42"):
         load_recording(p)
 

@@ -52,10 +52,15 @@ def test_train_then_resume_keeps_progress_and_best_model(tmp_path):
 
 
 @pytest.mark.parametrize("algo", ["sac", "recurrent_ppo"])
-def test_other_algorithms_train_and_load(tmp_path, algo):
+def test_other_algorithms_train_resume_and_load(tmp_path, algo):
     out = tmp_path / algo
-    train(ENV, algo, 128, out, config=small_config(tmp_path, algo), eval_every=10_000,
-          eval_scenarios=("dynamic_clean",), eval_seeds=(0,), progress_bar=False)
+    kw = dict(config=small_config(tmp_path, algo), eval_every=10_000, eval_scenarios=("dynamic_clean",),
+              eval_seeds=(0,), progress_bar=False)
+    train(ENV, algo, 128, out, **kw)
+    train(ENV, algo, 256, out, **kw)  # resumes: weights, optimizers, reward statistics (and SAC's buffer)
+    assert json.loads((out / "state.json").read_text())["timesteps"] == 256
+    assert (out / "replay_buffer.safetensors").is_file() == (algo == "sac")
+    assert [float(r[0]) for r in csv.reader(open(out / "evaluations.csv"))] == [128, 256]
     agent = load_agent(out)
     obs_dim = agent.model.observation_space.shape[0]
     import numpy as np
@@ -108,7 +113,7 @@ def test_pretrain_config_errors(tmp_path):
 
     cases = [({"teacher": "fan_lambda"}, "needs 'teacher' and 'steps'"),
              ({"teacher": "fan_lambda", "steps": 10, "epoch": 3}, "unknown key"),
-             ({"teacher": "fan_lambda", "steps": -5}, "steps must be a positive int")]
+             ({"teacher": "fan_lambda", "steps": -5}, "pretrain: steps must be an integer ≥ 1, got -5")]
     for spec, msg in cases:
         cfg = tmp_path / "ppo.yaml"
         cfg.write_text(yaml.safe_dump({ENV: {"pretrain": spec}}))
@@ -124,3 +129,29 @@ def test_pretrain_config_errors(tmp_path):
     cfg.write_text(yaml.safe_dump({ENV: {"pretrain": {"teacher": "kf_gate", "steps": 10}, **SMALL["ppo"]}}))
     with pytest.raises(ConfigError, match="must be a policy of magenv/MagBlend-v0; it acts in magenv/MagKalman-v0"):
         train(ENV, "ppo", 1, tmp_path / "x", config=cfg, progress_bar=False, make_method=registry.make)
+
+
+def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path, monkeypatch):
+    """Ctrl-C (or SIGTERM) at the second evaluation saves a checkpoint; the same call then finishes the run."""
+    from magenv.agents import training
+    from magenv.agents.weights import read
+
+    evaluate = training.HeldOutEvaluation.evaluate_and_checkpoint
+
+    def interrupt_at_the_second(self):
+        if self.last_evaluated is not None:
+            raise KeyboardInterrupt
+        return evaluate(self)
+
+    out = tmp_path / "run"
+    kw = dict(config=small_config(tmp_path, "ppo"), eval_every=128, eval_scenarios=("dynamic_clean",),
+              eval_seeds=(0,), progress_bar=False)
+    monkeypatch.setattr(training.HeldOutEvaluation, "evaluate_and_checkpoint", interrupt_at_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        train(ENV, "ppo", 512, out, **kw)
+    assert json.loads((out / "state.json").read_text())["timesteps"] == 256
+    assert read(out / "last.safetensors")[1]["timesteps"] == 256
+    monkeypatch.undo()
+    train(ENV, "ppo", 512, out, **kw)
+    assert [int(r[0]) for r in csv.reader(open(out / "evaluations.csv"))] == [128, 384, 512]
+    assert read(out / "last.safetensors")[1]["timesteps"] == 512

@@ -35,7 +35,7 @@ def _arrays(n=10):
     [
         (dict(gyr=np.zeros((10, 2))), "gyr must have shape"),
         (dict(mag=np.full((10, 3), np.nan)), "mag contains NaN"),
-        (dict(rate=0.0), "rate must be a positive"),
+        (dict(rate=0.0), "rate must be a sampling rate from 1 to 100000 Hz, got 0.0"),
         (dict(score_mask=np.ones(9, bool)), "score_mask must have shape"),
         (dict(truth={"stationary": np.zeros(3)}), "truth channel 'stationary' has 3 rows"),
     ],

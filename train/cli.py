@@ -27,6 +27,33 @@ class CommandError(Exception):
     """A user-facing error: printed without a traceback, exit status 2."""
 
 
+#: Exit statuses: 0 all done; 1 done, but some cell of a table is n/a (the reasons are printed);
+#: 2 a bad command line, file or config (nothing run; the message names it); 130 interrupted.
+PARTIAL = 1
+TRUST_PICKLE_HELP = ("also load agents from SB3 .zip files, which carry pickles that can run code: only for run "
+                     "folders whose author you trust (default: weights-only files)")
+
+
+def rule_arg(rule):
+    """An argparse ``type`` checking a number against ``rule`` (a ``magenv.agents.hyperparams.Rule``);
+    argparse names the flag in the error, e.g. ``argument --steps: must be an integer ≥ 1, got '0'``."""
+
+    def parse(text: str):
+        try:
+            value = int(text)
+        except ValueError:
+            try:
+                value = float(text)
+            except ValueError:
+                value = text
+        try:
+            return rule.convert(value)
+        except (ValueError, TypeError):
+            raise argparse.ArgumentTypeError(f"must be {rule.expected}, got {text!r}") from None
+
+    return parse
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="magenv", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -44,13 +71,19 @@ def main(argv: list[str] | None = None) -> int:
         module = importlib.import_module(COMMANDS[argv[0]][0])
         p = argparse.ArgumentParser(prog=f"magenv {argv[0]}", description=COMMANDS[argv[0]][1])
         module.add_arguments(p)
-        args = p.parse_args(argv[1:])
+        try:
+            args = p.parse_args(argv[1:])
+        except SystemExit as exc:  # argparse has printed the usage and the error (or the help)
+            return int(exc.code or 0)
         try:
             return int(module.run(args) or 0)
         except CommandError as exc:
             print(f"magenv {argv[0]}: error: {exc}", file=sys.stderr)
             return 2
-    parser.parse_args(argv)  # prints help / errors for unknown commands
+    try:
+        parser.parse_args(argv)  # prints help / errors for unknown commands
+    except SystemExit as exc:
+        return int(exc.code or 0)
     return 2
 
 

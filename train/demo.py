@@ -16,16 +16,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from magenv.train.cli import CommandError
-
+from magenv.agents.hyperparams import POSITIVE_INT
 from magenv.envs import BLEND_ID as ENV_ID
+from magenv.train.cli import CommandError, rule_arg
+from magenv.train.seeds import seeds_arg
+
 RULES = ["mimu", "imu", "fan_lambda", "fan_lambda_tuned", "threshold", "threshold_tuned"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--steps", type=int, default=150_000, help="PPO training steps (default %(default)s)")
+    p.add_argument("--steps", type=rule_arg(POSITIVE_INT), default=150_000, help="PPO training steps (default %(default)s)")
     p.add_argument("--out", type=Path, default=Path("runs/demo"), help="run folder (default %(default)s)")
-    p.add_argument("--seeds", default="0:5", help="held-out seeds per scenario (default %(default)s)")
+    p.add_argument("--seeds", type=seeds_arg, default="0:5", help="held-out seeds per scenario (default %(default)s)")
     p.add_argument("--csv", default="results/demo.csv", help="CSV of the table (default %(default)s)")
     p.add_argument("--no-progress", action="store_true")
 
@@ -35,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from magenv.agents.loading import RunError
     from magenv import registry
     from magenv import evaluation
-    from magenv.train.compare import make_trials, print_table, run_comparison, select_methods
+    from magenv.train.compare import finish, make_trials, run_comparison, select_methods
     from magenv.agents.training import train
 
     print(f"[1/2] training PPO on {ENV_ID} for {args.steps} steps -> {args.out}")
@@ -53,7 +55,4 @@ def run(args: argparse.Namespace) -> int:
     methods = select_methods(rules + [registry.AGENT_PREFIX + str(args.out)])
     trials, labels = make_trials("dynamic_magnet,dynamic_clean", args.seeds, [])
     rows = evaluation.summarize(run_comparison(methods, trials, labels, progress=not args.no_progress))
-    print_table(rows, title="learned vs hand-tuned magnetometer trust: orientation RMSE (°), held-out seeds")
-    if args.csv:
-        print(f"wrote {evaluation.write_csv(rows, args.csv)}")
-    return 0
+    return finish(rows, "learned vs hand-tuned magnetometer trust: orientation RMSE (°), held-out seeds", args.csv)

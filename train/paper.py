@@ -14,6 +14,7 @@ import argparse
 import numpy as np
 
 from magenv.train.cli import CommandError
+from magenv.train.seeds import seeds_arg
 
 CHECKS = ("constraint", "qsf", "innovation", "qsf-recordings", "references")
 
@@ -22,7 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from magenv.papers import TABLE2_METHODS
 
     p.add_argument("check", choices=CHECKS, help="which paper check")
-    p.add_argument("--seeds", default="0:5", help="constraint: trial seeds START:STOP (default %(default)s)")
+    p.add_argument("--seeds", type=seeds_arg, default="0:5", help="constraint: trial seeds START:STOP (default %(default)s)")
     p.add_argument("--methods", default=",".join(TABLE2_METHODS),
                    help="constraint: comma list of method names, e.g. adding agent:RUN_DIR (default %(default)s)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
@@ -72,11 +73,10 @@ def _settings(pairs: list[str]) -> dict[str, float]:
 
 def run(args: argparse.Namespace) -> int:
     from magenv import papers
-    from magenv.train.seeds import parse_seeds
 
     try:
         if args.check == "constraint":
-            _print_table2(parse_seeds(args.seeds), [m.strip() for m in args.methods.split(",") if m.strip()])
+            _print_table2(args.seeds, [m.strip() for m in args.methods.split(",") if m.strip()])
         elif args.check == "qsf":
             print(papers.qsf_table(**_settings(args.set)))
         elif args.check == "innovation":

@@ -1,10 +1,11 @@
-"""``magenv plot``: draw a trial file.
+"""``magenv plot``: draw a trial file — magenv's own (``magenv simulate``) or a BROAD recording.
 
 Panels: true orientation (ZYX Euler angles of ``q_true``), measured angular
 rates, measured field norm and dip angle (with the undisturbed m0 and θ0),
 and the magnet's distance from the sensor (truth).
 
     magenv plot trial.h5 --out trial.png
+    magenv plot ../shared/data/broad/29_disturbed_stationary_magnet_B.hdf5 --out 29.png
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from magenv.train.cli import CommandError
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("trial", type=Path, help="trial file (.h5) written by `magenv simulate` or a recording")
+    parser.add_argument("trial", type=Path, help="trial file (.h5) written by `magenv simulate`, or a BROAD recording")
     parser.add_argument("--out", type=Path, default=None, help="PNG to write (default: next to the trial)")
 
 
@@ -63,7 +64,7 @@ def draw(trial, out: Path) -> Path:
         ax[4].plot(t, 100 * dist, lw=0.8)
         ax[4].set_ylabel("magnet distance, cm")
     else:
-        ax[4].text(0.5, 0.5, "no magnet", ha="center", va="center", transform=ax[4].transAxes)
+        ax[4].text(0.5, 0.5, "no magnet distance in this trial", ha="center", va="center", transform=ax[4].transAxes)
         ax[4].set_ylabel("magnet distance")
     if "stationary" in trial.truth:
         st = np.asarray(trial.truth["stationary"], bool)
@@ -79,10 +80,11 @@ def draw(trial, out: Path) -> Path:
 
 
 def run(args) -> int:
-    from magenv.trial import Trial, TrialError
+    from magenv.recordings import load_trial_file
+    from magenv.trial import TrialError
 
     try:
-        trial = Trial.load(args.trial)
+        trial = load_trial_file(args.trial)
     except TrialError as exc:
         raise CommandError(str(exc)) from None
     out = args.out or args.trial.with_suffix(".png")

@@ -31,6 +31,7 @@ def _plot_trial(runs: list, path: Path) -> Path:
 
     trial = runs[0].trial
     t = trial.t
+    runs = [r for r in runs if r.error is None]
     fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(10, 6.5))
     for r in runs:
         err = metrics.total_error(metrics.error_quaternion(r.q, trial.q_true))
@@ -81,13 +82,18 @@ def _plot_bars(rows: list[dict], path: Path) -> Path:
 
 
 def markdown_table(rows: list[dict]) -> str:
-    """The comparison rows as a Markdown table, best total RMSE first within each scenario."""
+    """The comparison rows as a Markdown table, best total RMSE first within each scenario; an n/a cell's
+    reason follows the table."""
+    from magenv.train.compare import failure_notes, table_order
+
     fmt = lambda x: "–" if isinstance(x, float) and math.isnan(x) else f"{x:.2f}"
     lines = ["| scenario | method | n | total RMSE (°) | ± std | heading | inclination |", "|---|---|---|---|---|---|---|"]
-    for r in sorted(rows, key=lambda r: (r["scenario"], r["total_rmse_mean"])):
-        lines.append(f"| {r['scenario']} | {r['method']} | {r['n']} | {fmt(r['total_rmse_mean'])} | "
-                     f"{fmt(r['total_rmse_std'])} | {fmt(r['heading_rmse_mean'])} | {fmt(r['inclination_rmse_mean'])} |")
-    return "\n".join(lines)
+    for r in table_order(rows):
+        cells = ["n/a"] * 4 if "error" in r else [fmt(r[c]) for c in (
+            "total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")]
+        lines.append(f"| {r['scenario']} | {r['method']} | {r['n']} | " + " | ".join(cells) + " |")
+    notes = failure_notes(rows)
+    return "\n".join(lines + ([""] + [f"* {n}" for n in notes] if notes else []))
 
 
 def write_report(runs: list, out: Path, title: str = "magenv comparison report") -> Path:
@@ -111,20 +117,30 @@ def write_report(runs: list, out: Path, title: str = "magenv comparison report")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from magenv.train.cli import TRUST_PICKLE_HELP
+    from magenv.train.seeds import seeds_arg
+
     p.add_argument("--out", type=Path, default=Path("results/report"), help="report folder (default %(default)s)")
     p.add_argument("--scenario", default="dynamic_magnet,dynamic_clean,stationary_magnet")
-    p.add_argument("--seeds", default="0:5")
+    p.add_argument("--seeds", type=seeds_arg, default="0:5")
     p.add_argument("--methods", default=DEFAULT_METHODS)
     p.add_argument("--agent", action="append", default=[], metavar="RUN_DIR", help="add a trained agent (repeatable)")
     p.add_argument("--recordings", nargs="+", default=[], metavar="FILE")
+    p.add_argument("--trust-pickle", action="store_true", help=TRUST_PICKLE_HELP)
 
 
 def run(args: argparse.Namespace) -> int:
     from magenv import registry
-    from magenv.train.compare import make_trials, run_comparison, select_methods
+    from magenv.train.cli import PARTIAL
+    from magenv.train.compare import failure_notes, make_trials, run_comparison, select_methods
+    from magenv import evaluation
 
-    methods = select_methods(args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent])
+    methods = select_methods(args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent],
+                             args.trust_pickle)
     trials, labels = make_trials(args.scenario, args.seeds, args.recordings)
     runs = run_comparison(methods, trials, labels)
     print(f"wrote {write_report(runs, args.out)}")
-    return 0
+    notes = failure_notes(evaluation.summarize(runs))
+    for line in notes:
+        print(line)
+    return PARTIAL if notes else 0

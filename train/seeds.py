@@ -2,17 +2,32 @@
 
 from __future__ import annotations
 
+import argparse
+
+MAX_SEEDS = 10_000  # a longer list is a typo, not an experiment
+
 
 def parse_seeds(text: str) -> list[int]:
-    """Parse a seed list; raises ValueError naming the text if it is malformed or empty."""
+    """Parse a seed list; raises ValueError naming the text if it is malformed, empty, negative or longer
+    than ``MAX_SEEDS``."""
     try:
         if ":" in text:
             start, stop = (int(x) for x in text.split(":"))
-            seeds = list(range(start, stop))
+            seeds = range(start, stop)
         else:
             seeds = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
         raise ValueError(f"bad seed list {text!r}: use START:STOP, a comma list, or one number") from None
-    if not seeds or min(seeds) < 0:
+    if not len(seeds) or min(seeds) < 0:
         raise ValueError(f"bad seed list {text!r}: needs at least one seed, none negative")
-    return seeds
+    if len(seeds) > MAX_SEEDS:
+        raise ValueError(f"bad seed list {text!r}: {len(seeds)} seeds, at most {MAX_SEEDS}")
+    return list(seeds)
+
+
+def seeds_arg(text: str) -> list[int]:
+    """:func:`parse_seeds` as an argparse ``type``: the error names the flag."""
+    try:
+        return parse_seeds(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None

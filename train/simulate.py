@@ -10,12 +10,13 @@ import ast
 import time
 from pathlib import Path
 
-from magenv.train.cli import CommandError
+from magenv.agents.hyperparams import integer
+from magenv.train.cli import CommandError, rule_arg
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--scenario", required=True, help="scenario name (see magenv.scenarios.scenario_names())")
-    parser.add_argument("--seed", type=int, default=0, help="random seed, integer ≥ 0 (default 0)")
+    parser.add_argument("--seed", type=rule_arg(integer(0)), default=0, help="random seed, integer ≥ 0 (default 0)")
     parser.add_argument("--out", required=True, type=Path, help="output file, .h5")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a scenario or sensor parameter (repeatable), e.g. duration=20")

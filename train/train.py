@@ -1,12 +1,14 @@
 """``magenv train``: train an SB3 agent on a magenv environment (the engine: ``magenv.agents.training``).
 
     magenv train --env magenv/MagBlend-v0 --algo ppo --steps 100000 --out runs/NAME \
-        [--config FILE] [--seed S] [--eval-every N] [--eval-scenarios A,B] [--eval-seeds 0:3]
+        [--config FILE] [--seed S] [--eval-every N] [--eval-scenarios A,B] [--eval-seeds 0:3] [--force]
 
 Progress bar, TensorBoard logs (``runs/NAME/tb``), periodic evaluation on
 held-out trials with the best model kept, checkpoints, and resume: running
 the same command again on an existing run folder continues from its last
-checkpoint up to ``--steps`` in all (Ctrl-C saves a checkpoint first).
+checkpoint up to ``--steps`` in all (Ctrl-C saves a checkpoint first). A
+resumed run keeps its config, seed and evaluation set; giving different ones
+is an error naming each difference, unless ``--force``.
 """
 
 from __future__ import annotations
@@ -17,45 +19,61 @@ from pathlib import Path
 
 import gymnasium as gym
 
+from magenv.agents.hyperparams import (DEFAULT_EVAL_EVERY, DEFAULT_EVAL_SCENARIOS, DEFAULT_EVAL_SEEDS, DEFAULT_SEED,
+                                       POSITIVE_INT, RUN_RULES, SEED_RULE)
 from magenv.envs import BLEND_ID
-from magenv.seeding import VALIDATION_START
-from magenv.train.cli import CommandError
-from magenv.train.seeds import parse_seeds
+from magenv.train.cli import CommandError, rule_arg
+from magenv.train.seeds import seeds_arg
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    seeds = f"{DEFAULT_EVAL_SEEDS[0]}:{DEFAULT_EVAL_SEEDS[-1] + 1}"
     p.add_argument("--env", default=BLEND_ID, help="environment id (default %(default)s)")
     p.add_argument("--algo", default="ppo", help="ppo, sac or recurrent_ppo (default %(default)s)")
-    p.add_argument("--steps", type=int, default=None, help="total environment steps (default: the config's n_timesteps)")
+    p.add_argument("--steps", type=rule_arg(RUN_RULES["n_timesteps"]), default=None,
+                   help="total environment steps (default: the config's n_timesteps, or the run's when resuming)")
     p.add_argument("--out", required=True, type=Path, help="run folder (created, or resumed if it exists)")
-    p.add_argument("--config", default=None, help="YAML hyperparameter file (default agents/configs/ALGO.yaml)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--n-envs", type=int, default=None, help="parallel environments (default: the config's)")
-    p.add_argument("--eval-every", type=int, default=10_000, help="steps between held-out evaluations")
-    p.add_argument("--eval-scenarios", default="dynamic_magnet,dynamic_clean")
-    p.add_argument("--eval-seeds", default=f"{VALIDATION_START}:{VALIDATION_START + 2}",
-                   help="held-out validation seeds for model selection, e.g. 5000:5004 (default %(default)s)")
+    p.add_argument("--config", default=None,
+                   help="YAML hyperparameter file (default agents/configs/ALGO.yaml, or the run's when resuming)")
+    p.add_argument("--seed", type=rule_arg(SEED_RULE), default=None,
+                   help=f"training seed (default {DEFAULT_SEED}, or the run's when resuming)")
+    p.add_argument("--n-envs", type=rule_arg(RUN_RULES["n_envs"]), default=None,
+                   help="parallel environments (default: the config's)")
+    p.add_argument("--eval-every", type=rule_arg(POSITIVE_INT), default=DEFAULT_EVAL_EVERY,
+                   help="steps between held-out evaluations and checkpoints (default %(default)s)")
+    p.add_argument("--eval-scenarios", default=None,
+                   help=f"comma list (default {','.join(DEFAULT_EVAL_SCENARIOS)}, or the run's when resuming)")
+    p.add_argument("--eval-seeds", type=seeds_arg, default=None,
+                   help=f"held-out validation seeds for model selection, e.g. 5000:5004 (default {seeds}, "
+                        "or the run's when resuming)")
+    p.add_argument("--force", action="store_true",
+                   help="resume even with a config, seed or evaluation set other than the run's (they replace it)")
+    p.add_argument("--trust-pickle", action="store_true",
+                   help="resume an older run folder from its pickle files (.zip, .pkl), which can run code: "
+                        "only for folders whose author you trust")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
     from magenv import registry
     from magenv.agents.hyperparams import ConfigError
-    from magenv.agents.loading import RunError
+    from magenv.agents.loading import WEIGHTS, RunError
     from magenv.agents.training import STATE_FILE, train
 
     if args.env not in gym.registry:
         known = ", ".join(k for k in gym.registry if k.startswith("magenv/"))
         raise CommandError(f"unknown env {args.env!r}; magenv envs: {known}")
+    scenarios = None if args.eval_scenarios is None else tuple(args.eval_scenarios.split(","))
     try:
         out = train(args.env, args.algo, args.steps, args.out, args.config, args.seed, args.eval_every,
-                    tuple(args.eval_scenarios.split(",")), tuple(parse_seeds(args.eval_seeds)),
-                    args.n_envs, not args.no_progress, make_method=registry.make)
+                    scenarios, args.eval_seeds, args.n_envs, not args.no_progress, make_method=registry.make,
+                    force=args.force, trust_pickle=args.trust_pickle)
     except (ConfigError, RunError, ValueError) as exc:
         raise CommandError(str(exc)) from None
     except KeyboardInterrupt:
         return 130
     state = json.loads((out / STATE_FILE).read_text())
-    print(f"trained {state['timesteps']} steps; best held-out total RMSE {state['best_score']:.3f}° "
-          f"at {state['best_timesteps']} steps -> {out / 'best_model.zip'}")
+    best = "none yet" if state.get("best_timesteps") is None else (
+        f"{state['best_score']:.3f}° at {state['best_timesteps']:,} steps -> {out / WEIGHTS['best']}")
+    print(f"trained {state['timesteps']:,} steps; best held-out total RMSE {best}")
     return 0

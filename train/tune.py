@@ -17,20 +17,21 @@ import argparse
 import json
 from pathlib import Path
 
+from magenv.agents.hyperparams import POSITIVE_INT, SEED_RULE, integer
 from magenv.scenarios import TRAINING_MIX
 from magenv.seeding import HELD_OUT_BELOW as TRAIN_SEED_START
-from magenv.train.cli import CommandError
-from magenv.train.seeds import parse_seeds
+from magenv.train.cli import CommandError, rule_arg
+from magenv.train.seeds import seeds_arg
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rule", required=True, help="rule to tune (e.g. fan_lambda, threshold)")
     p.add_argument("--scenarios", default=TRAINING_MIX, help="comma list of training scenarios (default %(default)s)")
-    p.add_argument("--seeds", default=f"{TRAIN_SEED_START}:{TRAIN_SEED_START + 12}",
+    p.add_argument("--seeds", type=seeds_arg, default=f"{TRAIN_SEED_START}:{TRAIN_SEED_START + 12}",
                    help=f"training trial seeds, all >= {TRAIN_SEED_START} (default %(default)s)")
-    p.add_argument("--iterations", type=int, default=30, help="CMA-ES generations")
-    p.add_argument("--popsize", type=int, default=8)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--iterations", type=rule_arg(POSITIVE_INT), default=30, help="CMA-ES generations")
+    p.add_argument("--popsize", type=rule_arg(integer(2)), default=8, help="CMA-ES population (default %(default)s)")
+    p.add_argument("--seed", type=rule_arg(SEED_RULE), default=0)
     p.add_argument("--out", type=Path, default=None,
                    help="folder for RULE.json (default: the user's data directory, see magenv.registry)")
     p.add_argument("--no-progress", action="store_true")
@@ -41,10 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from magenv.baselines.tuning import tune_rule
     from magenv.scenarios import make_trial
 
-    try:
-        seeds = parse_seeds(args.seeds)
-    except ValueError as exc:
-        raise CommandError(str(exc)) from None
+    seeds = args.seeds
     if min(seeds) < TRAIN_SEED_START:
         raise CommandError(f"training seeds must be >= {TRAIN_SEED_START}; lower seeds are held out for evaluation")
     try:
