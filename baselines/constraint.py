@@ -32,23 +32,23 @@ from typing import Sequence
 
 import numpy as np
 
-from magenv.protocols import Estimate, Tunable
-from magenv.filters import constraint as cf
-from magenv.trial import Trial
-
 from magenv.envs import CONSTRAINT_ID as ENV_ID
+from magenv.envs.constraint import FEATURES
+from magenv.filters import constraint as cf
+from magenv.protocols import Estimate, Tunable
+from magenv.trial import Trial
 
 
 class _Base:
-    """Shared: lever arms and initial orientation; subclasses set ``_modes``."""
+    """Shared: lever arms and initial orientation."""
 
     name = "constraint"
 
     def __init__(self, lever_i=None, lever_j=None, q0=None):
         self.lever_i, self.lever_j, self.q0 = lever_i, lever_j, q0
 
-    def _runner(self, trial: Trial, **kw) -> cf.ConstraintRunner:
-        return cf.ConstraintRunner(trial, self.lever_i, self.lever_j, q0=self.q0, **kw)
+    def _filter(self, trial: Trial, **kw) -> cf.ConstraintFilter:
+        return cf.ConstraintFilter(trial, self.lever_i, self.lever_j, q0=self.q0, **kw)
 
 
 class Strapdown(_Base):
@@ -57,8 +57,7 @@ class Strapdown(_Base):
     name = "strapdown"
 
     def run(self, trial: Trial) -> Estimate:
-        r = self._runner(trial)
-        return Estimate(q=r.run_all(0.0, 0.0).copy(), trust=np.zeros(trial.n))
+        return Estimate(q=self._filter(trial).run(0.0, 0.0).est, trust=np.zeros(trial.n))
 
 
 class ConventionalCF(Tunable, _Base):
@@ -74,8 +73,7 @@ class ConventionalCF(Tunable, _Base):
         self.k = float(k)
 
     def run(self, trial: Trial) -> Estimate:
-        r = self._runner(trial)
-        return Estimate(q=r.run_all(0.0, self.k).copy(), trust=np.ones(trial.n))
+        return Estimate(q=self._filter(trial).run(0.0, self.k).est, trust=np.ones(trial.n))
 
 
 class ConstraintCF(Tunable, _Base):
@@ -97,9 +95,8 @@ class ConstraintCF(Tunable, _Base):
         self.k_min, self.k_max = float(min(k_min, k_max)), float(max(k_min, k_max))
 
     def run(self, trial: Trial) -> Estimate:
-        r = self._runner(trial, use_constraint=self.use_constraint, **self.params)
-        est = r.run_all(cf.BY_RULE, cf.BY_RULE)
-        return Estimate(q=est.copy(), trust=1.0 - r.w)
+        trace = self._filter(trial, use_constraint=self.use_constraint, **self.params).run()  # eqs. 16 and 18
+        return Estimate(q=trace.est, trust=1.0 - trace.weight)
 
     def __repr__(self) -> str:
         extra = "" if self.use_constraint else ", use_constraint=False"
@@ -135,7 +132,7 @@ class ConstraintWeightRule(Tunable):
         self.control_gain = bool(control_gain)
         self.gain_max = float(gain_max)
         self.gain_params = (float(th2), float(th3), float(k_min), float(k_max))
-        self.features = tuple(cf.FEATURE_NAMES if features is None else features)
+        self.features = tuple(FEATURES.names if features is None else features)
         need = ("mag_dev", "step_mag", "step_con") if control_gain else ("mag_dev",)
         missing = [f for f in need if f not in self.features]
         if missing:

@@ -25,8 +25,8 @@ from typing import Sequence
 import numpy as np
 
 from magenv.envs import QSF_ID as ENV_ID
+from magenv.envs.qsf import FEATURES
 from magenv.filters import qsf
-from magenv.filters.qsf_env import FEATURE_NAMES
 from magenv.protocols import Estimate, Tunable
 from magenv.trial import Trial
 
@@ -58,7 +58,7 @@ class QSFEstimator:
     def run(self, trial: Trial) -> Estimate:
         res = qsf.run_trial(trial, mode=self.mode, detector=self.detector, init=self.init, **self.filter_kwargs)
         self.last = res
-        return Estimate(q=res.q, trust=res.sig[:, qsf.SIGNALS.index("mag_updated")].copy())
+        return Estimate(q=res.q, trust=res.sig[:, qsf.SIGNAL.mag_updated].copy())
 
 
 class DetectedDelayMAGYQ(Tunable, QSFEstimator):
@@ -101,7 +101,7 @@ class DetectorPolicy:
     env_id = ENV_ID
 
     def __init__(self, features: Sequence[str] | None = None, detector: qsf.QSFDetector | dict | None = None):
-        names = FEATURE_NAMES if features is None else tuple(features)
+        names = FEATURES.names if features is None else tuple(features)
         for f in ("det_start", "det_keep", "active"):
             if f not in names:
                 raise ValueError(f"DetectorPolicy needs the observation feature {f!r}")

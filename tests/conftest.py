@@ -157,3 +157,15 @@ def check_with_checkers(env_id: str, env_class, **kwargs) -> None:
     check_env(gym.make(env_id, **kwargs).unwrapped, skip_render_check=True)
     with pytest.warns(UserWarning, match="symmetric"):
         sb3_check_env(env_class(**kwargs), warn=True)
+
+
+def check_feature_table(env, table) -> None:
+    """With all features, ``env``'s observation is ``table`` (names, float32 bounds) and its class docstring
+    shows ``table.markdown()`` in place of the ``{observation_table}`` placeholder."""
+    doc = type(env).__doc__
+    assert env.features == table.names
+    np.testing.assert_array_equal(env.observation_space.low, table.low)
+    np.testing.assert_array_equal(env.observation_space.high, table.high)
+    assert "{observation_table}" not in doc
+    for row in table.markdown().splitlines():
+        assert row in doc

@@ -1,5 +1,5 @@
 """The constraint filter (``magenv.filters.constraint``), its estimators and policy
-(``magenv.baselines.constraint``) and ``magenv/MagConstraint-v0``."""
+(``magenv.baselines.constraint``) and ``magenv/MagConstraint-v0`` (``magenv.envs.constraint``)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from magenv import metrics, registry
 from magenv import quaternion as quat
 from magenv.envs.constraint import MagConstraintEnv
 from magenv.filters import constraint as cf
-from tests.conftest import check_seeded_replay, check_with_checkers, kinematic_trial
+from tests.conftest import check_feature_table, check_seeded_replay, check_with_checkers, kinematic_trial
 
 ENV_ID = "magenv/MagConstraint-v0"
 if ENV_ID not in gym.registry:  # until the lead adds it to magenv/__init__.py
@@ -60,11 +60,12 @@ def test_one_gauss_newton_step_recovers_the_orientation(w):
     a_s, m_s, h_s = (quat.rotate_inv(q_true, v) for v in (u, n, p))
     q0 = quat.mul(quat.from_rotvec(np.deg2rad(10.0) * np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])), q_true)
     dq = np.zeros(4)
-    step = cf.gn_step(q0, a_s, m_s, h_s, u, n, p, w, 1.0, np.zeros((9, 4)), dq)
+    seen, ref = cf.Directions(a_s, m_s, h_s), cf.Directions(u, n, p)
+    step = cf.gn_step(q0, seen, ref, w, 1.0, np.zeros((9, 4)), dq)
     assert 0.01 < step < 1.0
     q1 = quat.normalize(q0 + dq)
     assert metrics.total_error(metrics.error_quaternion(q1, q_true)) < 1.0
-    cf.gn_step(q1, a_s, m_s, h_s, u, n, p, w, 1.0, np.zeros((9, 4)), dq)
+    cf.gn_step(q1, seen, ref, w, 1.0, np.zeros((9, 4)), dq)
     assert metrics.total_error(metrics.error_quaternion(quat.normalize(q1 + dq), q_true)) < 0.01
 
 
@@ -76,7 +77,8 @@ def test_constraint_alone_leaves_heading_unobservable_when_joint_still():
     m_s = quat.rotate_inv(q_true, quat.earth_field(46.0, 49.6) / 46.0)
     q0 = quat.mul(quat.from_euler_zyx(0.2, 0.0, 0.0), q_true)  # 11° off in heading only
     dq = np.zeros(4)
-    cf.gn_step(q0, a_s, m_s, h_s, u, quat.earth_field(46.0, 49.6) / 46.0, u, 1.0, 1.0, np.zeros((9, 4)), dq)
+    ref = cf.Directions(u, quat.earth_field(46.0, 49.6) / 46.0, u)
+    cf.gn_step(q0, cf.Directions(a_s, m_s, h_s), ref, 1.0, 1.0, np.zeros((9, 4)), dq)
     fixed = quat.normalize(q0 + dq)
     assert metrics.heading_error(metrics.error_quaternion(fixed, q_true)) == pytest.approx(
         metrics.heading_error(metrics.error_quaternion(q0, q_true)), abs=1e-3)
@@ -125,9 +127,9 @@ def test_constraint_alone_carries_heading():
     gravity_only = np.ascontiguousarray(quat.rotate_inv(tr.q_true, np.tile(quat.gravity_up(), (tr.n, 1))))
     heading = {}
     for use in (True, False):
-        runner = cf.ConstraintRunner(tr, q0=_off(tr, 30.0), use_constraint=use)
-        runner.acc = gravity_only  # h_i was built from the real accelerometer
-        heading[use] = metrics.score(runner.run_all(1.0, cf.K_MAX)[late], tr.q_true[late]).heading
+        filt = cf.ConstraintFilter(tr, q0=_off(tr, 30.0), use_constraint=use)
+        filt.inputs = filt.inputs._replace(acc=gravity_only)  # h_i was built from the real accelerometer
+        heading[use] = metrics.score(filt.run(1.0, cf.K_MAX).est[late], tr.q_true[late]).heading
     assert heading[True] < 3.0
     assert heading[False] > 20.0
 
@@ -271,10 +273,10 @@ def test_weight_one_ignores_the_magnetometer(short_trials):
     tr = short_trials[0]
     bad = dataclasses.replace(tr, mag=tr.mag + np.array([30.0, -20.0, 10.0]))
     q0 = tr.q_true[0]
-    a = cf.ConstraintRunner(tr, q0=q0).run_all(1.0, 0.2)
-    b = cf.ConstraintRunner(bad, q0=q0).run_all(1.0, 0.2)
+    a = cf.ConstraintFilter(tr, q0=q0).run(1.0, 0.2).est
+    b = cf.ConstraintFilter(bad, q0=q0).run(1.0, 0.2).est
     np.testing.assert_allclose(a, b, atol=1e-12)
-    c = cf.ConstraintRunner(bad, q0=q0).run_all(0.0, 0.2)
+    c = cf.ConstraintFilter(bad, q0=q0).run(0.0, 0.2).est
     assert np.max(np.abs(c - a)) > 1e-3
 
 
@@ -315,3 +317,41 @@ def test_evaluation_runs_estimators_and_the_policy(short_trials):
     est, pol = runs
     assert est.score.total == pytest.approx(pol.score.total, abs=1e-3)
     np.testing.assert_allclose(pol.trust, est.trust, atol=1e-5)  # both the magnetometer's weight 1 − w
+
+
+# ------------------------------------------------------------------ structure
+
+
+def test_feature_table_is_the_observation_and_the_docs():
+    from magenv.envs import constraint as ec
+
+    check_feature_table(MagConstraintEnv(scenario=[cs.make_trial("constraint_test2", 0, duration=8.0)]), ec.FEATURES)
+    assert [getattr(ec.F, name) for name in ec.FEATURES.names] == list(range(len(ec.FEATURES)))
+    assert ec.FEATURES.high[ec.F.step_mag] == cf.STEP_ABNORMAL  # the bound eq. 18 gives, written once
+    assert bc.ConstraintWeightRule().features == ec.FEATURES.names  # the baseline reads the env's layout
+
+
+def test_filter_module_holds_the_estimator_only():
+    for name in ("FEATURES", "ConstraintRunner", "advance", "BY_RULE", "FROM_ARRAY", "N_PARAMS"):
+        assert not hasattr(cf, name)
+
+
+def test_named_parameters_state_and_trace(short_trials):
+    tr = short_trials[0]
+    filt = cf.ConstraintFilter(tr, th1=0.3)
+    p = filt.params
+    assert isinstance(p, cf.Params) and p.th1 == 0.3 and p.dt == tr.dt and p.field_norm == tr.field_norm
+    np.testing.assert_allclose(np.array(p.field_dir) * tr.field_norm, quat.earth_field(tr.field_norm, tr.field_dip))
+    assert cf.Control.of() == cf.Control(0.0, 0.0, True, True)  # None: the paper's rules
+    assert cf.Control.of(0.4, 0.1) == cf.Control(0.4, 0.1, False, False)
+    trace = cf.Trace.empty(tr.n)
+    q = filt.q0.copy()
+    cf.fuse(p, q, filt.inputs, cf.Control.of(), 0, 100, trace)  # a first part, then the rest …
+    cf.fuse(p, q, filt.inputs, cf.Control.of(), 100, tr.n, trace)
+    whole = filt.run()  # … equals the whole trial at once
+    for a, b in zip(trace, whole):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(q, whole.est[-1])
+    assert np.all((whole.weight >= 0) & (whole.weight <= 1)) and np.all(whole.gain <= cf.K_MAX)
+    with pytest.raises(ValueError, match="th1"):
+        cf.ConstraintFilter(tr, th1=0.0)

@@ -16,7 +16,7 @@ from magenv.filters import qsf
 from magenv.filters.kalman_threshold import FilterError
 from magenv.trial import Trial
 
-from conftest import kinematic_trial
+from conftest import check_feature_table, kinematic_trial
 
 FIELD = (46.0, 49.6)
 
@@ -33,6 +33,12 @@ def _static_trial(n=2000, rate=100.0, disturbance=(10.0, -5.0, 3.0), seed=0):
 
 def _run(trial, mode, **kw):
     return qsf.run_trial(trial, mode=mode, sigma_gyr=np.deg2rad(0.5), **kw)
+
+
+def _still_inputs(action: int) -> qsf.Inputs:
+    """Two samples at rest, level and facing north (zero rate, gravity, the Earth field), trust 1."""
+    return qsf.Inputs(np.zeros((2, 3)), np.tile(quat.gravity_up(), (2, 1)), np.tile(quat.earth_field(*FIELD), (2, 1)),
+                      np.full(2, action, np.int8), np.ones(2))
 
 
 # ------------------------------------------------------------ maths
@@ -127,9 +133,9 @@ def test_period_that_never_ends_stays_healthy():
     act = np.full(tr.n, qsf.MAG_KEEP, np.int8)
     act[0] = qsf.MAG_START
     params = qsf.make_params(*FIELD, mode="delay_magyq", sigma_gyr=np.deg2rad(0.5), max_age_s=1e6)
-    x, pa, ref = qsf.initial_state(tr.q_true[0], tr.dt)
-    q_out, sig = np.empty((tr.n, 4)), np.zeros((tr.n, qsf.NSIG))
-    repairs = qsf.run(x, pa, ref, tr.gyr, tr.acc, tr.mag, tr.dt, 0, tr.n, act, np.ones(tr.n), params, q_out, sig)
+    state, out = qsf.initial_state(tr.q_true[0], tr.dt), qsf.Outputs.empty(tr.n)
+    repairs = qsf.run(params, state, qsf.Inputs(tr.gyr, tr.acc, tr.mag, act, np.ones(tr.n)), tr.dt, 0, tr.n, out)
+    q_out, sig, pa = out.q, out.sig, state.cov
     assert np.all(np.isfinite(q_out)) and np.all(sig[:, 0] == 1.0)
     assert sig[-1, qsf.SIGNALS.index("age")] == pytest.approx(tr.duration - tr.dt)
     np.testing.assert_array_equal(pa, pa.T)
@@ -149,12 +155,12 @@ def test_max_age_restarts_a_period():
 
 def test_broken_covariance_is_repaired_not_nan():
     params = qsf.make_params(*FIELD, mode="aekf")
-    x, pa, ref = qsf.initial_state(np.array([1.0, 0, 0, 0]), 0.01)
+    state = qsf.initial_state(np.array([1.0, 0, 0, 0]), 0.01)
+    x, pa = state.x, state.cov
     pa[:11, :11] -= 1e-3 * np.eye(11)  # no longer positive definite
     pa[0, 1] += 1e-4  # nor symmetric
-    sig = np.zeros(qsf.NSIG)
-    z3 = np.zeros(3)
-    st = qsf.step1(x, pa, ref, z3, z3, quat.gravity_up(), quat.earth_field(*FIELD), 0.01, True, 0, 1.0, params, sig)
+    sig = np.zeros(qsf.N_SIGNALS)
+    st = qsf.step1(params, state, _still_inputs(action=0), 1, 0.01, sig)
     assert st == 1
     np.testing.assert_array_equal(pa, pa.T)
     assert np.linalg.eigvalsh(pa[:11, :11]).min() > 0.0 and np.all(np.isfinite(x))
@@ -166,18 +172,17 @@ def test_non_finite_input_fails_loudly():
     with pytest.raises(ValueError, match="finite"):  # the detector refuses it first
         qsf.run_trial(tr, mode="delay_magyq")
     params = qsf.make_params(*FIELD, mode="magyq")
-    x, pa, ref = qsf.initial_state(tr.q_true[0], tr.dt)
+    state = qsf.initial_state(tr.q_true[0], tr.dt)
+    x, pa = state.x, state.cov
     with pytest.raises(FilterError, match="sample 50"):
-        qsf.run(x, pa, ref, tr.gyr, tr.acc, tr.mag, tr.dt, 0, tr.n, np.full(tr.n, 2, np.int8), np.ones(tr.n),
-                params, np.empty((tr.n, 4)), np.zeros((tr.n, qsf.NSIG)))
+        qsf.run(params, state, qsf.Inputs(tr.gyr, tr.acc, tr.mag, np.full(tr.n, 2, np.int8), np.ones(tr.n)), tr.dt,
+                0, tr.n, qsf.Outputs.empty(tr.n))
     assert np.all(np.isfinite(x)) and np.all(np.isfinite(pa))  # state left at sample 49
     params = qsf.make_params(*FIELD)
-    x, pa, ref = qsf.initial_state(np.array([1.0, 0, 0, 0]), 0.01)
-    pa[0, 0] = np.inf
-    sig = np.zeros(qsf.NSIG)
-    z3 = np.zeros(3)
-    assert qsf.step1(x, pa, ref, z3, z3, quat.gravity_up(), quat.earth_field(*FIELD), 0.01, True, 2, 1.0, params,
-                     sig) == -1
+    state = qsf.initial_state(np.array([1.0, 0, 0, 0]), 0.01)
+    state.cov[0, 0] = np.inf
+    sig = np.zeros(qsf.N_SIGNALS)
+    assert qsf.step1(params, state, _still_inputs(action=2), 1, 0.01, sig) == -1
 
 
 def test_bad_parameters_raise():
@@ -395,3 +400,50 @@ def test_last_observation_reports_the_last_step():
         trust = 0.9 if trust != 0.9 else 0.3
         obs, _, _, done, _ = env.step(np.array([0.0, trust], np.float32))
     assert dict(zip(env.features, obs))["trust_prev"] == pytest.approx(trust)
+
+
+# ------------------------------------------------------------ structure
+
+
+def test_feature_table_is_the_observation_and_the_docs():
+    from magenv.envs import qsf as eq
+
+    check_feature_table(MagQSFEnv(scenario=[_env_trial()]), eq.FEATURES)
+    policy = DetectorPolicy()  # reads the layout from the env module
+    assert policy._i == {f: eq.FEATURES.index(f) for f in ("det_start", "det_keep", "active")}
+
+
+def test_filters_hold_estimators_only():
+    import importlib
+
+    with pytest.raises(ImportError):
+        importlib.import_module("magenv.filters.qsf_env")
+    for name in ("FEATURES", "QSFRunner", "NX", "NA", "NREF", "NPARAM", "P_SG"):
+        assert not hasattr(qsf, name)
+
+
+def test_named_parameters_state_and_signals():
+    p = qsf.make_params(*FIELD, mode="magyq", sigma_mag=2.0, update_reference=False)
+    assert isinstance(p, qsf.Params) and p.mode == qsf.MODE_MAGYQ and p.sigma_mag == 2.0
+    assert not p.update_reference and p.sigma_acc == pytest.approx(0.1 * quat.GRAVITY)
+    np.testing.assert_array_equal(p.earth_field, quat.earth_field(*FIELD))
+    state = qsf.initial_state(quat.from_euler_zyx(0.3, 0.0, 0.0), 0.01)
+    assert state.x.shape == (qsf.N_AUGMENTED,) and state.cov.shape == (qsf.N_AUGMENTED, qsf.N_AUGMENTED)
+    np.testing.assert_allclose(state.x[qsf.ORIENTATION], quat.from_euler_zyx(0.3, 0.0, 0.0), atol=1e-15)
+    assert not state.x[qsf.N_STATE:].any() and not state.cov[qsf.CLONE].any()
+    assert not state.period_active[0] and state.period_age[0] == 0.0
+    assert [getattr(qsf.SIGNAL, s) for s in qsf.SIGNALS] == list(range(qsf.N_SIGNALS))
+    tr = _static_trial(n=300)
+    act = np.full(tr.n, qsf.MAG_KEEP, np.int8)
+    act[0] = qsf.MAG_START
+    res = qsf.run_trial(tr, mode="delay_magyq", actions=act)
+    p = qsf.make_params(*FIELD)
+    state = qsf.initial_state(qsf.initial_orientation(tr, "auto", p), tr.dt)
+    inputs, out = qsf.Inputs(tr.gyr, tr.acc, tr.mag, act, np.ones(tr.n)), qsf.Outputs.empty(tr.n)
+    qsf.run(p, state, inputs, tr.dt, 0, 120, out)  # in two parts, as the env steps …
+    qsf.run(p, state, inputs, tr.dt, 120, tr.n, out)
+    np.testing.assert_array_equal(out.q, res.q)  # … equals the whole trial
+    np.testing.assert_array_equal(out.sig, res.sig)
+    assert state.period_active[0] and state.period_age[0] == pytest.approx((tr.n - 1) * tr.dt)
+    np.testing.assert_array_equal(state.mag_t0, tr.mag[0])
+    assert state.cov[qsf.CLONE, qsf.CLONE].any()  # Delay MAGYQ: the clone block is live during a period

@@ -1,18 +1,169 @@
-"""``magenv/MagConstraint-v0``: weigh a kinematic constraint against the magnetometer (Jung & Lee 2019)."""
+"""``magenv/MagConstraint-v0``: weigh a kinematic constraint against the magnetometer (Jung & Lee 2019).
+
+The env module owns the runner, the observation features and the reward of one
+decision; the filter itself (eqs. 4–18) is ``magenv.filters.constraint``.
+:func:`advance` is the env's one kernel: it fuses samples ``start:stop`` with
+``magenv.filters.constraint.fuse``, sums the interval's errors against truth
+(``magenv.metrics.error_sums``) and computes the observation of the next sample
+j = ``stop`` with the current estimate q_{j−1}, so eq. 16 as a policy with one
+decision per sample reproduces the paper's filter.
+"""
 
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 from typing import Sequence
 
+import numba
 import numpy as np
+from numba import njit
 
 from magenv.envs import CONSTRAINT_ID
 from magenv.envs.common import LoopVectorEnv, TrustEnv
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import constraint as cf
+from magenv.filters.common import TrialRunner
+from magenv.metrics import N_ERR, error_sums
+from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
 
+WINDOW = "the samples fused in the last step and sample j"
+FEATURES = FeatureTable(
+    Feature("mag_dev", 0.0, 10.0, "fraction of m0", "‖C(q)y_M − m_E‖/m0: eq. 16's field deviation"),
+    Feature("norm_dev", -1.0, 10.0, "fraction of m0", "(‖y_M‖ − m0)/m0"),
+    Feature("dip_dev", -2.0, 2.0, f"units of {DIP_SCALE_DEG:g}°", "dip of C(q)y_M minus the undisturbed dip"),
+    Feature("con_mismatch", 0.0, 10.0, "units of g",
+            "‖C(q)h_i − C(q_j)h_j‖: joint-centre acceleration mismatch (eq. 9)"),
+    Feature("joint_acc", 0.0, 10.0, "units of g",
+            "‖C(q_j)h_j − g·up‖: joint-centre free acceleration seen from link j"),
+    Feature("gyro_norm", 0.0, 10.0, "units of 2π rad/s", "‖ω_i‖ of link i's gyroscope"),
+    Feature("acc_dev", -1.0, 10.0, "fraction of g", "(‖y_A‖ − g)/g of link i's accelerometer"),
+    Feature("step_mag", 0.0, cf.STEP_ABNORMAL, "quaternion units", "step with w = 0 (gravity + magnetometer)"),
+    Feature("step_con", 0.0, cf.STEP_ABNORMAL, "quaternion units", "step with w = 1 (gravity + constraint)"),
+    Feature("con_heading", -1.0, 1.0, "units of 180°",
+            "heading of C(q)h_i minus heading of C(q_j)h_j (about ENU up)"),
+    Feature("w_prev", 0.0, 1.0, "–", "w applied in the last step (0 after reset)"),
+    Feature("k_prev", 0.0, 1.0, "–", "k applied to the last fused sample (0 after reset)"),
+    Feature("mag_dev_mean", 0.0, 10.0, "fraction of m0", f"mean `mag_dev` over {WINDOW}"),
+)
+F = namedtuple("FeatureIndex", FEATURES.names)(*range(len(FEATURES)))  # F.mag_dev == 0, … (kernel indices)
+_LOW = FEATURES.low.astype(np.float64)
+_HIGH = FEATURES.high.astype(np.float64)
 
+
+@njit(cache=True, inline="always")
+def _clip(x, i):
+    """Feature value ``x`` clipped to the range of feature ``i``."""
+    return min(max(x, _LOW[i]), _HIGH[i])
+
+
+@njit(cache=True, inline="always")
+def _heading_of(v):
+    """Heading of an ENU vector about up, rad (0 = north, + = east)."""
+    return np.arctan2(v[0], v[1])
+
+
+@njit(cache=True)
+def advance(p, q, inputs, control, start, stop, trace, q_true, dist, err, feat):
+    """Fuse samples ``start:stop`` (``magenv.filters.constraint.fuse``), then the observation of sample ``stop``.
+
+    Args:
+        p, q, inputs, control, trace: as ``magenv.filters.constraint.fuse`` (q updated, trace rows written).
+        q_true: (N, 4) truth for the error sums (NaN rows allowed); dist: (N,) µT, summed into err.
+        err: (N_ERR,) set to the interval's error sums (``magenv.metrics.E_*``).
+        feat: (len(FEATURES),) set to the observation of sample ``stop`` (the last sample at the end).
+    """
+    cf.fuse(p, q, inputs, control, start, stop, trace)
+    error_sums(trace.est, q_true, dist, start, stop, err)  # against truth, as magenv.metrics
+    _features(p, inputs, q, trace, start, stop, feat)
+
+
+@njit(cache=True)
+def _features(p, inputs, q, trace, start, stop, feat):
+    gyr, acc, mag, h_i, c_j = inputs.gyr, inputs.acc, inputs.mag, inputs.joint_i, inputs.joint_j
+    n = gyr.shape[0]
+    j = stop if stop < n else n - 1
+    m0 = p.field_norm
+    dev, mE = cf.mag_deviation(q, mag[j], p)
+    mn = np.sqrt(mag[j, 0] ** 2 + mag[j, 1] ** 2 + mag[j, 2] ** 2)
+    feat[F.mag_dev] = _clip(dev, F.mag_dev)
+    feat[F.norm_dev] = _clip((mn - m0) / m0, F.norm_dev)
+    dip = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -mE[2] / mn)))) if mn > 0 else 0.0
+    dip0 = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -p.field_dir[2]))))
+    feat[F.dip_dev] = _clip((dip - dip0) / DIP_SCALE_DEG, F.dip_dev)
+    ch = rotate1(q, h_i[j])
+    mis = np.sqrt((ch[0] - c_j[j, 0]) ** 2 + (ch[1] - c_j[j, 1]) ** 2 + (ch[2] - c_j[j, 2]) ** 2)
+    feat[F.con_mismatch] = _clip(mis / GRAVITY, F.con_mismatch)
+    ja = np.sqrt(c_j[j, 0] ** 2 + c_j[j, 1] ** 2 + (c_j[j, 2] - GRAVITY) ** 2)
+    feat[F.joint_acc] = _clip(ja / GRAVITY, F.joint_acc)
+    feat[F.gyro_norm] = _clip(np.sqrt(gyr[j, 0] ** 2 + gyr[j, 1] ** 2 + gyr[j, 2] ** 2) / GYRO_SCALE, F.gyro_norm)
+    an = np.sqrt(acc[j, 0] ** 2 + acc[j, 1] ** 2 + acc[j, 2] ** 2)
+    feat[F.acc_dev] = _clip((an - GRAVITY) / GRAVITY, F.acc_dev)
+    seen, ref, con = cf.directions(p, inputs, j)
+    jac, dq = np.empty((9, 4)), np.zeros(4)
+    s_mag = cf.gn_step(q, seen, ref, 0.0, con, jac, dq)
+    s_con = cf.gn_step(q, seen, ref, 1.0, con, jac, dq)
+    feat[F.step_mag] = _clip(s_mag, F.step_mag) if np.isfinite(s_mag) else _HIGH[F.step_mag]
+    feat[F.step_con] = _clip(s_con, F.step_con) if np.isfinite(s_con) else _HIGH[F.step_con]
+    # heading (about ENU up) of the joint-centre acceleration seen from link i minus from link j
+    dh = _heading_of(ch) - _heading_of(c_j[j])
+    dh = (dh + np.pi) % (2.0 * np.pi) - np.pi
+    feat[F.con_heading] = dh / np.pi
+    feat[F.w_prev] = trace.weight[stop - 1] if stop > 0 else 0.0
+    feat[F.k_prev] = _clip(trace.gain[stop - 1], F.k_prev) if stop > 0 else 0.0
+    s = dev
+    for i in range(start, stop):
+        s += trace.mag_dev[i]
+    feat[F.mag_dev_mean] = _clip(s / (stop - start + 1), F.mag_dev_mean)
+
+
+class ConstraintRunner(TrialRunner):
+    """One two-link trial under link i's filter, stepped k samples at a time (the ``MagConstraint-v0`` runner).
+
+    Args:
+        trial: a two-link Trial; ``filter_kwargs``: those of ``magenv.filters.constraint.ConstraintFilter``
+            (lever arms, th1 … k_max, q0, use_constraint). Raises ``MissingChannelsError`` if the trial
+            lacks link j's channels or the lever arms.
+
+    Attributes as the other runners (``magenv.envs.common.TrustEnv``): ``feat``, ``err``, ``pos``,
+    ``last_count``, ``has_dist``, ``est`` (N, 4), ``q_true``; and ``filter`` (the ``ConstraintFilter``),
+    ``q`` (4,) the current estimate, ``trace`` (``magenv.filters.constraint.Trace``) the per-sample w, k, …
+    """
+
+    def __init__(self, trial: Trial, **filter_kwargs):
+        self.filter = cf.ConstraintFilter(trial, **filter_kwargs)  # checks link j's channels
+        self.trial = trial
+        n = trial.n
+        self.q = self.filter.q0.copy()
+        self.trace = cf.Trace.empty(n)
+        self.est, self.q_true = self.trace.est, trial.q_true
+        dist = trial.truth.get("mag_disturbance")
+        self.has_dist = dist is not None
+        self.dist = np.ascontiguousarray(np.linalg.norm(np.asarray(dist, float), axis=-1) if self.has_dist
+                                         else np.zeros(n))
+        self.err = np.zeros(N_ERR)
+        self.feat = np.zeros(len(FEATURES))
+        self.pos = 0
+        self.last_count = 0
+        self._filter_args = (self.filter.params, self.q, self.filter.inputs)
+        self._outputs = (self.trace, self.q_true, self.dist, self.err, self.feat)
+        args = (*self._filter_args, cf.Control.of(0.0, 0.0), 0, 0, *self._outputs)
+        # the compiled kernel for these types, called without numba's per-call type dispatch
+        self._advance = advance.compile(tuple(numba.typeof(a) for a in args))
+        self._advance(*args)  # observation of sample 0
+
+    def advance(self, count: int, w: float, k: float | None = None) -> int:
+        """Fuse the next ``count`` samples (fewer at the end) with weight w ∈ [0, 1] and gain k ≥ 0
+        (None: eq. 18); returns the samples fused."""
+        stop = min(self.pos + int(count), self.trial.n)
+        self._advance(*self._filter_args, cf.Control.of(w, k), self.pos, stop, *self._outputs)
+        self.last_count = stop - self.pos
+        self.pos = stop
+        return self.last_count
+
+
+@document(FEATURES)
 class MagConstraintEnv(TrustEnv):
     """
     ## Description
@@ -52,21 +203,7 @@ class MagConstraintEnv(TrustEnv):
     vectors of eq. 9 (sensor frames), q_j link j's given orientation.
     "Step" is ‖Δq‖ of eq. 14 at q for sample j. Values are clipped to range.
 
-    | Num | Name           | Meaning                                                              | Unit / scale      | Min | Max |
-    |-----|----------------|----------------------------------------------------------------------|-------------------|-----|-----|
-    | 0   | `mag_dev`      | ‖C(q)y_M − m_E‖/m0: eq. 16's field deviation                         | fraction of m0    | 0   | 10  |
-    | 1   | `norm_dev`     | (‖y_M‖ − m0)/m0                                                      | fraction of m0    | -1  | 10  |
-    | 2   | `dip_dev`      | dip of C(q)y_M minus the undisturbed dip                             | units of 90°      | -2  | 2   |
-    | 3   | `con_mismatch` | ‖C(q)h_i − C(q_j)h_j‖: joint-centre acceleration mismatch (eq. 9)   | units of g        | 0   | 10  |
-    | 4   | `joint_acc`    | ‖C(q_j)h_j − g·up‖: joint-centre free acceleration seen from link j | units of g        | 0   | 10  |
-    | 5   | `gyro_norm`    | ‖ω_i‖ of link i's gyroscope                                          | units of 2π rad/s | 0   | 10  |
-    | 6   | `acc_dev`      | (‖y_A‖ − g)/g of link i's accelerometer                              | fraction of g     | -1  | 10  |
-    | 7   | `step_mag`     | step with w = 0 (gravity + magnetometer)                             | quaternion units  | 0   | 10  |
-    | 8   | `step_con`     | step with w = 1 (gravity + constraint)                               | quaternion units  | 0   | 10  |
-    | 9   | `con_heading`  | heading of C(q)h_i minus heading of C(q_j)h_j (about ENU up)         | units of 180°     | -1  | 1   |
-    | 10  | `w_prev`       | w applied in the last step (0 after reset)                           | –                 | 0   | 1   |
-    | 11  | `k_prev`       | k applied to the last fused sample (0 after reset)                   | –                 | 0   | 1   |
-    | 12  | `mag_dev_mean` | mean `mag_dev` over the samples fused in the last step and sample j | fraction of m0    | 0   | 10  |
+    {observation_table}
 
     ## Rewards
 
@@ -122,16 +259,16 @@ class MagConstraintEnv(TrustEnv):
         if not (math.isfinite(gain_max) and gain_max > 0):
             raise ValueError(f"gain_max must be a positive number, got {gain_max!r}")
         self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    cf.FEATURE_NAMES, cf.FEATURE_LOW, cf.FEATURE_HIGH, 2 if control_gain else 1,
+                    FEATURES.names, FEATURES.low, FEATURES.high, 2 if control_gain else 1,
                     world="twolink", require=cf.require_two_link)
         self.control_gain = bool(control_gain)
         self.gain_max = float(gain_max)
         self.filter_kwargs = dict(th2=float(th2), th3=float(th3), k_min=float(k_min), k_max=float(k_max))
 
-    def _make_runner(self, trial: Trial) -> cf.ConstraintRunner:
-        return cf.ConstraintRunner(trial, **self.filter_kwargs)  # checks link j's channels
+    def _make_runner(self, trial: Trial) -> ConstraintRunner:
+        return ConstraintRunner(trial, **self.filter_kwargs)  # checks link j's channels
 
-    def _action(self, action) -> tuple[float, float, bool]:
+    def _action(self, action) -> tuple[float, float | None, bool]:
         dim = self.action_space.shape[0]
         a = np.asarray(action, dtype=float)
         if a.shape != (dim,) and not (dim == 1 and a.shape == ()):
@@ -143,7 +280,7 @@ class MagConstraintEnv(TrustEnv):
         c = np.clip(a, 0.0, 1.0)
         clipped = bool(np.any(c != a))
         w = float(c[0])
-        k = float(c[1]) * self.gain_max if self.control_gain else cf.BY_RULE
+        k = float(c[1]) * self.gain_max if self.control_gain else None  # None: eq. 18
         return w, k, clipped
 
     def step(self, action):
@@ -151,7 +288,7 @@ class MagConstraintEnv(TrustEnv):
         w, k, clipped = self._action(action)
         start = runner.pos
         runner.advance(self.k_steps, w, k)
-        return self._step_result(runner, {"w": w, "k": float(np.mean(runner.k[start:runner.pos])),
+        return self._step_result(runner, {"w": w, "k": float(np.mean(runner.trace.gain[start:runner.pos])),
                                           "action_clipped": clipped})
 
     # ------------------------------------------------------------ evaluation access
@@ -159,12 +296,12 @@ class MagConstraintEnv(TrustEnv):
     @property
     def weights(self) -> np.ndarray:
         """(N,) constraint weight w per sample (NaN where not fused yet)."""
-        return self._need_reset().w
+        return self._need_reset().trace.weight
 
     @property
     def gains(self) -> np.ndarray:
         """(N,) gain k per sample (NaN where not fused yet)."""
-        return self._need_reset().k
+        return self._need_reset().trace.gain
 
     @property
     def lambdas(self) -> np.ndarray:

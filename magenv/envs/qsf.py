@@ -1,18 +1,60 @@
-"""``magenv/MagQSF-v0``: decide when the magnetic field is quasi-static and how far to trust it (Delay MAGYQ)."""
+"""``magenv/MagQSF-v0``: decide when the magnetic field is quasi-static and how far to trust it (Delay MAGYQ).
+
+The env module owns the runner, the observation features and the reward of one
+decision; the filters and the QSF detector are ``magenv.filters.qsf``.
+:class:`QSFRunner` holds one trial, the filter state and the detector's codes
+and spread (computed once at reset: they depend on the sensors only, row j on
+samples ≤ j). ``advance`` fuses the next samples with one decision (none /
+start / keep) and one trust, sums the errors against truth
+(``magenv.metrics.error_sums``) and computes the features of the next sample
+j (read before it is fused).
+
+Features are dimensionless so that one scale suits every site: field
+quantities in units of the filter's magnetometer noise σ_m (µT) or of the
+detector threshold, the dip deviation in units of 90°, the gyro in
+revolutions per second (the heading std stays in rad).
+"""
 
 from __future__ import annotations
 
+import math
+from collections import namedtuple
 from typing import Sequence
 
+import numba
 import numpy as np
 from gymnasium import spaces
 
 from magenv.envs import QSF_ID
 from magenv.envs.common import LoopVectorEnv, TrustEnv
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import qsf
-from magenv.filters.qsf_env import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, VARIANTS, QSFRunner
+from magenv.filters.common import TrialRunner
+from magenv.filters.qsf import SIGNAL
+from magenv.metrics import N_ERR, error_sums
+from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
 
+AGE_SCALE_S = 10.0  # period age in units of 10 s
+FEATURES = FeatureTable(
+    Feature("spread", 0.0, 100.0, "th_spread",
+            "RMS spread of the gyro-frame field over the detector window (0 while it fills)"),
+    Feature("det_start", 0.0, 1.0, "0/1", "the detector would start a period at j"),
+    Feature("det_keep", 0.0, 1.0, "0/1", "the detector would continue its period at j"),
+    Feature("ref_mismatch", 0.0, 100.0, "σ_m", "‖m_ref − q̂ m_j q̂*‖ (0 without period)"),
+    Feature("innov_norm", 0.0, 100.0, "σ_m", "‖δz‖ (eq. 9) of the last fused sample"),
+    Feature("log_nis", 0.0, 10.0, "–", "log10(1 + NIS) of the last fused sample"),
+    Feature("age", 0.0, 100.0, f"{AGE_SCALE_S:g} s", "time since the current period started (0 without period)"),
+    Feature("active", 0.0, 1.0, "0/1", "a QSF period is active"),
+    Feature("gyro_norm", 0.0, 10.0, "2π rad/s", "‖ω_j‖"),
+    Feature("acc_dev", -1.0, 10.0, "–", "(‖a_j‖ − g)/g"),
+    Feature("mag_norm_dev", -1.0, 20.0, "–", "(‖m_j‖ − m0)/m0"),
+    Feature("dip_dev", -2.0, 2.0, f"{DIP_SCALE_DEG:g}°", "dip of q̂ m_j q̂* in the earth frame − θ0"),
+    Feature("heading_std", 0.0, 10.0, "rad", "sqrt of the filter's heading variance"),
+    Feature("trust_prev", 0.0, 1.0, "–", "trust applied in the last step (0 after reset)"),
+)
+F = namedtuple("FeatureIndex", FEATURES.names)(*range(len(FEATURES)))  # F.spread == 0, …
+VARIANTS = ("delay_magyq", "magyq")
 DECISIONS = ("none", "start", "keep")  # indexed by the qsf.MAG_* codes
 
 
@@ -30,6 +72,97 @@ def decode_action(action) -> tuple[int, float, bool]:
     return code, trust, clipped
 
 
+class QSFRunner(TrialRunner):
+    """One trial under MAGYQ / Delay MAGYQ with per-step decisions (the ``MagQSF-v0`` runner).
+
+    Args:
+        trial: the trial (any sensor trial).
+        variant: "delay_magyq" or "magyq".
+        detector: the QSF detector whose codes and spread the features report.
+        init: the start, ``magenv.filters.qsf.initial_orientation`` ("auto", "triad" or "truth").
+        filter_kwargs: keywords of ``magenv.filters.qsf.make_params``.
+
+    Attributes as the other runners (``magenv.envs.common.TrustEnv``): ``feat``, ``err``, ``pos``,
+    ``last_count``, ``has_dist``, ``est`` (N, 4), ``q_true``; and ``params``, ``state``, ``inputs``
+    (whose ``action`` and ``trust`` hold the magnetic action code and the trust used per sample) and ``out``
+    (``magenv.filters.qsf.Params``, ``State``, ``Inputs``, ``Outputs``: ``out.sig`` the filter's signals).
+    """
+
+    def __init__(self, trial: Trial, variant: str = "delay_magyq", detector: qsf.QSFDetector | None = None,
+                 init: str = "auto", filter_kwargs: dict | None = None):
+        if variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+        self.trial = trial
+        self.params = qsf.make_params(trial.field_norm, trial.field_dip, mode=variant, **(filter_kwargs or {}))
+        self.detector = detector or qsf.QSFDetector()
+        self.codes, spread = self.detector.detect(trial.gyr, trial.mag, trial.rate)
+        self.spread = np.nan_to_num(spread, nan=0.0) / self.detector.th_spread
+        self.state = qsf.initial_state(qsf.initial_orientation(trial, init, self.params), trial.dt)
+        n = trial.n
+        self.q_true = trial.q_true
+        dist = trial.truth.get("mag_disturbance")
+        self.has_dist = dist is not None
+        self.dist = np.ascontiguousarray(np.linalg.norm(np.asarray(dist, float), axis=-1) if self.has_dist
+                                         else np.zeros(n))
+        self.inputs = qsf.Inputs(trial.gyr, trial.acc, trial.mag, np.zeros(n, np.int8), np.zeros(n))
+        self.out = qsf.Outputs.empty(n)
+        self.est = self.out.q
+        self.err = np.zeros(N_ERR)
+        self.pos = 0
+        self.last_count = 0
+        self.trust_prev = 0.0
+        self.feat = np.zeros(len(FEATURES))
+        self._args = (self.params, self.state, self.inputs, trial.dt)
+        # the compiled kernel for these types, called without numba's per-call type dispatch
+        self._run = qsf.run_kernel.compile(tuple(numba.typeof(a) for a in (*self._args, 0, 0, self.out)))
+        self._features()
+
+    def advance(self, count: int, code: int, trust: float) -> int:
+        """Fuse the next ``count`` samples (fewer at the end): ``code`` MAG_START starts a period at the first
+        of them and keeps it for the rest, MAG_KEEP keeps, MAG_NONE makes no magnetic update (and ends any
+        period); ``trust`` ∈ [0, 1] scales every magnetic gain. Returns the samples fused."""
+        tr, actions = self.trial, self.inputs.action
+        i0, i1 = self.pos, min(tr.n, self.pos + int(count))
+        actions[i0:i1] = qsf.MAG_NONE if code == qsf.MAG_NONE else qsf.MAG_KEEP
+        if code == qsf.MAG_START and i1 > i0:
+            actions[i0] = qsf.MAG_START
+        self.inputs.trust[i0:i1] = trust
+        qsf.checked(self._run(*self._args, i0, i1, self.out), self.inputs)  # FilterError on a non-finite sample
+        error_sums(self.est, self.q_true, self.dist, i0, i1, self.err)
+        self.pos, self.last_count, self.trust_prev = i1, i1 - i0, float(trust)
+        self._features()
+        return self.last_count
+
+    def _features(self) -> None:
+        """Features of sample j = pos (the last sample once all are fused) and of the last fused sample."""
+        tr, state = self.trial, self.state
+        j = min(self.pos, tr.n - 1)
+        q = state.x[qsf.ORIENTATION]
+        last = self.out.sig[self.pos - 1] if self.pos > 0 else np.zeros(qsf.N_SIGNALS)
+        active = bool(state.period_active[0])
+        m_e = rotate1(q, tr.mag[j])
+        sigma_m = self.params.sigma_mag
+        nm = float(np.linalg.norm(tr.mag[j]))
+        dip = math.degrees(math.asin(max(-1.0, min(1.0, -m_e[2] / nm)))) if nm > 0 else tr.field_dip
+        f = self.feat
+        f[F.spread] = self.spread[j]
+        f[F.det_start] = float(self.codes[j] == qsf.MAG_START)
+        f[F.det_keep] = float(self.codes[j] == qsf.MAG_KEEP)
+        f[F.ref_mismatch] = float(np.linalg.norm(state.mag_ref - m_e)) / sigma_m if active else 0.0
+        f[F.innov_norm] = last[SIGNAL.innov_norm] / sigma_m
+        f[F.log_nis] = math.log10(1.0 + last[SIGNAL.nis])
+        f[F.age] = (state.period_age[0] / AGE_SCALE_S) if active else 0.0
+        f[F.active] = float(active)
+        f[F.gyro_norm] = float(np.linalg.norm(tr.gyr[j])) / GYRO_SCALE
+        f[F.acc_dev] = (float(np.linalg.norm(tr.acc[j])) - GRAVITY) / GRAVITY
+        f[F.mag_norm_dev] = (nm - tr.field_norm) / tr.field_norm
+        f[F.dip_dev] = (dip - tr.field_dip) / DIP_SCALE_DEG
+        f[F.heading_std] = last[SIGNAL.heading_std]
+        f[F.trust_prev] = self.trust_prev
+        np.clip(f, FEATURES.low, FEATURES.high, out=f)
+
+
+@document(FEATURES)
 class MagQSFEnv(TrustEnv):
     """
     ## Description
@@ -64,26 +197,11 @@ class MagQSFEnv(TrustEnv):
     estimate. Truth never enters it. The detector (``qsf.QSFDetector``) works
     on the gyroscope and magnetometer only.
 
-    | Num | Name           | Meaning                                                     | Unit / scale  | Min  | Max  |
-    |-----|----------------|-------------------------------------------------------------|---------------|------|------|
-    | 0   | `spread`       | RMS spread of the gyro-frame field over the detector window | th_spread     | 0    | 100  |
-    | 1   | `det_start`    | the detector would start a period at j                      | 0/1           | 0    | 1    |
-    | 2   | `det_keep`     | the detector would continue its period at j                 | 0/1           | 0    | 1    |
-    | 3   | `ref_mismatch` | ‖m_ref − q̂ m_j q̂*‖ (0 without period)                       | σ_m           | 0    | 100  |
-    | 4   | `innov_norm`   | ‖δz‖ (eq. 9) of the last fused sample                       | σ_m           | 0    | 100  |
-    | 5   | `log_nis`      | log10(1 + NIS) of the last fused sample                     | –             | 0    | 10   |
-    | 6   | `age`          | time since the current period started                       | 10 s          | 0    | 100  |
-    | 7   | `active`       | a QSF period is active                                      | 0/1           | 0    | 1    |
-    | 8   | `gyro_norm`    | ‖ω_j‖                                                       | 2π rad/s      | 0    | 10   |
-    | 9   | `acc_dev`      | (‖a_j‖ − g)/g                                               | –             | -1   | 10   |
-    | 10  | `mag_norm_dev` | (‖m_j‖ − m0)/m0                                             | –             | -1   | 20   |
-    | 11  | `dip_dev`      | dip of q̂ m_j q̂* in the earth frame − θ0                     | 90°           | -2   | 2    |
-    | 12  | `heading_std`  | sqrt of the filter's heading variance                       | rad           | 0    | 10   |
-    | 13  | `trust_prev`   | trust applied in the last step (0 after reset)              | –             | 0    | 1    |
+    {observation_table}
 
     th_spread is the detector's threshold (µT), σ_m the filter's magnetometer
     noise (µT, default 0.1 m0); values are clipped to range. Features are
-    computed by ``magenv.filters.qsf_env.QSFRunner``.
+    computed by ``magenv.envs.qsf.QSFRunner``.
 
     ## Rewards
 
@@ -126,7 +244,7 @@ class MagQSFEnv(TrustEnv):
     `info` of each step: `t`, `sample`, `decision` (name), `trust`, `action_clipped`,
     `error_total` / `error_heading` / `error_inclination` (means over the step, °), `disturbance_norm`
     (mean true ‖field − Earth field‖ at the sensor, µT; NaN if unknown), `qsf_active`, `q_est`, `q_true`.
-    Per-sample arrays of the episode so far: ``estimate`` (N, 4), ``signals`` (N, NSIG), ``trust`` (N,).
+    Per-sample arrays of the episode so far: ``estimate`` (N, 4), ``signals`` (N, N_SIGNALS), ``trust`` (N,).
 
     ## Version History
 
@@ -144,7 +262,7 @@ class MagQSFEnv(TrustEnv):
         if init not in qsf.INITS:
             raise ValueError(f"init must be one of {qsf.INITS}, got {init!r}")
         self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH)
+                    FEATURES.names, FEATURES.low, FEATURES.high)
         self.action_space = spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 1.0], np.float32),
                                        dtype=np.float32)
         self.variant, self.init = variant, init
@@ -164,19 +282,19 @@ class MagQSFEnv(TrustEnv):
         code, trust, clipped = decode_action(action)
         runner.advance(self.k_steps, code, trust)
         return self._step_result(runner, {"decision": DECISIONS[code], "trust": trust, "action_clipped": clipped},
-                                 {"qsf_active": bool(runner.ref[0] > 0.5)})
+                                 {"qsf_active": bool(runner.state.period_active[0])})
 
     # ------------------------------------------------------------ evaluation access
 
     @property
     def signals(self) -> np.ndarray:
-        """(N, NSIG) per-sample filter signals (``qsf.SIGNALS``), zeros where not fused yet."""
-        return self._need_reset().sig
+        """(N, N_SIGNALS) per-sample filter signals (``qsf.SIGNALS``), zeros where not fused yet."""
+        return self._need_reset().out.sig
 
     @property
     def trust(self) -> np.ndarray:
         """(N,) trust of the magnetic update per sample (0 where none ran or not fused yet)."""
-        return self._need_reset().sig[:, qsf.SIGNALS.index("trust")]
+        return self._need_reset().out.sig[:, SIGNAL.trust]
 
 
 class MagQSFVectorEnv(LoopVectorEnv):

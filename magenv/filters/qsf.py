@@ -3,7 +3,11 @@
 One numba step kernel serves the three filters (``MODE_AEKF``, ``MODE_MAGYQ``,
 ``MODE_DELAY``); they share the state, the prediction and the accelerometer
 update and differ only in the magnetic update, so a comparison isolates the
-magnetic hypothesis.
+magnetic hypothesis. The kernels work on named structures — :class:`Params`
+(floats, by value), :class:`State` (arrays updated in place), :class:`Inputs`
+(a trial's per-sample sensors, magnetic actions and trusts) and
+:class:`Outputs` (per-sample estimate and ``SIGNALS``) — so one env, N batched
+envs or a whole offline trial (:func:`run_trial`) run the same :func:`step1`.
 
 Reading of the paper in magenv's conventions
 --------------------------------------------
@@ -86,13 +90,15 @@ starts (code 1) or, if not steady, none (code 0). Codes depend only on
 samples ≤ i (causal) and not on the filter, so they can be computed for a
 whole trial up front.
 
-Per-sample signals (``SIGNALS``; truth-free, for the §5.5 test and a policy)
-are listed in ``SIGNALS`` below.
+Per-sample signals (``SIGNALS``, the columns of ``Outputs.sig``; truth-free,
+for the §5.5 test and a policy) are listed in ``SIGNALS`` below.
 """
 
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -108,27 +114,27 @@ MODES = {"aekf": MODE_AEKF, "magyq": MODE_MAGYQ, "delay_magyq": MODE_DELAY}
 # magnetic actions of a sample (detector code / policy decision)
 MAG_NONE, MAG_START, MAG_KEEP = 0, 1, 2
 
-NX = 11  # [q(4), b_q(4), b_a(3)]
-NA = 15  # + clone of q at t0
-NREF = 12  # [active, age_s, y0(3), m_ref(3), spare(4)]
-SIGNALS = (
-    "qsf_active",  # 0  1 while a QSF period is active after this sample (MAGYQ/Delay), else 0
-    "innov_norm",  # 1  |δz| of the magnetic update (or of the reference mismatch if gated off), µT
-    "nis",  # 2  δzᵀ S⁻¹ δz of the magnetic update (0 without one)
-    "corr_norm",  # 3  |K_q δz|: norm of the quaternion correction by the magnetic update (§5.5, Fig. 10)
-    "age",  # 4  time since the period's start, s (0 without period)
-    "trust",  # 5  gain multiplier applied to the magnetic update (0 if none ran)
-    "heading_std",  # 6  sqrt of the heading (earth z) variance from P, rad
-    "acc_used",  # 7  1 if the accelerometer update ran
-    "mag_updated",  # 8  1 if a magnetic update ran
-)
-NSIG = len(SIGNALS)
+# Layout of the state vector x (eq. 16) and of its clone q̂_t0 (Delay MAGYQ, eqs. 21–22).
+ORIENTATION = slice(0, 4)  # q, sensor → ENU
+GYRO_BIAS = slice(4, 8)  # b_q, the gyroscope quaternion bias (eq. 5)
+ACC_BIAS = slice(8, 11)  # b_a, the accelerometer bias (eq. 2), m/s²
+CLONE = slice(11, 15)  # q̂_t0, the estimate at the period's start
+N_STATE = 11  # [q, b_q, b_a]
+N_AUGMENTED = 15  # + the clone
 
-# parameter vector layout
-P_SG, P_SBQ, P_SBA, P_SA, P_SM, P_THACC = 0, 1, 2, 3, 4, 5
-P_G, P_H = 6, 9  # g_ref (3), h_earth (3)
-P_MODE, P_FLOOR, P_EPS, P_UPDREF, P_MAXAGE, P_ACCAD = 12, 13, 14, 15, 16, 17
-NPARAM = 18
+SIGNALS = (
+    "qsf_active",  # 1 while a QSF period is active after this sample (MAGYQ/Delay), else 0
+    "innov_norm",  # |δz| of the magnetic update (or of the reference mismatch if gated off), µT
+    "nis",  # δzᵀ S⁻¹ δz of the magnetic update (0 without one)
+    "corr_norm",  # |K_q δz|: norm of the quaternion correction by the magnetic update (§5.5, Fig. 10)
+    "age",  # time since the period's start, s (0 without period)
+    "trust",  # gain multiplier applied to the magnetic update (0 if none ran)
+    "heading_std",  # sqrt of the heading (earth z) variance from P, rad
+    "acc_used",  # 1 if the accelerometer update ran
+    "mag_updated",  # 1 if a magnetic update ran
+)
+N_SIGNALS = len(SIGNALS)
+SIGNAL = namedtuple("SignalIndex", SIGNALS)(*range(N_SIGNALS))  # SIGNAL.nis == 2, … (columns of Outputs.sig)
 
 SIGMA_GYR = np.deg2rad(0.3)  # rad/s per sample, a smartphone-grade default
 SIGMA_BIAS_WALK = np.deg2rad(0.01)  # rad/s per √s
@@ -143,12 +149,63 @@ CLONE_JITTER = 1e-10  # variance added to the clone at t0 (quaternion units², ~
 MAX_AGE_S = 60.0  # a period older than this is restarted whatever the action
 
 
+class Params(NamedTuple):
+    """The filters' parameters (:func:`make_params`), passed to the kernels by value."""
+
+    mode: int  # MODE_AEKF, MODE_MAGYQ or MODE_DELAY
+    sigma_gyr: float  # gyroscope white noise σ_g, rad/s
+    sigma_bias_walk: float  # gyroscope bias random walk σ_bq, rad/s per √s
+    sigma_acc_bias_walk: float  # accelerometer bias random walk σ_ba, m/s² per √s
+    sigma_acc: float  # accelerometer noise σ_a, m/s²
+    sigma_mag: float  # magnetometer noise σ_m, µT
+    th_acc: float  # accelerometer gate: update only while | |y_a| − g | < th_acc, m/s² (inf: never gated)
+    gravity: tuple[float, float, float]  # g_ENU, the accelerometer's reference, m/s²
+    earth_field: tuple[float, float, float]  # m_Earth in ENU, µT (the AEKF's reference, hypothesis H0)
+    cov_floor: float  # eigenvalue floor of a repaired covariance (``kalman_threshold.repair_cov1``)
+    radial_eps: float  # variance kept along q after the tangent projection
+    update_reference: bool  # Delay MAGYQ also corrects q̂_t0 and the reference (else eq. 24 literally)
+    max_age_s: float  # a period older than this is restarted whatever the action, s
+    acc_adaptive: float  # k ≥ 0: R_a = σ_a² + (k·(|y_a| − g))² (0: the paper's constant R_a)
+
+
+class State(NamedTuple):
+    """The filter's state, updated in place by the kernels (:func:`initial_state`)."""
+
+    x: np.ndarray  # (N_AUGMENTED,) [q, b_q, b_a] (eq. 16) and the clone q̂_t0 (slices ORIENTATION … CLONE)
+    cov: np.ndarray  # (N_AUGMENTED, N_AUGMENTED) P̆; the clone's rows and columns are 0 outside a Delay period
+    period_active: np.ndarray  # (1,) bool: a QSF period is active (never for the AEKF)
+    period_age: np.ndarray  # (1,) time since the period started, s
+    mag_t0: np.ndarray  # (3,) y_m(t0), the field measured at the period's start, µT, sensor frame
+    mag_ref: np.ndarray  # (3,) m_ref = q̂_t0 ⊗ y_m(t0) ⊗ q̄̂_t0 (eq. 8), µT, ENU
+
+
+class Inputs(NamedTuple):
+    """A trial's per-sample inputs of the kernels: N rows."""
+
+    gyr: np.ndarray  # (N, 3) rad/s, sensor frame
+    acc: np.ndarray  # (N, 3) m/s², sensor frame
+    mag: np.ndarray  # (N, 3) µT, sensor frame
+    action: np.ndarray  # (N,) int8 magnetic action MAG_NONE / MAG_START / MAG_KEEP (ignored by the AEKF)
+    trust: np.ndarray  # (N,) ∈ [0, 1], the gain multiplier of the magnetic update
+
+
+class Outputs(NamedTuple):
+    """Per-sample outputs of the kernels: N rows."""
+
+    q: np.ndarray  # (N, 4) the estimate after each sample, sensor → ENU (NaN where not run)
+    sig: np.ndarray  # (N, N_SIGNALS) the signals of each sample, columns SIGNALS (0 where not run)
+
+    @classmethod
+    def empty(cls, n: int) -> Outputs:
+        return cls(np.full((n, 4), np.nan), np.zeros((n, N_SIGNALS)))
+
+
 def make_params(field_norm: float, field_dip: float, mode="delay_magyq", sigma_gyr: float = SIGMA_GYR,
                 sigma_acc: float | None = None, sigma_mag: float | None = None, th_acc: float = TH_ACC,
                 sigma_bias_walk: float = SIGMA_BIAS_WALK, sigma_acc_bias_walk: float = SIGMA_ACC_BIAS_WALK,
                 update_reference: bool = True, max_age_s: float = MAX_AGE_S,
-                acc_adaptive: float = 0.0) -> np.ndarray:
-    """Parameter vector of the kernels.
+                acc_adaptive: float = 0.0) -> Params:
+    """:class:`Params` of the kernels.
 
     Args:
         field_norm: Earth field m0, µT; field_dip: ° down (used by the AEKF reference and TRIAD init).
@@ -172,17 +229,13 @@ def make_params(field_norm: float, field_dip: float, mode="delay_magyq", sigma_g
             raise ValueError(f"{name} must be a positive finite number, got {v!r}")
     if not th_acc > 0:
         raise ValueError(f"th_acc must be > 0 m/s² (inf disables the gate), got {th_acc!r}")
-    p = np.zeros(NPARAM)
-    p[P_SG], p[P_SBQ], p[P_SBA], p[P_SA], p[P_SM], p[P_THACC] = (
-        sigma_gyr, sigma_bias_walk, sigma_acc_bias_walk, sigma_acc, sigma_mag, th_acc)
-    p[P_G:P_G + 3] = quat.gravity_up()
-    p[P_H:P_H + 3] = quat.earth_field(field_norm, field_dip)
-    p[P_MODE], p[P_FLOOR], p[P_EPS] = MODES[mode], COV_FLOOR, RADIAL_EPS
-    p[P_UPDREF], p[P_MAXAGE] = 1.0 if update_reference else 0.0, max_age_s
     if not (np.isfinite(acc_adaptive) and acc_adaptive >= 0):
         raise ValueError(f"acc_adaptive must be a finite number ≥ 0, got {acc_adaptive!r}")
-    p[P_ACCAD] = acc_adaptive
-    return p
+    vector = lambda v: tuple(float(c) for c in v)
+    return Params(MODES[mode], float(sigma_gyr), float(sigma_bias_walk), float(sigma_acc_bias_walk),
+                  float(sigma_acc), float(sigma_mag), float(th_acc), vector(quat.gravity_up()),
+                  vector(quat.earth_field(field_norm, field_dip)), float(COV_FLOOR), float(RADIAL_EPS),
+                  bool(update_reference), float(max_age_s), float(acc_adaptive))
 
 
 # ------------------------------------------------------------ small matrices
@@ -239,10 +292,10 @@ def heading_row1(q):
 
 
 @njit(cache=True)
-def _kalman_update(x, pa, na, nu, h, r_diag, gain_scale):
-    """Joseph-form EKF update of the first ``na`` states, in place; returns (K (na, m), S⁻¹)."""
+def _kalman_update(x, cov, na, nu, h, r_diag, gain_scale):
+    """Joseph-form EKF update of the first ``na`` states of x and cov, in place; returns (K (na, m), S⁻¹)."""
     m = nu.shape[0]
-    p = pa[:na, :na].copy()
+    p = cov[:na, :na].copy()
     pht = p @ h.T
     s = h @ pht
     for i in range(m):
@@ -254,15 +307,15 @@ def _kalman_update(x, pa, na, nu, h, r_diag, gain_scale):
         x[i] += dx[i]
     ikh = np.eye(na) - k @ h
     p = ikh @ p @ ikh.T + r_diag * (k @ k.T)
-    pa[:na, :na] = p
+    cov[:na, :na] = p
     return k, s_inv
 
 
 @njit(cache=True)
-def _renormalise(x, pa, na, eps):
+def _renormalise(x, cov, na, eps):
     """Normalise q (and the clone) and project the covariance on the unit-sphere tangent."""
     t = np.eye(na)
-    for off in (0, NX):
+    for off in (ORIENTATION.start, CLONE.start):
         if off + 4 > na:
             continue
         qn = np.sqrt(x[off] ** 2 + x[off + 1] ** 2 + x[off + 2] ** 2 + x[off + 3] ** 2)
@@ -271,175 +324,180 @@ def _renormalise(x, pa, na, eps):
         for i in range(4):
             for j in range(4):
                 t[off + i, off + j] = (1.0 if i == j else 0.0) - x[off + i] * x[off + j]
-    p = t @ pa[:na, :na].copy() @ t.T
-    for off in (0, NX):
+    p = t @ cov[:na, :na].copy() @ t.T
+    for off in (ORIENTATION.start, CLONE.start):
         if off + 4 > na:
             continue
         for i in range(4):
             for j in range(4):
                 p[off + i, off + j] += eps * x[off + i] * x[off + j]
-    pa[:na, :na] = p
+    cov[:na, :na] = p
 
 
-@njit(cache=True)
-def step1(x, pa, ref, gyr_prev, gyr, acc, mag, dt, predict, action, trust, params, sig):
-    """One sample in place on ``x`` (15,), ``pa`` (15, 15), ``ref`` (NREF,); writes ``sig`` (NSIG,).
+@njit(cache=True, inline="always")
+def step1(p, state, inputs, i, dt, sig):
+    """Sample i of ``inputs`` (:class:`Inputs`) in place on ``state`` (:class:`State`); writes ``sig`` (N_SIGNALS,).
 
-    ``x[:11]`` = [q, b_q, b_a], ``x[11:15]`` the clone q̂_t0 (Delay MAGYQ);
-    ``ref`` = [active, age s, y_m(t0) (3), m_ref (3), …]. ``action`` is
-    MAG_NONE / MAG_START / MAG_KEEP (ignored by the AEKF, which always
-    updates), ``trust`` ∈ [0, 1] scales the magnetic gain. Returns 0 ok,
-    1 covariance repaired, −1 non-finite input or covariance (state unchanged).
+    The gyro prediction runs from sample i − 1 (none for i = 0). ``inputs.action[i]`` is MAG_NONE /
+    MAG_START / MAG_KEEP (ignored by the AEKF, which always updates), ``inputs.trust[i]`` ∈ [0, 1] scales
+    the magnetic gain. Returns 0 ok, 1 covariance repaired, −1 non-finite input or covariance (state unchanged).
     """
+    gyr_prev, gyr = inputs.gyr[i - 1 if i > 0 else 0], inputs.gyr[i]
+    acc, mag, action, trust = inputs.acc[i], inputs.mag[i], inputs.action[i], inputs.trust[i]
     if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
         return -1
-    for i in range(NA):
-        if not np.isfinite(x[i]):
+    for r in range(N_AUGMENTED):
+        if not np.isfinite(state.x[r]):
             return -1
-        for j in range(NA):
-            if not np.isfinite(pa[i, j]):
+        for c in range(N_AUGMENTED):
+            if not np.isfinite(state.cov[r, c]):
                 return -1
-    mode = int(params[P_MODE])
-    xs = x.copy()
-    ps = pa.copy()
-    rs = ref.copy()
-    active = rs[0] > 0.5 and mode != MODE_AEKF
-    keep_clone = mode == MODE_DELAY and active and params[P_UPDREF] < 0.5  # eq. 24 literally
-    na = NA if (mode == MODE_DELAY and active) else NX
+    mode = p.mode
+    xs = state.x.copy()  # worked on, committed to state at the end if healthy
+    ps = state.cov.copy()
+    on, age = state.period_active[0], state.period_age[0]
+    mag_t0, mag_ref = state.mag_t0, state.mag_ref  # rebound (never written) until the commit
+    active = on and mode != MODE_AEKF
+    keep_clone = mode == MODE_DELAY and active and not p.update_reference  # eq. 24 literally
+    na = N_AUGMENTED if (mode == MODE_DELAY and active) else N_STATE
     # 1. prediction, eqs. 17–19
-    if predict:
-        q = xs[0:4].copy()
+    if i > 0:
+        q = xs[ORIENTATION].copy()
         q_yg = from_rotvec1(0.5 * (gyr_prev + gyr) * dt)
-        q_w = normalize1(q_yg - xs[4:8])
-        xs[0:4] = mul1(q, q_w)
+        q_w = normalize1(q_yg - xs[GYRO_BIAS])
+        xs[ORIENTATION] = mul1(q, q_w)
         f = np.eye(na)
-        f[0:4, 0:4] = right_matrix1(q_w)
-        f[0:4, 4:8] = -left_matrix1(q)
-        p = f @ ps[:na, :na].copy() @ f.T
-        qg = (0.5 * params[P_SG] * dt) ** 2
-        for i in range(4):
-            p[i, i] += qg
-            p[4 + i, 4 + i] += (0.5 * dt * params[P_SBQ]) ** 2 * dt
-        for i in range(3):
-            p[8 + i, 8 + i] += params[P_SBA] ** 2 * dt
-        ps[:na, :na] = p
+        f[ORIENTATION, ORIENTATION] = right_matrix1(q_w)
+        f[ORIENTATION, GYRO_BIAS] = -left_matrix1(q)
+        pp = f @ ps[:na, :na].copy() @ f.T
+        qg = (0.5 * p.sigma_gyr * dt) ** 2
+        for r in range(4):
+            pp[r, r] += qg
+            pp[GYRO_BIAS.start + r, GYRO_BIAS.start + r] += (0.5 * dt * p.sigma_bias_walk) ** 2 * dt
+        for r in range(3):
+            pp[ACC_BIAS.start + r, ACC_BIAS.start + r] += p.sigma_acc_bias_walk ** 2 * dt
+        ps[:na, :na] = pp
         if active:
-            rs[1] += dt
+            age += dt
     # 2. accelerometer update (gated)
-    g = params[P_G:P_G + 3]
+    g = p.gravity
+    g_norm = np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     na_ = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
-    acc_used = abs(na_ - np.sqrt(g @ g)) < params[P_THACC]
+    acc_used = abs(na_ - g_norm) < p.th_acc
     if acc_used:
-        q = xs[0:4].copy()
-        v = acc - xs[8:11]
+        q = xs[ORIENTATION].copy()
+        v = acc - xs[ACC_BIAS]
         h = np.zeros((3, na))
-        h[:, 0:4] = rot_jacobian1(q, v)
-        for j in range(3):  # ∂/∂b_a of q ⊗ (y_a − b_a) ⊗ q̄ = −R(q), column j = −R e_j
+        h[:, ORIENTATION] = rot_jacobian1(q, v)
+        for c in range(3):  # ∂/∂b_a of q ⊗ (y_a − b_a) ⊗ q̄ = −R(q), column c = −R e_c
             e = np.zeros(3)
-            e[j] = 1.0
-            h[:, 8 + j] = -rotate1(q, e)
-        dev = params[P_ACCAD] * (na_ - np.sqrt(g @ g))
-        _kalman_update(xs, ps, na, g - rotate1(q, v), h, params[P_SA] ** 2 + dev * dev, 1.0)
-        _renormalise(xs, ps, na, params[P_EPS])
-        if active and mode == MODE_DELAY and params[P_UPDREF] > 0.5:
-            rs[6:9] = rotate1(xs[NX:NA], rs[3:6])
+            e[c] = 1.0
+            h[:, ACC_BIAS.start + c] = -rotate1(q, e)
+        dev = p.acc_adaptive * (na_ - g_norm)
+        nu = rotate1(q, v)
+        for c in range(3):
+            nu[c] = g[c] - nu[c]  # z − h(x), z = g_ENU
+        _kalman_update(xs, ps, na, nu, h, p.sigma_acc ** 2 + dev * dev, 1.0)
+        _renormalise(xs, ps, na, p.radial_eps)
+        if active and mode == MODE_DELAY and p.update_reference:
+            mag_ref = rotate1(xs[CLONE], mag_t0)
     # 3. magnetic update
-    sm2 = params[P_SM] ** 2
+    sm2 = p.sigma_mag ** 2
     innov = 0.0
     nis = 0.0
     corr = 0.0
     updated = False
     if mode == MODE_AEKF:
-        z = params[P_H:P_H + 3].copy()
+        z = np.array(p.earth_field)
         do = trust > 0.0
         r_diag = sm2
     else:
-        if action == MAG_START or (action == MAG_KEEP and active and rs[1] > params[P_MAXAGE]):
+        if action == MAG_START or (action == MAG_KEEP and active and age > p.max_age_s):
             # eq. 8: the reference is the field at t0 rotated by the estimate at t0
-            rs[0], rs[1] = 1.0, 0.0
-            rs[3:6] = mag
-            rs[6:9] = rotate1(xs[0:4], mag)
+            on, age = True, 0.0
+            mag_t0 = mag
+            mag_ref = rotate1(xs[ORIENTATION], mag)
             if mode == MODE_DELAY:  # clone: Cov(δq_t0) = P_qq, Cov(δx, δq_t0) = P[:, q]
-                na = NA
-                xs[NX:NA] = xs[0:4]
-                ps[NX:NA, :NX] = ps[0:4, :NX]
-                ps[:NX, NX:NA] = ps[:NX, 0:4]
-                ps[NX:NA, NX:NA] = ps[0:4, 0:4]
-                for i in range(NX, NA):  # the exact clone is singular; a tiny jitter keeps P̆ positive definite
-                    ps[i, i] += CLONE_JITTER
+                na = N_AUGMENTED
+                xs[CLONE] = xs[ORIENTATION]
+                ps[CLONE, :N_STATE] = ps[ORIENTATION, :N_STATE]
+                ps[:N_STATE, CLONE] = ps[:N_STATE, ORIENTATION]
+                ps[CLONE, CLONE] = ps[ORIENTATION, ORIENTATION]
+                for r in range(N_STATE, N_AUGMENTED):  # the exact clone is singular; a tiny jitter keeps P̆ pos. def.
+                    ps[r, r] += CLONE_JITTER
             active = True
             do = False  # δz ≡ 0 at t0
         elif action == MAG_KEEP and active:
             do = trust > 0.0
         else:
             if active:  # the period ends
-                rs[0], rs[1] = 0.0, 0.0
+                on, age = False, 0.0
                 active = False
-                na = NX
+                na = N_STATE
             do = False
-        z = rs[6:9].copy()
+        z = mag_ref
         r_diag = 2.0 * sm2 if mode == MODE_DELAY else sm2
     if mode == MODE_AEKF or active:
-        q = xs[0:4].copy()
+        q = xs[ORIENTATION].copy()
         nu = z - rotate1(q, mag)
         innov = np.sqrt(nu @ nu)
         if do:
             h = np.zeros((3, na))
-            h[:, 0:4] = rot_jacobian1(q, mag)
-            if na == NA:
-                h[:, NX:NA] = -rot_jacobian1(xs[NX:NA], rs[3:6])
-            q_before = xs[0:4].copy()
+            h[:, ORIENTATION] = rot_jacobian1(q, mag)
+            if na == N_AUGMENTED:
+                h[:, CLONE] = -rot_jacobian1(xs[CLONE], mag_t0)
+            q_before = xs[ORIENTATION].copy()
             k, s_inv = _kalman_update(xs, ps, na, nu, h, r_diag, trust)
             nis = nu @ s_inv @ nu
-            dq = xs[0:4] - q_before
+            dq = xs[ORIENTATION] - q_before
             corr = np.sqrt(dq @ dq)
-            _renormalise(xs, ps, na, params[P_EPS])
-            if na == NA and params[P_UPDREF] > 0.5:
-                rs[6:9] = rotate1(xs[NX:NA], rs[3:6])
+            _renormalise(xs, ps, na, p.radial_eps)
+            if na == N_AUGMENTED and p.update_reference:
+                mag_ref = rotate1(xs[CLONE], mag_t0)
             updated = True
-    if keep_clone and active and na == NA and rs[1] > 0.0:  # eq. 24 read literally: the t0 estimate stays
-        xs[NX:NA] = x[NX:NA]
+    if keep_clone and active and na == N_AUGMENTED and age > 0.0:  # eq. 24 read literally: q̂_t0 stays
+        xs[CLONE] = state.x[CLONE]
     # 4. covariance health
-    p = ps[:na, :na].copy()
-    status = repair_cov1(p, params[P_FLOOR])
+    pp = ps[:na, :na].copy()
+    status = repair_cov1(pp, p.cov_floor)
     if status < 0:
         return -1
-    for i in range(na):
-        if not np.isfinite(xs[i]):
+    for r in range(na):
+        if not np.isfinite(xs[r]):
             return -1
-    ps[:na, :na] = p
-    if na == NX:  # keep the unused clone block tidy
-        ps[NX:, :] = 0.0
-        ps[:, NX:] = 0.0
-    x[:] = xs
-    pa[:, :] = ps
-    ref[:] = rs
-    e = heading_row1(xs[0:4])
-    sig[0] = 1.0 if (active and mode != MODE_AEKF) else 0.0
-    sig[1] = innov
-    sig[2] = nis
-    sig[3] = corr
-    sig[4] = rs[1] if active else 0.0
-    sig[5] = trust if updated else 0.0
-    sig[6] = np.sqrt(max(0.0, e @ (ps[0:4, 0:4].copy() @ e)))
-    sig[7] = 1.0 if acc_used else 0.0
-    sig[8] = 1.0 if updated else 0.0
+    ps[:na, :na] = pp
+    if na == N_STATE:  # keep the unused clone block tidy
+        ps[N_STATE:, :] = 0.0
+        ps[:, N_STATE:] = 0.0
+    state.x[:] = xs
+    state.cov[:, :] = ps
+    state.period_active[0], state.period_age[0] = on, age
+    state.mag_t0[:] = mag_t0
+    state.mag_ref[:] = mag_ref
+    e = heading_row1(xs[ORIENTATION])
+    sig[SIGNAL.qsf_active] = 1.0 if (active and mode != MODE_AEKF) else 0.0
+    sig[SIGNAL.innov_norm] = innov
+    sig[SIGNAL.nis] = nis
+    sig[SIGNAL.corr_norm] = corr
+    sig[SIGNAL.age] = age if active else 0.0
+    sig[SIGNAL.trust] = trust if updated else 0.0
+    sig[SIGNAL.heading_std] = np.sqrt(max(0.0, e @ (ps[ORIENTATION, ORIENTATION].copy() @ e)))
+    sig[SIGNAL.acc_used] = 1.0 if acc_used else 0.0
+    sig[SIGNAL.mag_updated] = 1.0 if updated else 0.0
     return status
 
 
 @njit(cache=True)
-def run_kernel(x, pa, ref, gyr, acc, mag, dt, i0, i1, actions, trusts, params, q_out, sig_out):
-    """Samples ``i0 … i1−1`` in place (sample 0: no prediction). Action/trust of sample i:
-    ``actions[i]``, ``trusts[i]``. Writes q_out[i], sig_out[i]. Returns (first bad index or −1, repairs)."""
+def run_kernel(p, state, inputs, dt, start, stop, out):
+    """Samples ``start … stop−1`` of ``inputs`` in place on ``state`` (:func:`step1`); writes their rows of
+    ``out`` (:class:`Outputs`). Returns (first bad sample or −1, covariance repairs)."""
     repairs = 0
-    for i in range(i0, i1):
-        ip = i - 1 if i > 0 else 0
-        st = step1(x, pa, ref, gyr[ip], gyr[i], acc[i], mag[i], dt, i > 0, actions[i], trusts[i], params,
-                   sig_out[i])
+    for i in range(start, stop):
+        st = step1(p, state, inputs, i, dt, out.sig[i])
         if st < 0:
             return i, repairs
         repairs += st
-        q_out[i] = x[0:4]
+        out.q[i] = state.x[ORIENTATION]
     return -1, repairs
 
 
@@ -534,8 +592,8 @@ class QSFDetector:
 
 
 def initial_state(q0, dt: float, p0_angle: float = P0_ANGLE, p0_gyr_bias: float = P0_GYR_BIAS,
-                  p0_acc_bias: float = P0_ACC_BIAS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(x (15,), P (15, 15), ref (NREF,))`` at orientation q0 (4,), zero biases.
+                  p0_acc_bias: float = P0_ACC_BIAS) -> State:
+    """:class:`State` at orientation q0 (4,): zero biases, no QSF period.
 
     p0_angle: rad (quaternion variance (p0/2)² per component); p0_gyr_bias: rad/s (quaternion bias
     std dt/2 · p0_gyr_bias); p0_acc_bias: m/s².
@@ -543,20 +601,20 @@ def initial_state(q0, dt: float, p0_angle: float = P0_ANGLE, p0_gyr_bias: float 
     q0 = np.asarray(q0, float)
     if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) < 1e-9:
         raise FilterError(f"QSF filters: bad initial quaternion {q0}")
-    x = np.zeros(NA)
-    x[0:4] = q0 / np.linalg.norm(q0)
-    pa = np.zeros((NA, NA))
-    pa[0:4, 0:4] = (0.5 * p0_angle) ** 2 * np.eye(4)
-    pa[4:8, 4:8] = (0.5 * dt * p0_gyr_bias) ** 2 * np.eye(4)
-    pa[8:11, 8:11] = p0_acc_bias**2 * np.eye(3)
-    _renormalise(x, pa, NX, RADIAL_EPS)
-    return x, pa, np.zeros(NREF)
+    x = np.zeros(N_AUGMENTED)
+    x[ORIENTATION] = q0 / np.linalg.norm(q0)
+    cov = np.zeros((N_AUGMENTED, N_AUGMENTED))
+    cov[ORIENTATION, ORIENTATION] = (0.5 * p0_angle) ** 2 * np.eye(4)
+    cov[GYRO_BIAS, GYRO_BIAS] = (0.5 * dt * p0_gyr_bias) ** 2 * np.eye(4)
+    cov[ACC_BIAS, ACC_BIAS] = p0_acc_bias**2 * np.eye(3)
+    _renormalise(x, cov, N_STATE, RADIAL_EPS)
+    return State(x, cov, np.zeros(1, np.bool_), np.zeros(1), np.zeros(3), np.zeros(3))
 
 
 def triad_init(acc0, mag0, params) -> np.ndarray:
     """Orientation from the first sample by TRIAD against g and the Earth field of ``params``."""
-    q = triad1(np.ascontiguousarray(acc0, float), np.ascontiguousarray(mag0, float), params[P_G:P_G + 3],
-               params[P_H:P_H + 3])
+    q = triad1(np.ascontiguousarray(acc0, float), np.ascontiguousarray(mag0, float), np.array(params.gravity),
+               np.array(params.earth_field))
     if not np.all(np.isfinite(q)):
         raise FilterError(f"QSF filters: cannot initialise by TRIAD from acc={acc0}, mag={mag0}")
     return q
@@ -584,21 +642,26 @@ def initial_orientation(trial, init: str, params) -> np.ndarray:
     return q0
 
 
-def run(x, pa, ref, gyr, acc, mag, dt, i0, i1, actions, trusts, params, q_out, sig_out) -> int:
-    """Advance over samples ``i0 … i1−1`` (arrays as in ``run_kernel``); returns the number of covariance
+def run(p: Params, state: State, inputs: Inputs, dt: float, start: int, stop: int, out: Outputs) -> int:
+    """Samples ``start … stop−1`` (:func:`run_kernel`; Δt = ``dt`` s); returns the number of covariance
     repairs; raises FilterError on a non-finite sample or covariance (state left at the previous sample)."""
-    if not 0 <= i0 <= i1 <= len(gyr):
-        raise ValueError(f"need 0 <= i0 <= i1 <= N={len(gyr)}, got {i0}, {i1}")
-    bad, repairs = run_kernel(x, pa, ref, gyr, acc, mag, dt, i0, i1, actions, trusts, params, q_out, sig_out)
+    if not 0 <= start <= stop <= len(inputs.gyr):
+        raise ValueError(f"need 0 <= start <= stop <= N={len(inputs.gyr)}, got {start}, {stop}")
+    return checked(run_kernel(p, state, inputs, dt, start, stop, out), inputs)
+
+
+def checked(result: tuple[int, int], inputs: Inputs) -> int:
+    """The repairs of a :func:`run_kernel` result ``(bad, repairs)``; FilterError naming sample ``bad`` if ≥ 0."""
+    bad, repairs = result
     if bad >= 0:
         raise FilterError(f"QSF filter: non-finite sample or covariance at sample {bad} "
-                          f"(gyr={gyr[bad]}, acc={acc[bad]}, mag={mag[bad]})")
+                          f"(gyr={inputs.gyr[bad]}, acc={inputs.acc[bad]}, mag={inputs.mag[bad]})")
     return repairs
 
 
 @dataclass
 class QSFResult:
-    """Output of :func:`run_trial`: q (N, 4), sig (N, NSIG), codes (N,) the magnetic actions used,
+    """Output of :func:`run_trial`: q (N, 4), sig (N, N_SIGNALS), codes (N,) the magnetic actions used,
     spread (N,) detector statistic µT, repairs (count of covariance repairs)."""
 
     q: np.ndarray
@@ -622,12 +685,10 @@ def run_trial(trial, mode="delay_magyq", detector: QSFDetector | None = None, q0
         if codes.shape != (trial.n,) or np.any((codes < 0) | (codes > 2)):
             raise ValueError(f"actions must be (N,) = ({trial.n},) with values 0, 1, 2")
     q_init = initial_orientation(trial, init, params) if q0 is None else np.asarray(q0, float)
-    x, pa, ref = initial_state(q_init, trial.dt, **(p0 or {}))
+    state = initial_state(q_init, trial.dt, **(p0 or {}))
     trusts = np.broadcast_to(np.asarray(trust, float), (trial.n,)).copy()
     if np.any((trusts < 0) | (trusts > 1)):
         raise ValueError("trust must be in [0, 1]")
-    q_out = np.empty((trial.n, 4))
-    sig = np.zeros((trial.n, NSIG))
-    repairs = run(x, pa, ref, trial.gyr, trial.acc, trial.mag, trial.dt, 0, trial.n, codes, trusts, params,
-                  q_out, sig)
-    return QSFResult(q_out, sig, codes, spread, repairs)
+    out = Outputs.empty(trial.n)
+    repairs = run(params, state, Inputs(trial.gyr, trial.acc, trial.mag, codes, trusts), trial.dt, 0, trial.n, out)
+    return QSFResult(out.q, out.sig, codes, spread, repairs)
