@@ -3,11 +3,12 @@
 Each rule returns the magnetometer trust γ ∈ [0, 1] (the Kalman-gain
 multiplier of ``magenv.filters.kalman_trust``) and follows
 ``magenv.baselines.rules.RulePolicy``: parameters as constructor arguments,
-``params``, ``PARAM_BOUNDS`` (for ``magenv tune``), ``from_params``. Physical
-values are read back from the observation through the env's fixed scales
-(``magenv.filters.kalman_env``): ‖m‖ − m0 = m0·norm_dev µT, dip deviation =
-90·dip_dev degrees, ‖d̂‖ = m0·model_dist µT, with the site's m0 =
-50·field_ref µT (also an observation, so rules in µT are exact at any site).
+``params``, ``PARAM_BOUNDS`` (for ``magenv tune``), ``from_params``. A rule
+finds its features by name in the env's table (``magenv.envs.kalman.FEATURES``)
+and reads physical values back through the fixed scales: ‖m‖ − m0 =
+m0·norm_dev µT, dip deviation = 90·dip_dev degrees, ‖d̂‖ = m0·model_dist µT,
+with the site's m0 = 50·field_ref µT (``FIELD_SCALE_UT``; also an
+observation, so rules in µT are exact at any site).
 
 * ``kf_nominal`` — :class:`ConstantTrust` (γ = 1): the plain Kalman filter.
 * ``kf_gate`` — :class:`GateTrust`: the vector selector of Lee & Park 2009
@@ -47,10 +48,10 @@ from typing import Sequence
 import numpy as np
 
 from magenv.baselines.rules import RulePolicy
-from magenv.filters.kalman_env import DIP_SCALE_DEG, FEATURE_NAMES, FIELD_SCALE_UT
-from magenv.filters.kalman_threshold import TH_DIP, TH_MAG
-
 from magenv.envs import KALMAN_ID as ENV_ID
+from magenv.envs.features import DIP_SCALE_DEG
+from magenv.envs.kalman import FEATURES, FIELD_SCALE_UT
+from magenv.filters.kalman_threshold import TH_DIP, TH_MAG
 
 
 class KalmanRule(RulePolicy):
@@ -60,7 +61,7 @@ class KalmanRule(RulePolicy):
     name = "kf_rule"
 
     def __init__(self, features: Sequence[str] | None = None):
-        super().__init__(tuple(FEATURE_NAMES if features is None else features))
+        super().__init__(tuple(FEATURES.names if features is None else features))
         self.env_kwargs = {} if features is None else {"features": list(self.features)}
         if self.NEEDS and "field_ref" not in self.features:
             raise ValueError(f"{type(self).__name__} needs observation feature 'field_ref' (m0) to read µT")

@@ -3,18 +3,20 @@
 Every rule follows ``magenv.protocols.Policy``, takes its parameters as
 constructor arguments (the defaults are the published values), exposes them
 as ``params`` and ``PARAM_BOUNDS`` (for ``magenv tune``), and rebuilds from
-them with ``from_params``. A rule reads physical values back from the
-observation through the env's fixed scales (``magenv.filters.blend``):
-field-norm deviation as a fraction of m0 (``norm_dev``), dip deviation in
-units of 90° (``dip_dev``). m0 and θ0 are the trial's undisturbed field
-(``Trial.field_norm``/``field_dip``), which the env applies.
+them with ``from_params``. A rule finds its features by name in the env's
+table (``magenv.envs.blend.FEATURES``) and reads physical values back through
+the fixed scales: field-norm deviation as a fraction of m0 (``norm_dev``), dip
+deviation in units of ``DIP_SCALE_DEG`` = 90° (``dip_dev``). m0 and θ0 are
+the trial's undisturbed field (``Trial.field_norm``/``field_dip``), which the
+env applies.
 
 * ``ConstantLambda(lam)`` — the registry's ``mimu`` (λ = 0) and ``imu``
   (λ = 1) are the paper's *original* filters, so they run with the
   stationary hold off (``stationary_hold=False``); the rules below keep the
   env's default hold (on), as in the paper's proposed method.
-* ``FanLambda`` — Fan et al. 2017 eqs. 15–17 (reading of ALGORITHMS.md §A:
-  the dip divisor is th_dip = 20°, not θ_dip).
+* ``FanLambda`` — Fan et al. 2017 eqs. 15–17. Reading of eq. 16: its
+  divisor, printed as θ_dip, is read as a dip threshold th_dip = 20° (a fixed
+  tolerance, like eq. 15's m0), not the measured dip itself.
 * ``Threshold`` — all-or-nothing gate: λ = 1 when the field-norm or the dip
   deviation exceeds its threshold, else 0 (the vector-selector idea of
   Lee & Park 2009 in Ligorio & Sabatini 2016 Table A1: th_mag = 1.20 µT of
@@ -27,10 +29,10 @@ from typing import Sequence
 
 import numpy as np
 
-from magenv.protocols import Tunable
-from magenv.filters.blend import DIP_SCALE_DEG, FEATURE_NAMES
-
 from magenv.envs import BLEND_ID as ENV_ID
+from magenv.envs.blend import FEATURES
+from magenv.envs.features import DIP_SCALE_DEG
+from magenv.protocols import Tunable
 
 
 class RulePolicy(Tunable):
@@ -41,7 +43,7 @@ class RulePolicy(Tunable):
     NEEDS: tuple[str, ...] = ()
 
     def __init__(self, features: Sequence[str] | None = None, stationary_hold: bool | None = None):
-        self.features = tuple(FEATURE_NAMES if features is None else features)
+        self.features = tuple(FEATURES.names if features is None else features)
         missing = [f for f in self.NEEDS if f not in self.features]
         if missing:
             raise ValueError(f"{type(self).__name__} needs observation feature(s) {missing}; "

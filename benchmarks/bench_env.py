@@ -1,4 +1,4 @@
-"""Steps per second of ``magenv/MagBlend-v0`` through the Gymnasium API, next to CartPole-v1.
+"""Steps per second of ``magenv/MagBlend-v0`` and ``MagKalman-v0`` through the Gymnasium API, next to CartPole-v1.
 
     .venv/bin/python benchmarks/bench_env.py [--steps 50000] [--every 8]
 
@@ -8,6 +8,9 @@ time; each rate is the median of 3 runs. MagBlend is measured on one pre-made tr
 on the default ``random`` scenario (each reset simulates a new 60-s trial,
 which dominates), the same with ``prefetch=True`` (the next trial made in a
 worker process meanwhile), and as the 8-env ``vector_entry_point`` VectorEnv. Target: at least half of CartPole's rate.
+MagKalman is measured on the same pre-made trial. Last, the env kernels alone (``BlendRunner``,
+``KalmanRunner``) over that one trial, k samples per call and the whole trial in one call: the
+best of several runs in CPU time (robust on a shared machine).
 """
 
 from __future__ import annotations
@@ -43,6 +46,18 @@ def rate(env, actions, steps: int, seed: int = 0, repeats: int = 3) -> float:
     return float(np.median(rates))
 
 
+def kernel_time(runner_class, trial, k: int, repeats: int) -> float:
+    """Best CPU time (s) over ``repeats`` to build a runner on ``trial`` and step it to the end, k samples a call."""
+    best = np.inf
+    for _ in range(repeats + 1):  # the first run compiles or loads the kernels
+        t0 = time.process_time()
+        runner = runner_class(trial)
+        while not runner.done:
+            runner.advance(k, 0.5)
+        best = min(best, time.process_time() - t0)
+    return best
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--steps", type=int, default=50_000)
@@ -76,6 +91,20 @@ def main() -> None:
         vec.step(acts)
     vrate = 8 * (args.steps // 8) / (time.perf_counter() - t0)
     print(f"MagBlend-v0 k={args.every}, make_vec 8 envs, one trial   {vrate:10.0f} env-steps/s  ratio {vrate / cart:.2f}")
+    kal = rate(gym.make("magenv/MagKalman-v0", scenario=[make_trial("dynamic_magnet", 0)],
+                        decision_every=args.every), lam, args.steps // 10)
+    print(f"MagKalman-v0 k={args.every}, one trial (step cost)    {kal:10.0f} steps/s  "
+          f"ratio {kal / cart:.2f}  ({kal * args.every:.0f} samples/s)")
+
+    from magenv.envs.blend import BlendRunner
+    from magenv.envs.kalman import KalmanRunner
+
+    trial = make_trial("dynamic_magnet", 0)
+    for name, runner_class, repeats in (("blend", BlendRunner, 20), ("kalman", KalmanRunner, 5)):
+        for k in (args.every, trial.n):
+            t = kernel_time(runner_class, trial, k, repeats)
+            print(f"{name} kernel, one trial of {trial.n} samples, k={k:<6d} {t * 1e3:8.2f} ms CPU  "
+                  f"({t / trial.n * 1e9:6.0f} ns/sample)")
 
 
 if __name__ == "__main__":

@@ -169,3 +169,11 @@ def check_feature_table(env, table) -> None:
     assert "{observation_table}" not in doc
     for row in table.markdown().splitlines():
         assert row in doc
+
+
+def check_kernel_layout(env, table, index) -> None:
+    """The kernels' feature indices ``index`` (``index.name`` is that feature's column) follow ``table``, and
+    a first observation of ``env`` lies in the table's ranges."""
+    assert index._fields == table.names and tuple(index) == tuple(range(len(table)))
+    obs, _ = env.reset(seed=0)
+    assert np.all(obs >= table.low) and np.all(obs <= table.high)

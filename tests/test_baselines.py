@@ -7,16 +7,15 @@ import pytest
 
 from magenv import registry
 from magenv.baselines import rules
+from magenv.envs.blend import FEATURES, MagBlendEnv
 from magenv.protocols import Estimator, Policy
-from magenv.envs.blend import MagBlendEnv
-from magenv.filters.blend import FEATURE_NAMES
 from tests.conftest import kinematic_trial
 
-IX = {f: i for i, f in enumerate(FEATURE_NAMES)}
+IX = {f: i for i, f in enumerate(FEATURES.names)}
 
 
 def _obs(norm_dev=0.0, dip_dev_deg=0.0):
-    o = np.zeros(len(FEATURE_NAMES), np.float32)
+    o = np.zeros(len(FEATURES.names), np.float32)
     o[IX["norm_dev"]] = norm_dev
     o[IX["dip_dev"]] = dip_dev_deg / 90.0
     return o

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -9,10 +14,14 @@ import pytest
 import magenv  # noqa: F401  (registers the env)
 from magenv import metrics
 from magenv import quaternion as quat
-from magenv.envs.blend import MagBlendEnv
+from magenv.envs import blend as blend_env
+from magenv.envs.blend import FEATURES, BlendRunner, MagBlendEnv
 from magenv.filters import madgwick as mg
-from magenv.filters.blend import FEATURE_NAMES, BlendEstimator, BlendRunner
-from tests.conftest import check_scalar_action, check_seeded_replay, check_with_checkers, kinematic_trial, run_episode
+from magenv.filters.blend import BlendEstimator
+from tests.conftest import (
+    check_feature_table, check_kernel_layout, check_scalar_action, check_seeded_replay, check_with_checkers,
+    kinematic_trial, run_episode,
+)
 
 ENV_ID = "magenv/MagBlend-v0"
 
@@ -55,7 +64,7 @@ def test_stationary_hold_keeps_the_estimate():
     held = BlendRunner(still, hold=True)
     est = held.run_all(0.0)
     start = int(0.5 * still.rate)  # the detector needs t0 of history
-    assert held.aux[start:, 2].all()  # every later sample is stationary
+    assert held.out.stationary[start:].all()  # every later sample is stationary
     np.testing.assert_array_equal(est[start:], np.broadcast_to(est[start], est[start:].shape))
     free = BlendRunner(still, hold=False).run_all(0.0)
     late = still.t > 4.0
@@ -74,6 +83,15 @@ def test_env_steps_equal_one_whole_trial_run(disturbed):
     whole = BlendEstimator(float(np.float32(0.3))).run(disturbed).q
     np.testing.assert_array_equal(env.estimate, whole)
     assert np.all(env.lambdas == np.float32(0.3))
+
+
+def test_runners_of_same_typed_trials_share_one_compiled_kernel(disturbed, short_trials):
+    """``TrialRunner.compiled``: one entry point per argument types, found again without numba's typeof."""
+    a, b = BlendRunner(disturbed), BlendRunner(short_trials[0], hold=False)
+    assert a._advance is b._advance
+    c = BlendRunner(disturbed)
+    c.run_all(0.3)
+    np.testing.assert_array_equal(c.est, BlendEstimator(0.3).run(disturbed).q)
 
 
 # ------------------------------------------------------------------ env API
@@ -141,7 +159,7 @@ def test_reward_and_info_match_the_metrics_module(disturbed):
 def test_observation_features_are_physical(disturbed):
     env = MagBlendEnv(scenario=[disturbed], decision_every=8)
     obs, _ = env.reset(seed=0)
-    ix = {f: i for i, f in enumerate(FEATURE_NAMES)}
+    ix = {f: i for i, f in enumerate(FEATURES.names)}
     for step in range(200):
         assert env.observation_space.contains(obs)
         j = 8 * step  # the next sample to fuse
@@ -211,7 +229,7 @@ def test_recording_source(broad_dir):
 def test_vector_env_replays_single_envs(short_trials):
     vec = gym.make_vec(ENV_ID, num_envs=3, vectorization_mode="vector_entry_point", scenario=short_trials,
                        episode_seconds=0.5, decision_every=16)
-    assert vec.observation_space.shape == (3, len(FEATURE_NAMES))
+    assert vec.observation_space.shape == (3, len(FEATURES.names))
     acts = np.random.default_rng(1).uniform(0, 1, (12, 3, 1)).astype(np.float32)
     obs, _ = vec.reset(seed=10)
     vobs, vrew, vtrunc = [obs], [], []
@@ -283,3 +301,33 @@ def test_prefetch_gives_the_same_episodes_bit_for_bit():
     finally:
         ahead.close()
     assert ahead.unwrapped.trials._pool is None
+
+
+# ------------------------------------------------------------------ one feature table
+
+
+def test_feature_table_is_the_space_the_docstring_the_readme_and_the_kernel_layout(short_trials):
+    env = MagBlendEnv(scenario=short_trials)
+    check_feature_table(env, FEATURES)
+    check_kernel_layout(env, FEATURES, blend_env.F)
+    assert FEATURES.markdown() in (Path(__file__).resolve().parents[1] / "README.md").read_text()
+
+
+@pytest.mark.slow
+def test_env_kernels_load_from_the_numba_cache(tmp_path):
+    """``cache=True`` works with the named-tuple signatures: a second process compiles nothing."""
+    code = (
+        "from tests.conftest import kinematic_trial\n"
+        "from magenv.envs import blend, kalman\n"
+        "tr = kinematic_trial(seed=1, duration=1.0)\n"
+        "blend.BlendRunner(tr).run_all(0.3)\n"
+        "kalman.KalmanRunner(tr).advance(10, 0.5)\n"
+        "print(sum(sum(k.stats.cache_misses.values()) for k in (blend.advance, kalman.advance,"
+        " kalman.model_disturbance)))\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "PYTHONPATH": str(root)}
+    runs = [subprocess.run([sys.executable, "-W", "error", "-c", code], cwd=root, env=env, capture_output=True,
+                           text=True, timeout=600, check=False) for _ in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[-1].stderr[-2000:]
+    assert [r.stdout.split()[-1] for r in runs] == ["3", "0"]

@@ -1,4 +1,4 @@
-"""The Kalman-gain env ``magenv/MagKalman-v0`` and its kernel ``magenv.filters.kalman_env``."""
+"""The Kalman-gain env ``magenv/MagKalman-v0``, its kernel and features (``magenv.envs.kalman``)."""
 
 from __future__ import annotations
 
@@ -10,14 +10,16 @@ import pytest
 
 import magenv  # noqa: F401  (registers the env)
 from magenv import metrics
-from magenv.envs.kalman import MagKalmanEnv
+from magenv.envs import kalman as kalman_env
+from magenv.envs.kalman import FEATURES, MagKalmanEnv
 from magenv.filters import kalman_trust as kt
-from magenv.filters.kalman_env import FEATURE_NAMES
 from magenv.filters.kalman_model import ModelKF
-from tests.conftest import check_scalar_action, check_with_checkers, kinematic_trial
+from tests.conftest import (
+    check_feature_table, check_kernel_layout, check_scalar_action, check_with_checkers, kinematic_trial,
+)
 
 ENV_ID = "magenv/MagKalman-v0"
-IX = {f: i for i, f in enumerate(FEATURE_NAMES)}
+IX = {f: i for i, f in enumerate(FEATURES.names)}
 
 
 @pytest.fixture(scope="module")
@@ -235,6 +237,13 @@ def test_sb3_make_vec_env_falls_back_from_render_mode(short_trials):
 
     venv = make_vec_env(ENV_ID, n_envs=2, seed=0, env_kwargs={"scenario": short_trials})
     obs = venv.reset()
-    assert obs.shape == (2, len(FEATURE_NAMES))
+    assert obs.shape == (2, len(FEATURES.names))
     obs, rewards, dones, infos = venv.step(np.full((2, 1), 0.5, np.float32))
     assert rewards.shape == (2,) and np.all(rewards <= 0)
+
+
+def test_feature_table_is_the_space_the_docstring_and_the_kernel_layout(short_trials):
+    env = MagKalmanEnv(scenario=short_trials)
+    check_feature_table(env, FEATURES)
+    check_kernel_layout(env, FEATURES, kalman_env.F)
+    assert kt.SIG._fields == kt.SIGNALS and len(kt.SIGNALS) == kt.NSIG

@@ -16,6 +16,7 @@ from magenv import quaternion as quat
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import ModelKF
 from magenv.filters.kalman_threshold import FilterError, ThresholdKF, repair_cov1
+from magenv.filters.sensors import Sensors
 
 STRONG = dict(duration=20.0, disturbance_ut=30.0, disturbance_window=(8.0, 12.0))  # short, strong
 WEAK = dict(duration=25.0, disturbance_ut=5.0, disturbance_window=(5.0, 20.0))  # long, weak (passes Table A1)
@@ -153,12 +154,13 @@ def test_trust_one_nominal_and_consistent():
 
 def test_trust_kf_converges_from_wrong_heading():
     tr = trial(seed=7)
-    params = kt.make_params(tr.field_norm, tr.field_dip, p0=np.deg2rad(30.0) ** 2)
-    q, p = kt.init(tr.acc[0], tr.mag[0], params)
+    params = kt.make_params(tr.field_norm, tr.field_dip, tr.dt, p0=np.deg2rad(30.0) ** 2)
+    state = kt.init(params, tr.acc[0], tr.mag[0])
+    q, p = state
     q[:] = quat.mul1(quat.from_rotvec1(np.array([0.0, 0.0, np.deg2rad(30.0)])), q)
     q_out = np.empty((tr.n, 4))
     sig = np.empty((tr.n, kt.NSIG))
-    kt.run_k(q, p, tr.gyr, tr.acc, tr.mag, tr.dt, 1, tr.n, 1.0, params, q_out, sig)
+    kt.run_k(params, state, Sensors.of(tr), 1, tr.n, 1.0, q_out, sig)
     late = tr.t >= 3.0
     assert metrics.score(q_out[1:], tr.q_true[1:], late[1:]).total < 0.5
     # a +30° heading error turns north toward west: east innovation ≈ −sin 30°·|h_horizontal|
@@ -168,15 +170,16 @@ def test_trust_kf_converges_from_wrong_heading():
 
 def test_trust_reduces_disturbance_error_and_run_k_chunks_match():
     tr = trial(seed=8, kind="strong")
-    params = kt.make_params(tr.field_norm, tr.field_dip)
+    params = kt.make_params(tr.field_norm, tr.field_dip, tr.dt)
     q_full, sig_full = kt.run_trial(tr, 1.0, params)
     # chunked calls as the env will make them, 16 samples per decision
-    q, p = kt.init(tr.acc[0], tr.mag[0], params)
+    state = kt.init(params, tr.acc[0], tr.mag[0])
+    q, p = state
     q_out = np.empty((tr.n, 4))
     q_out[0] = q
     sig = np.full((tr.n, kt.NSIG), np.nan)
     for i0 in range(1, tr.n, 16):
-        kt.run_k(q, p, tr.gyr, tr.acc, tr.mag, tr.dt, i0, min(i0 + 16, tr.n), 1.0, params, q_out, sig)
+        kt.run_k(params, state, Sensors.of(tr), i0, min(i0 + 16, tr.n), 1.0, q_out, sig)
     np.testing.assert_array_equal(q_out, q_full)
     np.testing.assert_array_equal(sig[1:], sig_full[1:])
     # gating the magnetometer inside the disturbance window beats trusting it
@@ -188,15 +191,16 @@ def test_trust_reduces_disturbance_error_and_run_k_chunks_match():
 
 def test_trust_kf_rejects_bad_arguments():
     tr = trial()
-    params = kt.make_params(tr.field_norm, tr.field_dip)
-    q, p = kt.init(tr.acc[0], tr.mag[0], params)
+    params = kt.make_params(tr.field_norm, tr.field_dip, tr.dt)
+    state = kt.init(params, tr.acc[0], tr.mag[0])
+    q, p = state
     q_out, sig = np.empty((tr.n, 4)), np.empty((tr.n, kt.NSIG))
     with pytest.raises(ValueError, match="trust"):
-        kt.run_k(q, p, tr.gyr, tr.acc, tr.mag, tr.dt, 1, 10, 1.5, params, q_out, sig)
+        kt.run_k(params, state, Sensors.of(tr), 1, 10, 1.5, q_out, sig)
     with pytest.raises(ValueError, match="i0"):
-        kt.run_k(q, p, tr.gyr, tr.acc, tr.mag, tr.dt, 0, 10, 1.0, params, q_out, sig)
+        kt.run_k(params, state, Sensors.of(tr), 0, 10, 1.0, q_out, sig)
     with pytest.raises(FilterError, match="initialise"):
-        kt.init(np.zeros(3), tr.mag[0], params)
+        kt.init(params, np.zeros(3), tr.mag[0])
 
 
 # ------------------------------------------------------- covariance health
@@ -231,13 +235,14 @@ def test_nan_sample_fails_loudly(kf):
 
 def test_trust_kf_nan_sample_fails_loudly_and_keeps_state():
     tr = _poisoned(trial(), 50, np.inf)
-    params = kt.make_params(tr.field_norm, tr.field_dip)
-    q, p = kt.init(tr.acc[0], tr.mag[0], params)
+    params = kt.make_params(tr.field_norm, tr.field_dip, tr.dt)
+    state = kt.init(params, tr.acc[0], tr.mag[0])
+    q, p = state
     q_out, sig = np.empty((tr.n, 4)), np.empty((tr.n, kt.NSIG))
-    kt.run_k(q, p, tr.gyr, tr.acc, tr.mag, tr.dt, 1, 50, 1.0, params, q_out, sig)
+    kt.run_k(params, state, Sensors.of(tr), 1, 50, 1.0, q_out, sig)
     q_before, p_before = q.copy(), p.copy()
     with pytest.raises(FilterError, match="sample 50"):
-        kt.run_k(q, p, tr.gyr, tr.acc, tr.mag, tr.dt, 50, 60, 1.0, params, q_out, sig)
+        kt.run_k(params, state, Sensors.of(tr), 50, 60, 1.0, q_out, sig)
     np.testing.assert_array_equal(q, q_before)
     np.testing.assert_array_equal(p, p_before)
 
@@ -259,13 +264,14 @@ def test_long_run_keeps_covariances_healthy():
     tr = kinematic_trial(seed=10, duration=120.0)
     for kf in (ThresholdKF("quest"), ThresholdKF("triad"), ModelKF("triad")):
         assert kf.run(tr).repairs == 0, kf
-    params = kt.make_params(tr.field_norm, tr.field_dip)
-    q, p = kt.init(tr.acc[0], tr.mag[0], params)
+    params = kt.make_params(tr.field_norm, tr.field_dip, tr.dt)
+    state = kt.init(params, tr.acc[0], tr.mag[0])
+    q, p = state
     q_out, sig = np.empty((tr.n, 4)), np.empty((tr.n, kt.NSIG))
     for trust in (1.0, 0.3, 0.0):  # a third of the trial each
         i0 = {1.0: 1, 0.3: tr.n // 3, 0.0: 2 * tr.n // 3}[trust]
         i1 = {1.0: tr.n // 3, 0.3: 2 * tr.n // 3, 0.0: tr.n}[trust]
-        assert kt.run_k(q, p, tr.gyr, tr.acc, tr.mag, tr.dt, i0, i1, trust, params, q_out, sig) == 0
+        assert kt.run_k(params, state, Sensors.of(tr), i0, i1, trust, q_out, sig) == 0
     np.testing.assert_array_equal(p, p.T)
     assert np.linalg.eigvalsh(p).min() > 0
     assert metrics.score(q_out[1:], tr.q_true[1:]).inclination < 0.2
@@ -277,29 +283,29 @@ def test_long_run_keeps_covariances_healthy():
 def test_vector_selector_a7_a8():
     from magenv.filters.kalman_threshold import select1
 
-    m0, dip0 = 46.0, np.deg2rad(49.6)
+    m0 = 46.0
     g_ref, h_ref = quat.gravity_up(), quat.earth_field(46.0, 49.6)
     q = quat.from_euler_zyx(0.7, 0.2, -0.4)
     g_b, h_b = quat.rotate_inv1(q, g_ref), quat.rotate_inv1(q, h_ref)
-    th = (0.08, 1.2, np.deg2rad(5.0))
+    prm = ThresholdKF(th_acc=0.08, th_mag=1.2, th_dip=5.0).params(m0, 49.6, 0.01)
     q_pred = quat.mul1(quat.from_rotvec1(np.array([0.0, 0.0, 0.1])), q)  # prior off by 0.1 rad heading
-    s_g, s_h, a_ok, m_ok = select1(q_pred, g_b, h_b, g_ref, h_ref, m0, dip0, *th)
+    s_g, s_h, a_ok, m_ok = select1(prm, q_pred, g_b, h_b)
     assert a_ok and m_ok
     np.testing.assert_allclose(s_h, h_b / m0, atol=1e-12)
     # body acceleration of 0.5 m/s² along gravity → replaced by the prediction (A7)
-    s_g, s_h, a_ok, m_ok = select1(q_pred, g_b * (1 + 0.5 / 9.81), h_b, g_ref, h_ref, m0, dip0, *th)
+    s_g, s_h, a_ok, m_ok = select1(prm, q_pred, g_b * (1 + 0.5 / 9.81), h_b)
     assert not a_ok
     np.testing.assert_allclose(s_g, quat.rotate_inv1(q_pred, g_ref) / 9.81, atol=1e-12)
     # same norm, dip 10° steeper → rejected by the dip test (A8)
     h_steep = quat.rotate_inv1(q, quat.earth_field(46.0, 59.6))
-    s_g, s_h, a_ok, m_ok = select1(q_pred, g_b, h_steep, g_ref, h_ref, m0, dip0, *th)
+    s_g, s_h, a_ok, m_ok = select1(prm, q_pred, g_b, h_steep)
     assert a_ok and not m_ok
     np.testing.assert_allclose(s_h, quat.rotate_inv1(q_pred, h_ref) / m0, atol=1e-12)
     # dip 3° steeper, norm +1 µT → accepted; norm +1.5 µT → rejected by the norm test
     h_ok = quat.rotate_inv1(q, quat.earth_field(47.0, 52.6))
-    assert select1(q_pred, g_b, h_ok, g_ref, h_ref, m0, dip0, *th)[3]
+    assert select1(prm, q_pred, g_b, h_ok)[3]
     h_big = quat.rotate_inv1(q, quat.earth_field(47.5, 49.6))
-    assert not select1(q_pred, g_b, h_big, g_ref, h_ref, m0, dip0, *th)[3]
+    assert not select1(prm, q_pred, g_b, h_big)[3]
 
 
 def test_quaternion_kf_prediction_a1_a6():
@@ -316,14 +322,15 @@ def test_quaternion_kf_prediction_a1_a6():
 
 
 def test_gauss_markov_split_a9_a10():
-    from magenv.filters.kalman_model import vec_step1
+    from magenv.filters.kalman_model import VecParams, vec_step1
 
     r, d = np.array([10.0, -20.0, 30.0]), np.array([1.0, 2.0, -3.0])
     omega, dt, c_a = np.array([0.5, -0.2, 1.0]), 0.01, 0.1
     r_pred = quat.rotate_inv1(quat.from_rotvec1(omega * dt), r)  # ṙ = −ω × r
     np.testing.assert_allclose(r_pred, r - np.cross(omega, r) * dt, atol=1e-3)
     y = r_pred + c_a * d  # a measurement equal to the prediction (A10) leaves the state at F x (A9)
-    x, p, gain, status = vec_step1(np.r_[r, d], np.eye(6), omega, y, dt, 0.01, 0.15, c_a, 1.0, 1e-14)
+    vp = VecParams(dt=dt, sigma_gyr=0.01, sigma_y=0.15, c_a=c_a, c_b=1.0, p0_ref=1.0, cov_floor=1e-14)
+    x, p, gain, status = vec_step1(vp, np.r_[r, d], np.eye(6), omega, y)
     np.testing.assert_allclose(x, np.r_[r_pred, c_a * d], atol=1e-12)
     assert status == 0 and 0 < gain < 1
     np.testing.assert_array_equal(p, p.T)
@@ -339,7 +346,7 @@ def test_trust_kf_heading_only_keeps_magnetometer_out_of_tilt():
     tr = trial(seed=8, kind="strong")
     incl = {}
     for heading_only in (True, False):
-        params = kt.make_params(tr.field_norm, tr.field_dip, heading_only=heading_only)
+        params = kt.make_params(tr.field_norm, tr.field_dip, tr.dt, heading_only=heading_only)
         incl[heading_only] = metrics.score(kt.run_trial(tr, 1.0, params)[0], tr.q_true).inclination
     assert incl[True] < 0.1 < 0.5 < incl[False], incl
 

@@ -11,15 +11,15 @@ from magenv.baselines import kalman_policies as kp
 from magenv import registry
 from magenv.protocols import Policy
 from magenv import evaluation
-from magenv.filters.kalman_env import FEATURE_NAMES, N_FEATURES
+from magenv.envs.kalman import FEATURES
 from tests.conftest import kinematic_trial
 
-IX = {f: i for i, f in enumerate(FEATURE_NAMES)}
+IX = {f: i for i, f in enumerate(FEATURES.names)}
 M0 = 40.0  # µT, deliberately not the default 46: rules must read m0 from the observation
 
 
 def _obs(norm_ut=0.0, dip_deg=0.0, dist_ut=0.0, m0=M0) -> np.ndarray:
-    o = np.zeros(N_FEATURES, np.float32)
+    o = np.zeros(len(FEATURES), np.float32)
     o[IX["field_ref"]] = m0 / 50.0
     o[IX["norm_dev"]] = norm_ut / m0
     o[IX["dip_dev"]] = dip_deg / 90.0

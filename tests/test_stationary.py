@@ -56,14 +56,15 @@ def test_streaming_equals_reference_on_noisy_data():
 
 
 def test_peek_does_not_change_state():
-    buf, ctr = stat.make_state(RATE)
+    state = stat.make_state(RATE)
+    buf, ctr = state
     th_a, th_g = stat.thresholds()
     a = np.array([0.0, 0.0, GRAVITY])
     w = np.zeros(3)
     for _ in range(60):
-        stat.stationary_step1(buf, ctr, a, w, th_a, th_g)
+        stat.step1(state, a, w, th_a, th_g)
     before = (buf.copy(), ctr.copy())
-    assert stat.stationary_peek1(buf, ctr, a, w, th_a, th_g)
-    assert not stat.stationary_peek1(buf, ctr, a + 1.0, w, th_a, th_g)
+    assert stat.peek1(state, a, w, th_a, th_g)
+    assert not stat.peek1(state, a + 1.0, w, th_a, th_g)
     np.testing.assert_array_equal(buf, before[0])
     np.testing.assert_array_equal(ctr, before[1])

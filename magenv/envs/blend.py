@@ -1,19 +1,232 @@
-"""``magenv/MagBlend-v0``: choose how far to trust the magnetometer (Fan et al. 2017 blend)."""
+"""``magenv/MagBlend-v0``: choose how far to trust the magnetometer (Fan et al. 2017 blend).
+
+The env module owns the runner, the observation features and the reward of one
+decision; the filter itself (one shared IMU/MIMU Madgwick state, eq. 14, and the
+stationary hold) is ``magenv.filters.blend``.
+
+:func:`advance` is the one kernel of the env: it fuses samples ``start:stop`` with
+``magenv.filters.blend.step1``, keeps the per-sample histories, the interval's
+error sums against truth (``magenv.metrics.error_sums``) and computes the
+observation of the next sample j = ``stop`` — the one the next λ is applied to
+first — with the current estimate q_{j−1}, so the λ rule of eqs. 15–18 is
+reproduced exactly with one decision per sample. The env calls it once per step
+(k samples), :meth:`BlendRunner.run_all` once for a whole trial.
+"""
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections import namedtuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
+from numba import njit
 
 from magenv.envs import BLEND_ID
-from magenv.envs.common import LoopVectorEnv, TrustEnv, scalar_action
-from magenv.filters import stationary as stat
-from magenv.filters.blend import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, BlendRunner
+from magenv.envs.common import LoopVectorEnv, TrialRunner, TrustEnv, scalar_action
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.filters import blend, stationary
 from magenv.filters.madgwick import BETA_DEFAULT
+from magenv.metrics import N_ERR, error_sums
+from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
 
+NORM_RATE_SCALE = 10.0  # 1/s: the relative field-norm rate in units of 10 /s
+WINDOW = "the window"  # samples fused in the last step plus sample j
 
+FEATURES = FeatureTable(
+    Feature("norm_dev", -1.0, 10.0, "fraction of m0",
+            "field-norm deviation (‖m_j‖ − m0)/m0 (its absolute value is eq. 15's λ1)"),
+    Feature("dip_dev", -2.0, 2.0, f"units of {DIP_SCALE_DEG:g}°",
+            "dip deviation (θ_dip − θ0), θ_dip by eq. 18 with q_{j−1}"),
+    Feature("gyro_norm", 0.0, 10.0, "units of 2π rad/s", "‖ω_j‖"),
+    Feature("acc_dev", -1.0, 10.0, "fraction of g", "accelerometer-norm deviation (‖a_j‖ − g)/g"),
+    Feature("stationary", 0.0, 1.0, "0/1", "sample j stationary by eqs. 11–13"),
+    Feature("cand_angle", 0.0, 2.0, "units of 4·β·Δt rad",
+            "mean angle between the IMU and MIMU candidate updates over the samples fused in the last step"),
+    Feature("lambda_prev", 0.0, 1.0, "–", "λ applied in the last step (0 after reset)"),
+    Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
+    Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
+    Feature("dip_dev_max", 0.0, 2.0, f"units of {DIP_SCALE_DEG:g}°",
+            f"max of the absolute dip_dev over {WINDOW} (each with its own prior estimate)"),
+    Feature("norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s",
+            f"rate of change of ‖m‖/m0 over {WINDOW}"),
+    Feature("mag_heading", -1.0, 1.0, "units of 180°",
+            "heading of the measured horizontal field in the estimated earth frame (0 = north, + = east)"),
+    Feature("stationary_frac", 0.0, 1.0, "–", f"fraction of {WINDOW} detected stationary"),
+)
+F = namedtuple("FeatureIndex", FEATURES.names)(*range(len(FEATURES)))  # F.norm_dev == 0, … (kernel indices)
+_LOW = FEATURES.low.astype(np.float64)
+_HIGH = FEATURES.high.astype(np.float64)
+
+
+class Site(NamedTuple):
+    """The trial's undisturbed field, the reference of the field features (``Trial.field_norm``/``field_dip``)."""
+
+    m0: float  # field norm, µT
+    dip0: float  # dip, degrees down
+
+
+class Outputs(NamedTuple):
+    """What :func:`advance` writes: per-sample histories (N rows) and the last step's sums and observation."""
+
+    est: np.ndarray  # (N, 4) estimate after each sample, sensor → ENU (NaN where not fused yet)
+    lam: np.ndarray  # (N,) λ applied to each sample (NaN where not fused yet)
+    dip: np.ndarray  # (N,) dip of m_i with the estimate before it (eq. 18), degrees
+    cand_angle: np.ndarray  # (N,) angle between the IMU and MIMU candidates, degrees
+    stationary: np.ndarray  # (N,) bool, sample detected stationary (eqs. 11–13)
+    err: np.ndarray  # (N_ERR,) error sums of the last step (magenv.metrics.E_*)
+    feat: np.ndarray  # (len(FEATURES),) observation of the next sample j
+
+    @classmethod
+    def empty(cls, n: int) -> Outputs:
+        return cls(np.full((n, 4), np.nan), np.full(n, np.nan), np.zeros(n), np.zeros(n), np.zeros(n, np.bool_),
+                   np.zeros(N_ERR), np.zeros(len(FEATURES)))
+
+
+@njit(cache=True, inline="always")
+def _norm3(v):
+    return np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+
+
+@njit(cache=True, inline="always")
+def _clip(x, i):
+    """Feature value ``x`` clipped to the range of feature ``i``."""
+    return min(_HIGH[i], max(_LOW[i], x))
+
+
+@njit(cache=True, inline="always")
+def _dip_deg(q, m):
+    """Dip angle, degrees (positive down), of field m (3,) in the sensor frame seen with orientation q (eq. 18, ENU)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    mx, my, mz = m[0], m[1], m[2]
+    n = np.sqrt(mx * mx + my * my + mz * mz)
+    if n == 0.0:
+        return 0.0
+    up = 2.0 * (x * z - w * y) * mx + 2.0 * (y * z + w * x) * my + (1.0 - 2.0 * (x * x + y * y)) * mz
+    s = -up / n
+    s = min(1.0, max(-1.0, s))
+    return np.rad2deg(np.arcsin(s))
+
+
+@njit(cache=True)
+def advance(p, site, state, sensors, truth, out, lam_const, start, stop):
+    """Fuse samples ``start:stop`` with ``magenv.filters.blend.step1``, then the observation of sample ``stop``.
+
+    Args:
+        p: ``magenv.filters.blend.Params``. site: :class:`Site`.
+        state: ``magenv.filters.blend.State``, updated in place.
+        sensors: ``magenv.filters.sensors.Sensors`` of the whole trial.
+        truth: ``magenv.envs.common.Truth``, for the error sums only.
+        out: :class:`Outputs`; rows start:stop of the histories, ``err`` and ``feat`` written.
+        lam_const: λ of every sample fused, written to ``out.lam``; if < 0, ``out.lam`` is read instead.
+    """
+    q = state.q
+    gyr, acc, mag = sensors
+    est, lam, dip, cand_angle, still = out.est, out.lam, out.dip, out.cand_angle, out.stationary
+    for i in range(start, stop):
+        if lam_const >= 0.0:
+            lam[i] = lam_const
+        m = mag[i]
+        dip[i] = _dip_deg(q, m)  # eq. 18 with the current estimate
+        cand_angle[i], still[i] = blend.step1(p, state, gyr[i], acc[i], m, lam[i])
+        est[i, 0], est[i, 1], est[i, 2], est[i, 3] = q[0], q[1], q[2], q[3]
+    error_sums(est, truth.q_true, truth.dist, start, stop, out.err)  # against truth, as magenv.metrics
+    _features(p, site, state, sensors, out, start, stop)
+
+
+@njit(cache=True)
+def _features(p, site, state, sensors, out, start, stop):
+    """``out.feat`` of sample j = ``stop`` (the last sample at the end) with the current estimate q_{j−1}."""
+    gyr, acc, mag, feat = sensors.gyr, sensors.acc, sensors.mag, out.feat
+    n = gyr.shape[0]
+    j = stop if stop < n else n - 1
+    m0, dip0 = site.m0, site.dip0
+    q = state.q
+    mj = _norm3(mag[j])
+    nd = (mj - m0) / m0
+    dd = (_dip_deg(q, mag[j]) - dip0) / DIP_SCALE_DEG
+    feat[F.norm_dev] = _clip(nd, F.norm_dev)
+    feat[F.dip_dev] = _clip(dd, F.dip_dev)
+    feat[F.gyro_norm] = _clip(_norm3(gyr[j]) / GYRO_SCALE, F.gyro_norm)
+    feat[F.acc_dev] = _clip((_norm3(acc[j]) - GRAVITY) / GRAVITY, F.acc_dev)
+    still = stationary.peek1(state.detector, acc[j], gyr[j], p.th_acc, p.th_gyro)
+    feat[F.stationary] = 1.0 if still else 0.0
+    # window statistics over the fused samples start:stop plus sample j
+    ang = 0.0
+    nmax = abs(nd)
+    nsum = nd
+    dmax = abs(dd)
+    sfrac = feat[F.stationary]
+    cand_angle, dip, still_i = out.cand_angle, out.dip, out.stationary
+    for i in range(start, stop):
+        ang += cand_angle[i]
+        ndi = (_norm3(mag[i]) - m0) / m0
+        nmax = max(nmax, abs(ndi))
+        nsum += ndi
+        dmax = max(dmax, abs(dip[i] - dip0) / DIP_SCALE_DEG)
+        sfrac += 1.0 if still_i[i] else 0.0
+    cnt = stop - start
+    ang_scale = np.rad2deg(4.0 * p.beta * p.dt)
+    feat[F.cand_angle] = _clip(ang / cnt / ang_scale, F.cand_angle) if cnt > 0 and ang_scale > 0 else 0.0
+    feat[F.lambda_prev] = out.lam[stop - 1] if stop > 0 else 0.0
+    feat[F.norm_dev_max] = _clip(nmax, F.norm_dev_max)
+    feat[F.norm_dev_mean] = _clip(nsum / (cnt + 1), F.norm_dev_mean)
+    feat[F.dip_dev_max] = _clip(dmax, F.dip_dev_max)
+    if start > 0 and j > start - 1:
+        rate = (mj - _norm3(mag[start - 1])) / m0 / ((j - start + 1) * p.dt)
+        feat[F.norm_rate] = _clip(rate / NORM_RATE_SCALE, F.norm_rate)
+    else:
+        feat[F.norm_rate] = 0.0
+    h = rotate1(q, mag[j])
+    feat[F.mag_heading] = np.arctan2(h[0], h[1]) / np.pi  # east over north: 0 when the field points north
+    feat[F.stationary_frac] = sfrac / (cnt + 1)
+
+
+class BlendRunner(TrialRunner):
+    """One trial under the blend, stepped k samples at a time (``advance(k, λ)``) or replayed whole (``run_all``).
+
+    Both go through the one kernel :func:`advance`; the observation of sample 0 is ready after construction.
+
+    Args:
+        trial: the Trial to filter.
+        beta: Madgwick gain β, rad/s.
+        hold: hold the estimate on stationary samples.
+        t0, th_acc_g, th_gyro_dps: stationary detection (s, g, °/s).
+        q0: initial orientation; None = ``ecompass1`` of the first sample (never truth).
+    """
+
+    def __init__(self, trial: Trial, beta: float = BETA_DEFAULT, hold: bool = True, t0: float = stationary.T0_S,
+                 th_acc_g: float = stationary.TH_ACC_G, th_gyro_dps: float = stationary.TH_GYRO_DPS, q0=None):
+        super().__init__(trial)
+        self.params = blend.make_params(trial.dt, beta, hold, th_acc_g, th_gyro_dps)
+        self.site = Site(trial.field_norm, trial.field_dip)
+        self.state = blend.make_state(trial, t0, q0)
+        self.q0 = self.state.q.copy()
+        self.out = Outputs.empty(trial.n)
+        self.est, self.lam, self.err, self.feat = self.out.est, self.out.lam, self.out.err, self.out.feat
+        self._args = (self.params, self.site, self.state, self.sensors, self.truth, self.out)
+        self._advance = self.compiled(advance, *self._args, 0.0, 0, 0)
+        self._fuse(0, 0, 0.0)  # the observation of sample 0, nothing fused
+
+    def _fuse(self, start: int, stop: int, lam: float) -> None:
+        self._advance(*self._args, lam, start, stop)
+
+    def run_all(self, lam) -> np.ndarray:
+        """Fuse all remaining samples with λ a constant or an (N,) array; returns est (N, 4)."""
+        if np.ndim(lam) == 0:
+            self.advance(self.n - self.pos, float(lam))
+            return self.est
+        lam = np.asarray(lam, float)
+        if lam.shape != (self.n,):
+            raise ValueError(f"λ array must have shape ({self.n},), got {lam.shape}")
+        if not np.all((lam >= 0) & (lam <= 1)):
+            raise ValueError("λ array must lie in [0, 1]")
+        self.lam[self.pos:] = lam[self.pos:]
+        self.advance(self.n - self.pos, -1.0)  # λ < 0: the kernel reads the λ history
+        return self.est
+
+
+@document(FEATURES)
 class MagBlendEnv(TrustEnv):
     """
     ## Description
@@ -53,21 +266,7 @@ class MagBlendEnv(TrustEnv):
     statistics cover the samples fused in the last step plus sample j. Every
     value is clipped to its range.
 
-    | Num | Name              | Meaning                                                         | Unit / scale          | Min  | Max |
-    |-----|-------------------|-----------------------------------------------------------------|-----------------------|------|-----|
-    | 0   | `norm_dev`        | field-norm deviation (‖m_j‖ − m0)/m0 (|·| is eq. 15's λ1)       | fraction of m0        | -1   | 10  |
-    | 1   | `dip_dev`         | dip deviation (θ_dip − θ0), θ_dip by eq. 18 with q_{j−1}        | units of 90°          | -2   | 2   |
-    | 2   | `gyro_norm`       | ‖ω_j‖                                                           | units of 2π rad/s     | 0    | 10  |
-    | 3   | `acc_dev`         | accelerometer-norm deviation (‖a_j‖ − g)/g                      | fraction of g         | -1   | 10  |
-    | 4   | `stationary`      | sample j stationary by eqs. 11–13                               | 0/1                   | 0    | 1   |
-    | 5   | `cand_angle`      | mean angle between the IMU and MIMU candidate updates           | units of 4·β·Δt rad   | 0    | 2   |
-    | 6   | `lambda_prev`     | λ applied in the last step (0 after reset)                      | –                     | 0    | 1   |
-    | 7   | `norm_dev_max`    | max |norm_dev| over the window                                  | fraction of m0        | 0    | 10  |
-    | 8   | `norm_dev_mean`   | mean norm_dev over the window                                   | fraction of m0        | -1   | 10  |
-    | 9   | `dip_dev_max`     | max |dip_dev| over the window (each with its own prior estimate) | units of 90°          | 0    | 2   |
-    | 10  | `norm_rate`       | rate of change of ‖m‖/m0 over the window                        | units of 10 /s        | -10  | 10  |
-    | 11  | `mag_heading`     | heading of the measured horizontal field in the estimated earth frame (0 = north, + = east) | units of 180° | -1 | 1 |
-    | 12  | `stationary_frac` | fraction of window samples detected stationary                  | –                     | 0    | 1   |
+    {observation_table}
 
     Physical values are recoverable: ‖m_j‖ = m0·(1 + obs[0]), dip deviation in
     degrees = 90·obs[1] (``magenv.baselines.rules.FanLambda`` relies on this).
@@ -131,11 +330,11 @@ class MagBlendEnv(TrustEnv):
 
     def __init__(self, scenario="random", decision_every: int = 8, episode_seconds: float | None = None,
                  stationary_hold: bool = True, features: Sequence[str] | None = None,
-                 beta: float = BETA_DEFAULT, t0: float = stat.T0_S, th_acc_g: float = stat.TH_ACC_G,
-                 th_gyro_dps: float = stat.TH_GYRO_DPS, scenario_kwargs: dict | None = None,
+                 beta: float = BETA_DEFAULT, t0: float = stationary.T0_S, th_acc_g: float = stationary.TH_ACC_G,
+                 th_gyro_dps: float = stationary.TH_GYRO_DPS, scenario_kwargs: dict | None = None,
                  prefetch: bool = False, render_mode: str | None = None):
         self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH, prefetch=prefetch)
+                    FEATURES.names, FEATURES.low, FEATURES.high, prefetch=prefetch)
         self.stationary_hold = bool(stationary_hold)
         self.filter_kwargs = dict(beta=float(beta), hold=self.stationary_hold, t0=float(t0),
                                   th_acc_g=float(th_acc_g), th_gyro_dps=float(th_gyro_dps))
@@ -159,7 +358,7 @@ class MagBlendEnv(TrustEnv):
     @property
     def stationary(self) -> np.ndarray:
         """(N,) bool, samples the detector flagged stationary (False where not fused yet)."""
-        return self._need_reset().aux[:, 2] > 0.5
+        return self._need_reset().out.stationary.copy()
 
 
 class MagBlendVectorEnv(LoopVectorEnv):

@@ -1,20 +1,255 @@
-"""``magenv/MagKalman-v0``: choose the Kalman gain of the magnetometer update (trust γ ∈ [0, 1])."""
+"""``magenv/MagKalman-v0``: choose the Kalman gain of the magnetometer update (trust γ ∈ [0, 1]).
+
+The env module owns the runner, the observation features and the reward of one
+decision; the filter is ``magenv.filters.kalman_trust``.
+
+:func:`advance` is the one kernel of the env: it fuses samples ``start:stop``
+with the trust KF (``kalman_trust.run_k_kernel``, gain multiplier γ), keeps the
+trust history and the interval's error sums against truth, then computes the
+observation of the next sample j = ``stop``: it *peeks* at sample j — gyro
+prediction and accelerometer update on copies of (q, P), then the
+magnetometer innovation with γ = 0, so nothing is changed — which gives the
+a-priori innovation, NIS, dip and heading std of exactly the sample the next
+γ is applied to first.
+
+The model-based feature ``model_dist`` is the magnetometer disturbance d̂
+(µT, sensor frame) of the Gauss–Markov split of Ligorio & Sabatini 2015
+(survey A.9–A.10, ``magenv.filters.kalman_model.vec_step1``), run on the
+magnetometer alone. It depends on the sensors only, never on γ, so
+:func:`model_disturbance` computes it once per trial at reset; row j uses
+samples 0…j only (causal).
+"""
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections import namedtuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
+from numba import njit
 
 from magenv.envs import KALMAN_ID
-from magenv.envs.common import LoopVectorEnv, TrustEnv, scalar_action
+from magenv.envs.common import LoopVectorEnv, TrialRunner, TrustEnv, scalar_action
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import kalman_trust as kt
-from magenv.filters.kalman_env import FEATURE_HIGH, FEATURE_LOW, FEATURE_NAMES, KalmanRunner
-from magenv.filters.kalman_model import C_A, C_B
-from magenv.filters.kalman_threshold import SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
+from magenv.filters.kalman_model import C_A, C_B, VecParams, vec_init, vec_step1
+from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
+from magenv.filters.kalman_trust import SIG
+from magenv.metrics import N_ERR, error_sums
+from magenv.quaternion import GRAVITY
 from magenv.trial import Trial
 
+FIELD_SCALE_UT = 50.0  # µT: the unit of field_ref
+WINDOW = "the window"  # samples fused in the last step plus sample j
 
+FEATURES = FeatureTable(
+    Feature("norm_dev", -1.0, 10.0, "fraction of m0", "field-norm deviation (‖m_j‖ − m0)/m0"),
+    Feature("dip_dev", -2.0, 2.0, f"units of {DIP_SCALE_DEG:g}°",
+            "(θ_j − θ0), θ_j the dip of m_j below the a-priori horizontal"),
+    Feature("gyro_norm", 0.0, 10.0, "units of 2π rad/s", "‖ω_j‖"),
+    Feature("acc_dev", -1.0, 10.0, "fraction of g", "(‖a_j‖ − g)/g"),
+    Feature("innov_norm", 0.0, 10.0, "fraction of m0",
+            "‖ν_m,j‖, ν_m = q̂⁻ ⊗ m_j ⊗ q̂⁻* − h_ENU (a-priori innovation)"),
+    Feature("innov_east", -10.0, 10.0, "m0·cos θ0 (≈ rad)",
+            "east component of ν_m,j (≈ −heading correction of a full update)"),
+    Feature("log_nis", 0.0, 10.0, "decades", "log10(1 + ν_mᵀ S⁻¹ ν_m), NIS χ²₃-distributed if consistent"),
+    Feature("heading_std", -4.0, 2.0, "decades of 1°", "log10 of the a-priori heading std sqrt(P_zz) at sample j"),
+    Feature("trust_prev", 0.0, 1.0, "–", "γ applied in the last step (1 after reset: the TRIAD start uses m fully)"),
+    Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
+    Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
+    Feature("dip_dev_max", 0.0, 2.0, f"units of {DIP_SCALE_DEG:g}°",
+            f"max of the absolute dip_dev over {WINDOW} (each with its own a-priori estimate)"),
+    Feature("acc_dev_max", 0.0, 10.0, "fraction of g", f"max of the absolute acc_dev over {WINDOW}"),
+    Feature("gyro_norm_mean", 0.0, 10.0, "units of 2π rad/s", f"mean gyro_norm over {WINDOW}"),
+    Feature("innov_norm_mean", 0.0, 10.0, "fraction of m0", f"mean innov_norm over {WINDOW}"),
+    Feature("log_nis_mean", 0.0, 10.0, "decades", f"log10(1 + mean NIS over {WINDOW})"),
+    Feature("model_dist", 0.0, 10.0, "fraction of m0",
+            "‖d̂_j‖, magnetometer disturbance of the model-based split (survey A.9–A.10, causal)"),
+    Feature("model_dist_max", 0.0, 10.0, "fraction of m0", f"max model_dist over {WINDOW}"),
+    Feature("field_ref", 0.0, 20.0, f"units of {FIELD_SCALE_UT:g} µT",
+            "m0, the site's undisturbed field norm (constant per trial; not truth)"),
+)
+F = namedtuple("FeatureIndex", FEATURES.names)(*range(len(FEATURES)))  # F.norm_dev == 0, … (kernel indices)
+_LOW = FEATURES.low.astype(np.float64)
+_HIGH = FEATURES.high.astype(np.float64)
+
+
+class Outputs(NamedTuple):
+    """What :func:`advance` writes: per-sample histories (N rows) and the last step's sums and observation."""
+
+    est: np.ndarray  # (N, 4) estimate after each sample, sensor → ENU (row 0: the TRIAD start; NaN not fused yet)
+    sig: np.ndarray  # (N, NSIG) the filter's signals per sample (kalman_trust.SIGNALS)
+    trust: np.ndarray  # (N,) γ applied to each sample (row 0: 1)
+    err: np.ndarray  # (N_ERR,) error sums of the last step (magenv.metrics.E_*)
+    feat: np.ndarray  # (len(FEATURES),) observation of the next sample j
+    peek: np.ndarray  # (NSIG,) the a-priori signals of sample j
+
+    @classmethod
+    def empty(cls, n: int) -> Outputs:
+        return cls(np.full((n, 4), np.nan), np.full((n, kt.NSIG), np.nan), np.full(n, np.nan), np.zeros(N_ERR),
+                   np.zeros(len(FEATURES)), np.zeros(kt.NSIG))
+
+
+@njit(cache=True, inline="always")
+def _clip(x, i):
+    """Feature value ``x`` clipped to the range of feature ``i``; NaN (e.g. from a zero field) reads as the
+    neutral value (0 if in range, else the lower bound)."""
+    lo, hi = _LOW[i], _HIGH[i]
+    if x != x:
+        return 0.0 if lo <= 0.0 <= hi else lo
+    return min(hi, max(lo, x))
+
+
+@njit(cache=True)
+def model_disturbance(vp, sensors, out):
+    """‖d̂‖ per sample (µT) of the magnetometer's reference/disturbance split (survey A.9–A.10) with
+    ``vp`` (``kalman_model.VecParams``), initialised as ``ModelKF.run``. Writes ``out`` (N,); returns OK (−1)
+    or the first bad sample."""
+    gyr, mag = sensors.gyr, sensors.mag
+    x, p = vec_init(vp, mag[0])
+    out[0] = 0.0
+    for k in range(1, gyr.shape[0]):
+        x, p, _, st = vec_step1(vp, x, p, 0.5 * (gyr[k - 1] + gyr[k]), mag[k])
+        if st < 0:
+            return k
+        out[k] = np.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
+    return OK
+
+
+@njit(cache=True)
+def advance(params, state, sensors, truth, mdist, out, gamma, start, stop):
+    """Fuse samples ``start:stop`` (1 ≤ start ≤ stop ≤ N) at trust γ; then the observation of sample ``stop``.
+
+    Args:
+        params: ``kalman_trust.Params``. state: ``kalman_trust.State``, updated in place.
+        sensors: ``magenv.filters.sensors.Sensors`` of the whole trial.
+        truth: ``magenv.envs.common.Truth``, for the error sums only.
+        mdist: (N,) model-based disturbance norm ‖d̂‖, µT (:func:`model_disturbance`).
+        out: :class:`Outputs`; rows start:stop of the histories, ``err``, ``feat`` and ``peek`` written.
+    Returns ``(status, repairs)``; status OK (−1) or the first sample that failed.
+    """
+    n = sensors.gyr.shape[0]
+    status, repairs = kt.run_k_kernel(params, state, sensors, start, stop, gamma, out.est, out.sig)
+    if status != OK:
+        for k in range(N_ERR):
+            out.err[k] = 0.0
+        return status, repairs
+    out.trust[start:stop] = gamma
+    error_sums(out.est, truth.q_true, truth.dist, start, stop, out.err)  # against truth, as magenv.metrics
+    # peek at the next sample: prediction + acc update + mag innovation, γ = 0, on copies
+    if stop < n:
+        gyr, acc, mag = sensors
+        st = kt.step1(params, kt.State(state.q.copy(), state.p.copy()), gyr[stop - 1], gyr[stop], acc[stop],
+                      mag[stop], 0.0, out.peek)
+        if st < 0:
+            return stop, repairs
+        j = stop
+    else:
+        out.peek[:] = out.sig[n - 1]
+        j = n - 1
+    _features(params, sensors, mdist, out, start, stop, j)
+    return OK, repairs
+
+
+@njit(cache=True)
+def _features(params, sensors, mdist, out, start, stop, j):
+    """``out.feat`` of sample j from its a-priori signals ``out.peek`` and the window's signals."""
+    gyr = sensors.gyr
+    peek, sig, feat = out.peek, out.sig, out.feat
+    m0 = params.m0
+    hh = m0 * np.cos(params.dip0)
+    nd = peek[SIG.mag_norm_dev] / m0
+    dd = peek[SIG.dip_dev] / DIP_SCALE_DEG
+    ad = peek[SIG.acc_norm_dev] / GRAVITY
+    gn = np.sqrt(gyr[j, 0] ** 2 + gyr[j, 1] ** 2 + gyr[j, 2] ** 2) / GYRO_SCALE
+    inn = peek[SIG.nu_norm] / m0
+    md = mdist[j] / m0
+    feat[F.norm_dev] = _clip(nd, F.norm_dev)
+    feat[F.dip_dev] = _clip(dd, F.dip_dev)
+    feat[F.gyro_norm] = _clip(gn, F.gyro_norm)
+    feat[F.acc_dev] = _clip(ad, F.acc_dev)
+    feat[F.innov_norm] = _clip(inn, F.innov_norm)
+    feat[F.innov_east] = _clip(peek[SIG.nu_e] / hh, F.innov_east) if hh > 0.0 else 0.0
+    feat[F.log_nis] = _clip(np.log10(1.0 + peek[SIG.nis]), F.log_nis)
+    feat[F.heading_std] = _clip(np.log10(max(np.rad2deg(peek[SIG.heading_std]), 1e-12)), F.heading_std)
+    feat[F.trust_prev] = out.trust[stop - 1]
+    # window: samples start … stop−1 just fused, plus sample j
+    nmax, nsum = abs(nd), nd
+    dmax = abs(dd) if dd == dd else 0.0
+    amax, gsum = abs(ad), gn
+    isum, nis_sum, mmax = inn, peek[SIG.nis], md
+    for i in range(start, stop):
+        ndi = sig[i, SIG.mag_norm_dev] / m0
+        nmax = max(nmax, abs(ndi))
+        nsum += ndi
+        ddi = sig[i, SIG.dip_dev] / DIP_SCALE_DEG
+        if ddi == ddi:
+            dmax = max(dmax, abs(ddi))
+        amax = max(amax, abs(sig[i, SIG.acc_norm_dev] / GRAVITY))
+        gsum += np.sqrt(gyr[i, 0] ** 2 + gyr[i, 1] ** 2 + gyr[i, 2] ** 2) / GYRO_SCALE
+        isum += sig[i, SIG.nu_norm] / m0
+        nis_sum += sig[i, SIG.nis]
+        mmax = max(mmax, mdist[i] / m0)
+    cnt = stop - start + 1
+    feat[F.norm_dev_max] = _clip(nmax, F.norm_dev_max)
+    feat[F.norm_dev_mean] = _clip(nsum / cnt, F.norm_dev_mean)
+    feat[F.dip_dev_max] = _clip(dmax, F.dip_dev_max)
+    feat[F.acc_dev_max] = _clip(amax, F.acc_dev_max)
+    feat[F.gyro_norm_mean] = _clip(gsum / cnt, F.gyro_norm_mean)
+    feat[F.innov_norm_mean] = _clip(isum / cnt, F.innov_norm_mean)
+    feat[F.log_nis_mean] = _clip(np.log10(1.0 + nis_sum / cnt), F.log_nis_mean)
+    feat[F.model_dist] = _clip(md, F.model_dist)
+    feat[F.model_dist_max] = _clip(mmax, F.model_dist_max)
+    feat[F.field_ref] = _clip(m0 / FIELD_SCALE_UT, F.field_ref)
+
+
+class KalmanRunner(TrialRunner):
+    """One trial under the trust KF, stepped k samples at a time (``advance(k, γ)``).
+
+    Sample 0 initialises the filter (TRIAD on acc[0], mag[0], never truth);
+    ``est[0]`` is that orientation and ``trust[0] = 1`` (the magnetometer sets
+    the initial heading fully). Steps then fuse samples 1 … N−1; the observation
+    of sample 1 is ready after construction.
+
+    Args:
+        trial: the Trial.
+        params: ``kalman_trust.make_params``; None = survey defaults for the trial's site.
+        model_c_a, model_c_b, model_p0: Gauss–Markov parameters of the ``model_dist`` feature
+            (per-sample correlation, driving std µT, initial reference variance µT²).
+    """
+
+    def __init__(self, trial: Trial, params: kt.Params | None = None, model_c_a: float = C_A,
+                 model_c_b: float = C_B, model_p0: float = 1.0):
+        super().__init__(trial, first=1)
+        self.params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt) if params is None else params
+        if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
+            raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a}, {model_c_b}")
+        model = VecParams(self.params.dt, self.params.sigma_gyr, self.params.sigma_mag, float(model_c_a),
+                          float(model_c_b), float(model_p0), self.params.cov_floor)
+        self.mdist = np.empty(trial.n)
+        st = model_disturbance(model, self.sensors, self.mdist)
+        if st != OK:
+            raise kt.FilterError(f"model-based disturbance split failed at sample {st} of trial {trial.name!r}")
+        self.state = kt.init(self.params, trial.acc[0], trial.mag[0])
+        self.out = Outputs.empty(trial.n)
+        self.est, self.sig, self.trust = self.out.est, self.out.sig, self.out.trust
+        self.err, self.feat = self.out.err, self.out.feat
+        self.est[0] = self.state.q
+        self.trust[0] = 1.0
+        self.repairs = 0
+        self._args = (self.params, self.state, self.sensors, self.truth, self.mdist, self.out)
+        self._advance = self.compiled(advance, *self._args, 1.0, 1, 1)
+        self._fuse(1, 1, 1.0)  # the observation of sample 1, nothing fused
+
+    def _fuse(self, start: int, stop: int, gamma: float) -> None:
+        status, repairs = self._advance(*self._args, gamma, start, stop)
+        if status != OK:
+            raise kt.FilterError(f"trust KF: non-finite sample or covariance at sample {status} of trial "
+                                 f"{self.trial.name!r} (trust {gamma})")
+        self.repairs += repairs
+
+
+@document(FEATURES)
 class MagKalmanEnv(TrustEnv):
     """
     ## Description
@@ -57,27 +292,7 @@ class MagKalmanEnv(TrustEnv):
     the samples fused in the last step plus sample j. Every value is clipped
     to its range (NaN, e.g. from a zero field, reads 0).
 
-    | Num | Name              | Meaning                                                                  | Unit / scale            | Min | Max |
-    |-----|-------------------|--------------------------------------------------------------------------|-------------------------|-----|-----|
-    | 0   | `norm_dev`        | field-norm deviation (‖m_j‖ − m0)/m0                                     | fraction of m0          | -1  | 10  |
-    | 1   | `dip_dev`         | (θ_j − θ0), θ_j the dip of m_j below the a-priori horizontal             | units of 90°            | -2  | 2   |
-    | 2   | `gyro_norm`       | ‖ω_j‖                                                                    | units of 2π rad/s       | 0   | 10  |
-    | 3   | `acc_dev`         | (‖a_j‖ − g)/g                                                            | fraction of g           | -1  | 10  |
-    | 4   | `innov_norm`      | ‖ν_m,j‖, ν_m = q̂⁻ ⊗ m_j ⊗ q̂⁻* − h_ENU (a-priori innovation)             | fraction of m0          | 0   | 10  |
-    | 5   | `innov_east`      | east component of ν_m,j (≈ −heading correction of a full update)         | m0·cos θ0 (≈ rad)       | -10 | 10  |
-    | 6   | `log_nis`         | log10(1 + ν_mᵀ S⁻¹ ν_m), NIS χ²₃-distributed if consistent               | decades                 | 0   | 10  |
-    | 7   | `heading_std`     | log10 of the a-priori heading std sqrt(P_zz) at sample j                 | decades of 1°           | -4  | 2   |
-    | 8   | `trust_prev`      | γ applied in the last step (1 after reset: the TRIAD start uses m fully) | –                       | 0   | 1   |
-    | 9   | `norm_dev_max`    | max |norm_dev| over the window                                           | fraction of m0          | 0   | 10  |
-    | 10  | `norm_dev_mean`   | mean norm_dev over the window                                            | fraction of m0          | -1  | 10  |
-    | 11  | `dip_dev_max`     | max |dip_dev| over the window (each with its own a-priori estimate)      | units of 90°            | 0   | 2   |
-    | 12  | `acc_dev_max`     | max |acc_dev| over the window                                            | fraction of g           | 0   | 10  |
-    | 13  | `gyro_norm_mean`  | mean gyro_norm over the window                                           | units of 2π rad/s       | 0   | 10  |
-    | 14  | `innov_norm_mean` | mean innov_norm over the window                                          | fraction of m0          | 0   | 10  |
-    | 15  | `log_nis_mean`    | log10(1 + mean NIS over the window)                                      | decades                 | 0   | 10  |
-    | 16  | `model_dist`      | ‖d̂_j‖, magnetometer disturbance of the model-based split (survey A.9–A.10, causal) | fraction of m0 | 0   | 10  |
-    | 17  | `model_dist_max`  | max model_dist over the window                                           | fraction of m0          | 0   | 10  |
-    | 18  | `field_ref`       | m0, the site's undisturbed field norm (constant per trial; not truth)    | units of 50 µT          | 0   | 20  |
+    {observation_table}
 
     Physical values are recoverable: m0 = 50·obs[18] µT, ‖m_j‖ − m0 = m0·obs[0]
     µT, dip deviation = 90·obs[1] degrees, NIS = 10^obs[6] − 1, ‖d̂_j‖ =
@@ -152,18 +367,18 @@ class MagKalmanEnv(TrustEnv):
                  model_c_a: float = C_A, model_c_b: float = C_B, scenario_kwargs: dict | None = None,
                  prefetch: bool = False, render_mode: str | None = None):
         self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    FEATURE_NAMES, FEATURE_LOW, FEATURE_HIGH, prefetch=prefetch)
+                    FEATURES.names, FEATURES.low, FEATURES.high, prefetch=prefetch)
         if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
             raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a!r}, {model_c_b!r}")
         if not th_acc > 0:
             raise ValueError(f"th_acc must be positive (math.inf disables the gate), got {th_acc!r}")
         self.filter_kwargs = dict(sigma_gyr=float(sigma_gyr), sigma_acc=float(sigma_acc), sigma_mag=float(sigma_mag),
                                   th_acc=float(th_acc), heading_only=bool(heading_only))
-        kt.make_params(46.0, 49.6, **self.filter_kwargs)  # validate the noise model now, not at the first reset
+        kt.make_params(46.0, 49.6, 1.0 / 256.0, **self.filter_kwargs)  # validate the noise model now, not at reset
         self.model_kwargs = dict(model_c_a=float(model_c_a), model_c_b=float(model_c_b))
 
     def _make_runner(self, trial: Trial) -> KalmanRunner:
-        params = kt.make_params(trial.field_norm, trial.field_dip, **self.filter_kwargs)
+        params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **self.filter_kwargs)
         return KalmanRunner(trial, params, **self.model_kwargs)
 
     def step(self, action):

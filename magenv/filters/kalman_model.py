@@ -29,37 +29,78 @@ choice: the magnetometer never tilts the estimate) or QUEST; the solver's
 output is the orientation, as in the survey's Figure A2 — no further
 quaternion Kalman filter, since the vector filters already fuse the gyro.
 The disturbance estimate ``d̂`` (µT, sensor frame) is returned per sample.
+
+Kernels take named parameters: :class:`VecParams` for one sensor's split,
+:class:`Params` for the whole estimator (:meth:`ModelKF.params`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
 from magenv.filters.kalman_threshold import (
-    COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, SOLVERS, FilterError, finite3, repair_cov1, skew1,
-    solve1,
+    COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, FilterError, finite3, repair_cov1, skew1,
 )
+from magenv.filters.sensors import Sensors
+from magenv.filters.solvers import Solver, make_solver, solve1
 from magenv.quaternion import from_rotvec1, rotate_inv1
 
 C_A = 0.1  # GM correlation per sample (survey)
 C_B = 1.0  # GM driving-noise std per sample, sensor unit (survey)
 
 
+class VecParams(NamedTuple):
+    """Constants of one sensor's reference/disturbance split (A9–A10)."""
+
+    dt: float  # sample interval T_s, s
+    sigma_gyr: float  # gyro noise std, rad/s
+    sigma_y: float  # the sensor's noise std (m/s² or µT)
+    c_a: float  # GM correlation per sample, in [0, 1)
+    c_b: float  # GM driving-noise std per sample, sensor unit
+    p0_ref: float  # initial variance of the reference vector, sensor unit²
+    cov_floor: float  # eigenvalue floor of a repaired covariance
+
+
+class Params(NamedTuple):
+    """Constants of the model-based estimator over one trial (:meth:`ModelKF.params`)."""
+
+    acc: VecParams  # the accelerometer split: gravity + body acceleration
+    mag: VecParams  # the magnetometer split: Earth field + disturbance
+    solver: Solver  # TRIAD or QUEST on the a-posteriori references
+    g_ref: np.ndarray  # (3,) gravity reference, ENU (up), m/s²
+    h_ref: np.ndarray  # (3,) Earth field, ENU, µT
+
+
 @njit(cache=True)
-def vec_step1(x, p, omega, y, dt, sigma_gyr, sigma_y, c_a, c_b, floor):
-    """One predict (A9) + update (A10) of the reference/disturbance split.
+def vec_init(vp, y0):
+    """Initial ``(x (6,), P (6, 6))`` of a split from the first sample ``y0``: r = y0, d = 0,
+    P = diag(p0_ref·I, c_b²/(1 − c_a²)·I) (the disturbance at its stationary GM variance)."""
+    x = np.zeros(6)
+    x[:3] = y0
+    p = np.zeros((6, 6))
+    vd = vp.c_b ** 2 / max(1.0 - vp.c_a ** 2, 1e-12)
+    for i in range(3):
+        p[i, i] = vp.p0_ref
+        p[3 + i, 3 + i] = vd
+    return x, p
+
+
+@njit(cache=True)
+def vec_step1(vp, x, p, omega, y):
+    """One predict (A9) + update (A10) of the reference/disturbance split with parameters ``vp`` (:class:`VecParams`).
 
     Args:
         x: (6,) state [r; d] (sensor frame). p: (6, 6) covariance.
-        omega: (3,) rate, rad/s. y: (3,) sensor sample. dt: s.
-        sigma_gyr: rad/s. sigma_y: sensor noise std. c_a, c_b: GM parameters.
+        omega: (3,) rate, rad/s. y: (3,) sensor sample.
     Returns ``(x, P, gain_r, status)``: gain_r = trace of the reference-vector
     gain block / 3 (how strongly this sample moved r), status as repair_cov1.
     """
+    dt, c_a, c_b, sigma_y = vp.dt, vp.c_a, vp.c_b, vp.sigma_y
     dq = from_rotvec1(omega * dt)
     # A9: rotation matrix of r ↦ δq* ⊗ r ⊗ δq (columns = images of the unit vectors)
     rot = np.empty((3, 3))
@@ -74,7 +115,7 @@ def vec_step1(x, p, omega, y, dt, sigma_gyr, sigma_y, c_a, c_b, floor):
         f[3 + i, 3 + i] = c_a
     gx = skew1(x[:3])
     qn = np.zeros((6, 6))
-    sg = dt * sigma_gyr
+    sg = dt * vp.sigma_gyr
     qn[:3, :3] = (sg * sg) * (gx @ gx.T)  # A9: G_gyr = T_s [r×]
     for i in range(3):
         qn[3 + i, 3 + i] = c_b * c_b
@@ -92,40 +133,25 @@ def vec_step1(x, p, omega, y, dt, sigma_gyr, sigma_y, c_a, c_b, floor):
     ikh[:, :3] -= k
     ikh[:, 3:] -= k
     pn = ikh @ pp @ ikh.T + (sigma_y * sigma_y) * (k @ k.T)  # Joseph form
-    status = repair_cov1(pn, floor)
+    status = repair_cov1(pn, vp.cov_floor)
     gain_r = (k[0, 0] + k[1, 1] + k[2, 2]) / 3.0
     return xn, pn, gain_r, status
 
 
 @njit(cache=True)
-def run_kernel(gyr, acc, mag, dt, prm, solver, q_out, x_acc, x_mag, gain_mag):
+def run_kernel(prm, sensors, q_out, x_acc, x_mag, gain_mag):
     """Whole trial: two vector KFs feeding the solver.
 
-    ``prm`` = [σ_gyr, σ_acc, σ_mag, c_a_acc, c_b_acc, c_a_mag, c_b_mag, w_acc,
-    w_mag, g_ref(3), h_ref(3), p0_ref_acc, p0_ref_mag, cov_floor].
     Writes q_out (N, 4), x_acc (N, 6) = [ĝ; â], x_mag (N, 6) = [ĥ; d̂],
     gain_mag (N,). Returns ``(status, repairs)``.
     """
+    gyr, acc, mag = sensors
     n = gyr.shape[0]
-    g_ref = prm[9:12]
-    h_ref = prm[12:15]
-    floor = prm[17]
     if not (finite3(acc[0]) and finite3(mag[0]) and finite3(gyr[0])):
         return 0, 0
-    xa = np.zeros(6)
-    xm = np.zeros(6)
-    xa[:3] = acc[0]
-    xm[:3] = mag[0]
-    pa = np.zeros((6, 6))
-    pm = np.zeros((6, 6))
-    va = prm[4] ** 2 / max(1.0 - prm[3] ** 2, 1e-12)  # stationary GM variance
-    vm = prm[6] ** 2 / max(1.0 - prm[5] ** 2, 1e-12)
-    for i in range(3):
-        pa[i, i] = prm[15]
-        pa[3 + i, 3 + i] = va
-        pm[i, i] = prm[16]
-        pm[3 + i, 3 + i] = vm
-    q = solve1(solver, xa[:3], xm[:3], g_ref, h_ref, prm[7], prm[8])
+    xa, pa = vec_init(prm.acc, acc[0])
+    xm, pm = vec_init(prm.mag, mag[0])
+    q = solve1(prm.solver, xa[:3], xm[:3], prm.g_ref, prm.h_ref)
     if not np.isfinite(q[0]):
         return 0, 0
     q_out[0] = q
@@ -137,12 +163,12 @@ def run_kernel(gyr, acc, mag, dt, prm, solver, q_out, x_acc, x_mag, gain_mag):
         if not (finite3(gyr[k]) and finite3(acc[k]) and finite3(mag[k])):
             return k, repairs
         omega = 0.5 * (gyr[k - 1] + gyr[k])
-        xa, pa, _, sa = vec_step1(xa, pa, omega, acc[k], dt, prm[0], prm[1], prm[3], prm[4], floor)
-        xm, pm, gm, sm = vec_step1(xm, pm, omega, mag[k], dt, prm[0], prm[2], prm[5], prm[6], floor)
+        xa, pa, _, sa = vec_step1(prm.acc, xa, pa, omega, acc[k])
+        xm, pm, gm, sm = vec_step1(prm.mag, xm, pm, omega, mag[k])
         if sa < 0 or sm < 0:
             return k, repairs
         repairs += sa + sm
-        qk = solve1(solver, xa[:3], xm[:3], g_ref, h_ref, prm[7], prm[8])
+        qk = solve1(prm.solver, xa[:3], xm[:3], prm.g_ref, prm.h_ref)
         if not np.isfinite(qk[0]):
             return k, repairs
         q_out[k] = qk
@@ -201,28 +227,27 @@ class ModelKF:
     p0_acc: float = 1.0
     p0_mag: float = 1.0
 
-    def params(self, field_norm: float, field_dip: float) -> np.ndarray:
-        if self.solver not in SOLVERS:
-            raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {self.solver!r}")
+    def params(self, field_norm: float, field_dip: float, dt: float) -> Params:
+        """Kernel parameters for a site (m0 µT, θ0 degrees) and sample interval ``dt`` s."""
+        solver = make_solver(self.solver, self.weights)
         for name in ("c_a", "c_a_mag"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be in [0, 1) for a stable Gauss–Markov model, got {getattr(self, name)}")
-        return np.concatenate([
-            [self.sigma_gyr, self.sigma_acc, self.sigma_mag, self.c_a, self.c_b, self.c_a_mag, self.c_b_mag,
-             self.weights[0], self.weights[1]],
-            quat.gravity_up(), quat.earth_field(field_norm, field_dip), [self.p0_acc, self.p0_mag, COV_FLOOR],
-        ])
+        acc = VecParams(float(dt), float(self.sigma_gyr), float(self.sigma_acc), float(self.c_a), float(self.c_b),
+                        float(self.p0_acc), COV_FLOOR)
+        mag = VecParams(float(dt), float(self.sigma_gyr), float(self.sigma_mag), float(self.c_a_mag),
+                        float(self.c_b_mag), float(self.p0_mag), COV_FLOOR)
+        return Params(acc, mag, solver, quat.gravity_up(), quat.earth_field(field_norm, field_dip))
 
     def run(self, trial) -> ModelResult:
         """Run causally over a Trial; raises FilterError on non-finite or degenerate data."""
-        prm = self.params(trial.field_norm, trial.field_dip)
+        prm = self.params(trial.field_norm, trial.field_dip, trial.dt)
         n = trial.n
         q = np.empty((n, 4))
         xa = np.empty((n, 6))
         xm = np.empty((n, 6))
         gm = np.empty(n)
-        status, repairs = run_kernel(trial.gyr, trial.acc, trial.mag, trial.dt, prm, SOLVERS[self.solver],
-                                     q, xa, xm, gm)
+        status, repairs = run_kernel(prm, Sensors.of(trial), q, xa, xm, gm)
         if status != OK:
             raise FilterError(
                 f"model-based KF ({self.solver}) on trial {trial.name!r}: non-finite or degenerate sample or "

@@ -35,23 +35,24 @@ As in the survey, a replaced sample still feeds the solver and the update
 Defaults: Table A1 thresholds (0.08 m/s², 1.20 µT, 5°) and the survey's
 sensor noise (gyro 0.5 °/s, acc 0.02 m/s², mag 0.15 µT).
 
-This module also holds the covariance-health kernel shared by the other
-Kalman filters (:func:`repair_cov1`) and :class:`FilterError`.
+Kernels take :class:`Params` (named constants, :meth:`ThresholdKF.params`)
+and return a new :class:`State`. This module also holds the covariance-health
+kernel shared by the other Kalman filters (:func:`repair_cov1`) and
+:class:`FilterError`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
-from magenv.filters.solvers import quest1, triad1
+from magenv.filters.sensors import Sensors
+from magenv.filters.solvers import Solver, make_solver, solve1
 from magenv.quaternion import GRAVITY, align1, from_rotvec1, mul1, normalize1, rotate_inv1
-
-TRIAD, QUEST = 0, 1
-SOLVERS = {"triad": TRIAD, "quest": QUEST}
 
 # Survey noise (§4) and Table A1.
 SIGMA_GYR = np.deg2rad(0.5)  # rad/s
@@ -68,6 +69,31 @@ OK = -1
 
 class FilterError(RuntimeError):
     """A filter met a non-finite input or an unrecoverable covariance."""
+
+
+class Params(NamedTuple):
+    """Constants of the threshold KF over one trial (:meth:`ThresholdKF.params`)."""
+
+    dt: float  # sample interval T_s, s
+    sigma_gyr: float  # gyro noise std, rad/s (A6)
+    r: float  # variance of each component of the solver's quaternion, σ_θ²/4 (A2)
+    m0: float  # undisturbed field norm, µT
+    dip0: float  # undisturbed dip, rad (positive down)
+    th_acc: float  # gate on | |acc| − g |, m/s² (A7)
+    th_mag: float  # gate on | |mag| − m0 |, µT (A8)
+    th_dip: float  # gate on |θ − θ0|, rad (A8)
+    solver: Solver  # TRIAD or QUEST and its weights
+    g_ref: np.ndarray  # (3,) gravity reference, ENU (up), m/s²
+    h_ref: np.ndarray  # (3,) Earth field, ENU, µT
+    cov_floor: float  # eigenvalue floor of a repaired covariance
+    p0: float  # initial covariance P₀ = p0·I₄
+
+
+class State(NamedTuple):
+    """The filter's state (each step returns a new one)."""
+
+    q: np.ndarray  # (4,) orientation quaternion, sensor → ENU
+    p: np.ndarray  # (4, 4) its covariance
 
 
 # ------------------------------------------------------------ covariance health
@@ -195,23 +221,25 @@ def update1(q, p, z, r):
 
 
 @njit(cache=True)
-def select1(q_prior, acc, mag, g_ref, h_ref, m0, dip0_rad, th_acc, th_mag, th_dip_rad):
-    """Vector selector (A7–A8). Returns ``(s_g, s_h, acc_ok, mag_ok)``, unit vectors, sensor frame."""
+def select1(prm, q_prior, acc, mag):
+    """Vector selector (A7–A8) for ``prm`` (:class:`Params`). Returns ``(s_g, s_h, acc_ok, mag_ok)``, unit
+    vectors, sensor frame."""
+    g_ref, h_ref = prm.g_ref, prm.h_ref
     na = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
     nm = np.sqrt(mag[0] ** 2 + mag[1] ** 2 + mag[2] ** 2)
     ng = np.sqrt(g_ref[0] ** 2 + g_ref[1] ** 2 + g_ref[2] ** 2)
     nh = np.sqrt(h_ref[0] ** 2 + h_ref[1] ** 2 + h_ref[2] ** 2)
-    acc_ok = abs(na - ng) < th_acc  # A7
+    acc_ok = abs(na - ng) < prm.th_acc  # A7
     if acc_ok:
         s_g = acc / na
     else:
         s_g = rotate_inv1(q_prior, g_ref) / ng
-    mag_ok = abs(nm - m0) < th_mag and nm > 0.0  # A8, norm test
+    mag_ok = abs(nm - prm.m0) < prm.th_mag and nm > 0.0  # A8, norm test
     if mag_ok:
         m_hat = mag / nm
         sd = -(s_g[0] * m_hat[0] + s_g[1] * m_hat[1] + s_g[2] * m_hat[2])
         dip = np.arcsin(min(1.0, max(-1.0, sd)))
-        mag_ok = abs(dip - dip0_rad) < th_dip_rad  # A8, dip test
+        mag_ok = abs(dip - prm.dip0) < prm.th_dip  # A8, dip test
     if mag_ok:
         s_h = mag / nm
     else:
@@ -220,64 +248,52 @@ def select1(q_prior, acc, mag, g_ref, h_ref, m0, dip0_rad, th_acc, th_mag, th_di
 
 
 @njit(cache=True)
-def solve1(solver, s_g, s_h, g_ref, h_ref, w_acc, w_mag):
-    """Single-frame solution (TRIAD = 0, QUEST = 1), sensor → ENU."""
-    if solver == TRIAD:
-        return triad1(s_g, s_h, g_ref, h_ref)
-    return quest1(s_g, s_h, g_ref, h_ref, w_acc, w_mag)
+def step1(prm, state, gyr_prev, gyr, acc, mag):
+    """One full step (gyr_prev, gyr rad/s; acc m/s²; mag µT): predict, select, solve, update.
 
-
-@njit(cache=True)
-def step1(q, p, gyr_prev, gyr, acc, mag, dt, prm, solver):
-    """One full step: predict, select, solve, update. Returns ``(q, P, acc_ok, mag_ok, status)``.
-
-    ``prm`` = [σ_gyr, r, m0, dip0_rad, th_acc, th_mag, th_dip_rad, w_acc, w_mag,
-    g_ref(3), h_ref(3), cov_floor] (see :class:`ThresholdKF`). status: 0 ok,
-    1 covariance repaired, −1 non-finite input/covariance, −2 degenerate solver input.
+    Returns ``(state, acc_ok, mag_ok, status)``; status 0 ok, 1 covariance repaired,
+    −1 non-finite input/covariance, −2 degenerate solver input (the prediction is kept).
     """
     if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag)):
-        return q, p, False, False, -1
-    g_ref = prm[9:12]
-    h_ref = prm[12:15]
-    qp, pp = predict1(q, p, 0.5 * (gyr_prev + gyr), dt, prm[0])
-    s_g, s_h, acc_ok, mag_ok = select1(qp, acc, mag, g_ref, h_ref, prm[2], prm[3], prm[4], prm[5], prm[6])
-    z = solve1(solver, s_g, s_h, g_ref, h_ref, prm[7], prm[8])
+        return state, False, False, -1
+    qp, pp = predict1(state.q, state.p, 0.5 * (gyr_prev + gyr), prm.dt, prm.sigma_gyr)
+    s_g, s_h, acc_ok, mag_ok = select1(prm, qp, acc, mag)
+    z = solve1(prm.solver, s_g, s_h, prm.g_ref, prm.h_ref)
     if not np.isfinite(z[0]):
         # degenerate pair (e.g. acc ∥ mag): keep the prediction, as if both were replaced
-        status = repair_cov1(pp, prm[15])
-        return qp, pp, acc_ok, mag_ok, -2 if status >= 0 else -1
-    qn, pn = update1(qp, pp, z, prm[1])
-    status = repair_cov1(pn, prm[15])
-    return qn, pn, acc_ok, mag_ok, status
+        status = repair_cov1(pp, prm.cov_floor)
+        return State(qp, pp), acc_ok, mag_ok, -2 if status >= 0 else -1
+    qn, pn = update1(qp, pp, z, prm.r)
+    status = repair_cov1(pn, prm.cov_floor)
+    return State(qn, pn), acc_ok, mag_ok, status
 
 
 @njit(cache=True)
-def run_kernel(gyr, acc, mag, dt, prm, solver, p0, q_out, acc_ok, mag_ok):
-    """Whole trial. Sample 0 initialises q by the solver on the raw vectors.
+def run_kernel(prm, sensors, q_out, acc_ok, mag_ok):
+    """Whole trial. Sample 0 initialises q by the solver on the raw vectors, P = p0·I₄.
 
-    Returns ``(status, repairs)``: status OK (−1) or the index of the first
-    sample with a non-finite input or covariance.
+    Writes q_out (N, 4), acc_ok, mag_ok (N,). Returns ``(status, repairs)``: status OK (−1) or the
+    index of the first sample with a non-finite input or covariance.
     """
+    gyr, acc, mag = sensors
     n = gyr.shape[0]
-    g_ref = prm[9:12]
-    h_ref = prm[12:15]
     if not (finite3(acc[0]) and finite3(mag[0])):
         return 0, 0
-    q = solve1(solver, acc[0], mag[0], g_ref, h_ref, prm[7], prm[8])
+    q = solve1(prm.solver, acc[0], mag[0], prm.g_ref, prm.h_ref)
     if not np.isfinite(q[0]):
         return 0, 0
-    p = np.eye(4) * p0
+    state = State(q, np.eye(4) * prm.p0)
     q_out[0] = q
     acc_ok[0] = True
     mag_ok[0] = True
     repairs = 0
     for k in range(1, n):
-        q, p, a_ok, m_ok, status = step1(q, p, gyr[k - 1], gyr[k], acc[k], mag[k], dt, prm, solver)
+        state, a_ok, m_ok, status = step1(prm, state, gyr[k - 1], gyr[k], acc[k], mag[k])
         if status == -1:
             return k, repairs
         if status == 1:
             repairs += 1
-        q_out[k] = q
+        q_out[k] = state.q
         acc_ok[k] = a_ok
         mag_ok[k] = m_ok
     return OK, repairs
@@ -329,28 +345,25 @@ class ThresholdKF:
     sigma_meas: float | None = None
     p0: float = 1e-2
 
-    def params(self, field_norm: float, field_dip: float) -> np.ndarray:
-        """Parameter vector ``prm`` of the kernels for a site (m0 µT, θ0 degrees)."""
-        if self.solver not in SOLVERS:
-            raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {self.solver!r}")
+    def params(self, field_norm: float, field_dip: float, dt: float) -> Params:
+        """Kernel parameters for a site (m0 µT, θ0 degrees) and sample interval ``dt`` s."""
+        solver = make_solver(self.solver, self.weights)
         sig = self.sigma_meas
         if sig is None:
             sig = np.hypot(self.sigma_acc / GRAVITY, self.sigma_mag / (field_norm * np.cos(np.deg2rad(field_dip))))
-        return np.concatenate([
-            [self.sigma_gyr, 0.25 * sig * sig, field_norm, np.deg2rad(field_dip), self.th_acc, self.th_mag,
-             np.deg2rad(self.th_dip), self.weights[0], self.weights[1]],
-            quat.gravity_up(), quat.earth_field(field_norm, field_dip), [COV_FLOOR],
-        ])
+        return Params(float(dt), float(self.sigma_gyr), float(0.25 * sig * sig), float(field_norm),
+                      float(np.deg2rad(field_dip)), float(self.th_acc), float(self.th_mag),
+                      float(np.deg2rad(self.th_dip)), solver, quat.gravity_up(), quat.earth_field(field_norm, field_dip),
+                      COV_FLOOR, float(self.p0))
 
     def run(self, trial) -> ThresholdResult:
         """Run causally over a :class:`magenv.trial.Trial`; raises FilterError on non-finite data."""
-        prm = self.params(trial.field_norm, trial.field_dip)
+        prm = self.params(trial.field_norm, trial.field_dip, trial.dt)
         n = trial.n
         q = np.empty((n, 4))
         acc_ok = np.zeros(n, bool)
         mag_ok = np.zeros(n, bool)
-        status, repairs = run_kernel(trial.gyr, trial.acc, trial.mag, trial.dt, prm, SOLVERS[self.solver],
-                                     self.p0, q, acc_ok, mag_ok)
+        status, repairs = run_kernel(prm, Sensors.of(trial), q, acc_ok, mag_ok)
         if status != OK:
             raise FilterError(
                 f"threshold KF ({self.solver}) on trial {trial.name!r}: non-finite or degenerate sample or "

@@ -1,4 +1,4 @@
-"""Quaternion Kalman filter whose magnetometer trust is set from outside (core of the Kalman-gain env).
+"""Quaternion Kalman filter whose magnetometer trust is set from outside (the filter of ``magenv/MagKalman-v0``).
 
 A multiplicative (error-state) Kalman filter: the estimate ``q̂`` (sensor →
 ENU) is corrected by an **earth-frame** small rotation δθ,
@@ -30,7 +30,8 @@ Joseph form keeps P the true error covariance of the filter actually run
 (whatever γ the policy picks), so trace P and S stay meaningful
 observations. A log-R policy can still be emulated inside (0, 1].
 
-Signals (``sig_out`` columns, what a policy may observe; truth-free):
+Signals (columns of ``sig``, named by ``SIGNALS`` and indexed by ``SIG``, e.g.
+``sig[SIG.nis]``; what a policy may observe, truth-free):
 
 ==  =================  =====  ===============================================
  0  nu_e               µT     magnetometer innovation, earth frame, east
@@ -53,11 +54,14 @@ Signals (``sig_out`` columns, what a policy may observe; truth-free):
 or dip too. The same ν_m is the filter's disturbance estimate in µT (earth
 frame): the model-based split is not used here.
 
-``params`` layout (float64, see :func:`make_params`): [σ_g, σ_a, σ_m, th_acc,
-heading_only, g_ref(3), h_ref(3), m0, dip0_rad, cov_floor, p0].
+Kernels take :class:`Params` (named constants) and :class:`State` (named
+arrays, updated in place); :func:`run_trial` runs a whole trial offline.
 """
 
 from __future__ import annotations
+
+from collections import namedtuple
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -66,47 +70,73 @@ from magenv import quaternion as quat
 from magenv.filters.kalman_threshold import (
     COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC, FilterError, finite3, repair_cov1, skew1,
 )
+from magenv.filters.sensors import Sensors
 from magenv.filters.solvers import triad1
 from magenv.quaternion import from_rotvec1, mul1, normalize1, rotate1
 
-NSIG = 13
 SIGNALS = ("nu_e", "nu_n", "nu_u", "nu_norm", "nis", "s_trace", "p_trace", "heading_std",
            "mag_norm_dev", "dip_dev", "acc_norm_dev", "acc_used", "trust")
+SIG = namedtuple("SignalIndex", SIGNALS)(*range(len(SIGNALS)))  # SIG.nu_e == 0, … (column of a signal)
+NSIG = len(SIGNALS)
 P0 = np.deg2rad(5.0) ** 2  # initial variance per axis, rad²
 
 
-def make_params(field_norm: float, field_dip: float, sigma_gyr: float = SIGMA_GYR, sigma_acc: float = SIGMA_ACC,
-                sigma_mag: float = SIGMA_MAG, th_acc: float = TH_ACC, heading_only: bool = True,
-                p0: float = P0) -> np.ndarray:
-    """Parameter vector of the kernels.
+class Params(NamedTuple):
+    """Constants of the trust KF over one trial (:func:`make_params`)."""
+
+    dt: float  # sample interval T_s, s
+    sigma_gyr: float  # gyro noise std σ_g, rad/s
+    sigma_acc: float  # accelerometer noise std σ_a, m/s²
+    sigma_mag: float  # magnetometer noise std σ_m, µT
+    th_acc: float  # accelerometer gate on | |a| − g |, m/s² (inf: never gated)
+    heading_only: bool  # the magnetometer corrects the heading only (Schmidt gain)
+    g_ref: np.ndarray  # (3,) gravity reference g_ENU (specific force at rest, up), m/s²
+    h_ref: np.ndarray  # (3,) Earth field h_ENU, µT
+    m0: float  # undisturbed field norm, µT
+    dip0: float  # undisturbed dip, rad (positive down)
+    cov_floor: float  # eigenvalue floor of a repaired covariance, rad²
+    p0: float  # initial variance of each error angle, rad²
+
+
+class State(NamedTuple):
+    """The filter's state, updated in place."""
+
+    q: np.ndarray  # (4,) estimate q̂, sensor → ENU
+    p: np.ndarray  # (3, 3) covariance of the earth-frame error angle δθ, rad²
+
+
+def make_params(field_norm: float, field_dip: float, dt: float, sigma_gyr: float = SIGMA_GYR,
+                sigma_acc: float = SIGMA_ACC, sigma_mag: float = SIGMA_MAG, th_acc: float = TH_ACC,
+                heading_only: bool = True, p0: float = P0) -> Params:
+    """Parameters for a site and sample interval.
 
     Args:
-        field_norm: m0, µT. field_dip: θ0, degrees down.
+        field_norm: m0, µT. field_dip: θ0, degrees down. dt: s.
         sigma_gyr: rad/s. sigma_acc: m/s². sigma_mag: µT (survey noise by default).
         th_acc: accelerometer gate, m/s² (Table A1); ``np.inf`` disables it.
         heading_only: the magnetometer corrects the heading only (Schmidt gain).
         p0: initial variance of each error angle, rad².
     """
-    for name, v in (("sigma_gyr", sigma_gyr), ("sigma_acc", sigma_acc), ("sigma_mag", sigma_mag), ("p0", p0)):
+    for name, v in (("sigma_gyr", sigma_gyr), ("sigma_acc", sigma_acc), ("sigma_mag", sigma_mag), ("p0", p0),
+                    ("dt", dt)):
         if not (np.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be a positive finite number, got {v!r}")
-    return np.concatenate([
-        [sigma_gyr, sigma_acc, sigma_mag, th_acc, 1.0 if heading_only else 0.0],
-        quat.gravity_up(), quat.earth_field(field_norm, field_dip),
-        [field_norm, np.deg2rad(field_dip), COV_FLOOR, p0],
-    ])
+    return Params(float(dt), float(sigma_gyr), float(sigma_acc), float(sigma_mag), float(th_acc), bool(heading_only),
+                  quat.gravity_up(), quat.earth_field(field_norm, field_dip), float(field_norm),
+                  float(np.deg2rad(field_dip)), COV_FLOOR, float(p0))
 
 
 @njit(cache=True)
-def init_kernel(acc0, mag0, params, q, p):
-    """Initialise ``q`` (4,) by TRIAD on the first sample and ``P = p0·I``, in place. Returns False if degenerate."""
-    q0 = triad1(acc0, mag0, params[5:8], params[8:11])
+def init_kernel(params, acc0, mag0, state):
+    """Initialise ``state``: q by TRIAD on the first sample, ``P = p0·I``, in place. Returns False if degenerate."""
+    q0 = triad1(acc0, mag0, params.g_ref, params.h_ref)
     if not np.isfinite(q0[0]):
         return False
-    q[:] = q0
+    state.q[:] = q0
+    p = state.p
     p[:, :] = 0.0
     for i in range(3):
-        p[i, i] = params[14]
+        p[i, i] = params.p0
     return True
 
 
@@ -117,20 +147,17 @@ def _apply(q, dtheta):
 
 
 @njit(cache=True)
-def step_kernel(q, p, gyr_prev, gyr, acc, mag, dt, trust, params, sig):
-    """One sample, in place on ``q`` (4,) and ``p`` (3, 3); writes ``sig`` (NSIG,).
+def step1(params, state, gyr_prev, gyr, acc, mag, trust, sig):
+    """One sample (gyr_prev, gyr rad/s; acc m/s²; mag µT; (3,) each) at trust γ, in place on ``state``.
 
-    Returns 0 ok, 1 covariance repaired, −1 non-finite input or covariance.
+    Writes ``sig`` (NSIG,). Returns 0 ok, 1 covariance repaired, −1 non-finite input or covariance
+    (``state`` then stays at the previous sample).
     """
     if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
         return -1
-    sg, sa, sm, th_acc = params[0], params[1], params[2], params[3]
-    heading_only = params[4] > 0.5
-    g_ref = params[5:8]
-    h_ref = params[8:11]
-    m0, dip0 = params[11], params[12]
-    floor = params[13]
-    p_in = p
+    sg, sa, sm, dt = params.sigma_gyr, params.sigma_acc, params.sigma_mag, params.dt
+    g_ref, h_ref = params.g_ref, params.h_ref
+    q, p_in = state.q, state.p
     p = p_in.copy()  # work on a copy: on failure the caller's state stays at the previous sample
     # 1. prediction
     qn = normalize1(mul1(q, from_rotvec1(0.5 * (gyr_prev + gyr) * dt)))
@@ -140,7 +167,7 @@ def step_kernel(q, p, gyr_prev, gyr, acc, mag, dt, trust, params, sig):
     # 2. accelerometer update (gated, A7)
     na = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
     ng = np.sqrt(g_ref[0] ** 2 + g_ref[1] ** 2 + g_ref[2] ** 2)
-    acc_used = abs(na - ng) < th_acc
+    acc_used = abs(na - ng) < params.th_acc
     if acc_used:
         h = skew1(g_ref)
         nu = rotate1(qn, acc) - g_ref
@@ -161,46 +188,49 @@ def step_kernel(q, p, gyr_prev, gyr, acc, mag, dt, trust, params, sig):
     s_inv = np.linalg.inv(s)
     if trust > 0.0:
         k = p @ h.T @ s_inv
-        if heading_only:
+        if params.heading_only:
             k[0, :] = 0.0
             k[1, :] = 0.0
         k = trust * k
         qn = _apply(qn, k @ nu)
         ikh = np.eye(3) - k @ h
         p = ikh @ p @ ikh.T + (sm * sm) * (k @ k.T)
-    status = repair_cov1(p, floor)
+    status = repair_cov1(p, params.cov_floor)
     if status < 0:
         return -1
     q[:] = qn
     p_in[:, :] = p
     nm = np.sqrt(mag[0] ** 2 + mag[1] ** 2 + mag[2] ** 2)
-    sig[0] = nu[0]
-    sig[1] = nu[1]
-    sig[2] = nu[2]
-    sig[3] = np.sqrt(nu[0] ** 2 + nu[1] ** 2 + nu[2] ** 2)
-    sig[4] = nu @ s_inv @ nu
-    sig[5] = s[0, 0] + s[1, 1] + s[2, 2]
-    sig[6] = p[0, 0] + p[1, 1] + p[2, 2]
-    sig[7] = np.sqrt(p[2, 2])
-    sig[8] = nm - m0
-    sig[9] = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -m_e[2] / nm))) - dip0) if nm > 0.0 else np.nan
-    sig[10] = na - ng
-    sig[11] = 1.0 if acc_used else 0.0
-    sig[12] = trust
+    sig[SIG.nu_e] = nu[0]
+    sig[SIG.nu_n] = nu[1]
+    sig[SIG.nu_u] = nu[2]
+    sig[SIG.nu_norm] = np.sqrt(nu[0] ** 2 + nu[1] ** 2 + nu[2] ** 2)
+    sig[SIG.nis] = nu @ s_inv @ nu
+    sig[SIG.s_trace] = s[0, 0] + s[1, 1] + s[2, 2]
+    sig[SIG.p_trace] = p[0, 0] + p[1, 1] + p[2, 2]
+    sig[SIG.heading_std] = np.sqrt(p[2, 2])
+    sig[SIG.mag_norm_dev] = nm - params.m0
+    sig[SIG.dip_dev] = (np.rad2deg(np.arcsin(min(1.0, max(-1.0, -m_e[2] / nm))) - params.dip0) if nm > 0.0
+                      else np.nan)
+    sig[SIG.acc_norm_dev] = na - ng
+    sig[SIG.acc_used] = 1.0 if acc_used else 0.0
+    sig[SIG.trust] = trust
     return status
 
 
 @njit(cache=True)
-def run_k_kernel(q, p, gyr, acc, mag, dt, i0, i1, trust, params, q_out, sig_out):
-    """Samples ``i0 … i1−1`` (i0 ≥ 1) at constant ``trust``, in place on q (4,), P (3, 3).
+def run_k_kernel(params, state, sensors, i0, i1, trust, q_out, sig_out):
+    """Samples ``i0 … i1−1`` (i0 ≥ 1) at constant ``trust``, in place on ``state``.
 
     Step i uses gyr[i−1], gyr[i], acc[i], mag[i]; writes q_out[i] (4,) and
     sig_out[i] (NSIG,). Returns ``(status, repairs)``: status OK (−1), or the
     index of the first bad sample (state left at the previous sample).
     """
+    gyr, acc, mag = sensors
+    q = state.q
     repairs = 0
     for i in range(i0, i1):
-        st = step_kernel(q, p, gyr[i - 1], gyr[i], acc[i], mag[i], dt, trust, params, sig_out[i])
+        st = step1(params, state, gyr[i - 1], gyr[i], acc[i], mag[i], trust, sig_out[i])
         if st < 0:
             return i, repairs
         repairs += st
@@ -208,58 +238,56 @@ def run_k_kernel(q, p, gyr, acc, mag, dt, i0, i1, trust, params, q_out, sig_out)
     return OK, repairs
 
 
-def init(acc0, mag0, params) -> tuple[np.ndarray, np.ndarray]:
-    """Initial state ``(q (4,), P (3, 3))`` from the first accelerometer (m/s²) and magnetometer (µT) sample."""
-    q = np.empty(4)
-    p = np.empty((3, 3))
+def init(params: Params, acc0, mag0) -> State:
+    """Initial state from the first accelerometer (m/s²) and magnetometer (µT) sample."""
+    state = State(np.empty(4), np.empty((3, 3)))
     acc0 = np.ascontiguousarray(acc0, dtype=float)
     mag0 = np.ascontiguousarray(mag0, dtype=float)
-    if not (np.all(np.isfinite(acc0)) and np.all(np.isfinite(mag0)) and init_kernel(acc0, mag0, params, q, p)):
+    if not (np.all(np.isfinite(acc0)) and np.all(np.isfinite(mag0)) and init_kernel(params, acc0, mag0, state)):
         raise FilterError(f"trust KF: cannot initialise from acc={acc0}, mag={mag0} (non-finite, zero or parallel)")
-    return q, p
+    return state
 
 
-def run_k(q, p, gyr, acc, mag, dt, i0, i1, trust, params, q_out, sig_out) -> int:
+def run_k(params: Params, state: State, sensors: Sensors, i0: int, i1: int, trust: float, q_out, sig_out) -> int:
     """Advance the filter over samples ``i0 … i1−1`` at magnetometer trust ``trust`` ∈ [0, 1].
 
     Args:
-        q: (4,) float64 state quaternion, sensor → ENU, updated in place.
-        p: (3, 3) float64 error covariance (earth-frame angles, rad²), in place.
-        gyr, acc, mag: (N, 3) float64 C-contiguous trial arrays (rad/s, m/s², µT).
-        dt: sample interval, s. i0, i1: sample range, 1 ≤ i0 ≤ i1 ≤ N.
+        params: from :func:`make_params`. state: from :func:`init`, updated in place.
+        sensors: the trial's arrays (rad/s, m/s², µT). i0, i1: sample range, 1 ≤ i0 ≤ i1 ≤ N.
         trust: gain multiplier of the magnetometer update (0 = ignore, 1 = nominal).
-        params: from :func:`make_params`.
         q_out: (N, 4) written at rows i0…i1−1. sig_out: (N, NSIG) likewise.
     Returns the number of covariance repairs. Raises FilterError on a
     non-finite sample or covariance, ValueError on a bad trust or range.
     """
     if not 0.0 <= trust <= 1.0:
         raise ValueError(f"trust must be in [0, 1], got {trust!r}")
-    if not 1 <= i0 <= i1 <= len(gyr):
-        raise ValueError(f"need 1 <= i0 <= i1 <= N={len(gyr)}, got i0={i0}, i1={i1}")
-    status, repairs = run_k_kernel(q, p, gyr, acc, mag, dt, i0, i1, float(trust), params, q_out, sig_out)
+    n = len(sensors.gyr)
+    if not 1 <= i0 <= i1 <= n:
+        raise ValueError(f"need 1 <= i0 <= i1 <= N={n}, got i0={i0}, i1={i1}")
+    status, repairs = run_k_kernel(params, state, sensors, i0, i1, float(trust), q_out, sig_out)
     if status != OK:
         raise FilterError(
-            f"trust KF: non-finite sample or covariance at sample {status} "
-            f"(gyr={gyr[status]}, acc={acc[status]}, mag={mag[status]}, trust={trust})"
+            f"trust KF: non-finite sample or covariance at sample {status} (gyr={sensors.gyr[status]}, "
+            f"acc={sensors.acc[status]}, mag={sensors.mag[status]}, trust={trust})"
         )
     return repairs
 
 
-def run_trial(trial, trust, params=None) -> tuple[np.ndarray, np.ndarray]:
+def run_trial(trial, trust, params: Params | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Whole trial with a constant trust or a per-sample (N,) trust array. Returns ``(q (N, 4), sig (N, NSIG))``."""
     if params is None:
-        params = make_params(trial.field_norm, trial.field_dip)
+        params = make_params(trial.field_norm, trial.field_dip, trial.dt)
     n = trial.n
     trust = np.broadcast_to(np.asarray(trust, dtype=float), (n,))
-    q, p = init(trial.acc[0], trial.mag[0], params)
+    sensors = Sensors.of(trial)
+    state = init(params, trial.acc[0], trial.mag[0])
     q_out = np.empty((n, 4))
     sig = np.full((n, NSIG), np.nan)
-    q_out[0] = q
+    q_out[0] = state.q
     # run in blocks of constant trust
     change = np.flatnonzero(np.diff(trust[1:]) != 0) + 2
     bounds = np.concatenate([[1], change, [n]])
     for a, b in zip(bounds[:-1], bounds[1:]):
         if b > a:
-            run_k(q, p, trial.gyr, trial.acc, trial.mag, trial.dt, int(a), int(b), trust[a], params, q_out, sig)
+            run_k(params, state, sensors, int(a), int(b), trust[a], q_out, sig)
     return q_out, sig

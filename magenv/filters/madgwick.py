@@ -28,13 +28,17 @@ there and Madgwick's §3.4), the magnetic reference is built **from the
 measurement itself**: ``h = q ⊗ m̂ ⊗ q*`` (earth frame) and
 ``b = [0, sqrt(h_x² + h_y²), h_z]``. The magnetometer can therefore only
 correct heading, never the dip; a field with the wrong dip still tilts the
-estimate through the gradient. ``mimu_ref_step1`` takes a fixed, known
-reference instead (e.g. from ``Trial.field_norm``/``field_dip``); it is
-provided for experiments, the environment uses ``mimu_step1``.
+estimate through the gradient. ``MODE_MIMU_REF`` (``mimu_ref_step1``) takes a
+fixed, known reference instead (e.g. from ``Trial.field_norm``/``field_dip``);
+it is provided for experiments, the blend uses ``MODE_MIMU``.
 
 Update (eqs. 8–9): ``q̇ = ½ q ⊗ [0, ω] − β ∇f/‖∇f‖``, ``q_t = q_{t−1} + q̇ Δt``,
 normalised. β in rad/s (paper: 0.1, eq. 10: β = sqrt(3/4)·ω̃_max).
 A zero accelerometer (or magnetometer) reading skips that correction.
+
+:func:`step` is the one update kernel (scalars in and out, inlined into its
+callers); ``imu_step1``, ``mimu_step1``, ``mimu_ref_step1`` wrap it for arrays
+and :func:`run_madgwick` runs a whole trial.
 """
 
 from __future__ import annotations
@@ -69,15 +73,26 @@ def _grad(w, x, y, z, d0, d1, d2, s0, s1, s2):
 
 
 MODE_IMU, MODE_MIMU, MODE_MIMU_REF = 0, 1, 2
+NO_REF = (0.0, 0.0)  # b_ref of the modes that build (or need) no fixed magnetic reference
+_NO_MAG = np.zeros(3)  # the magnetometer argument of MODE_IMU, which never reads it
 
 
 @njit(cache=True, inline="always")
-def step_scalar(w, x, y, z, gx, gy, gz, ax, ay, az, mx, my, mz, mode, b1, b2, beta, dt):
-    """One Madgwick update on scalars; returns the new unit quaternion as a 4-tuple.
+def step(q, gyr, acc, mag, mode, b_ref, beta, dt):
+    """One Madgwick update (eqs. 8–9); returns the new unit quaternion as a 4-tuple.
 
-    mode: ``MODE_IMU`` (mag ignored), ``MODE_MIMU`` (Madgwick's own reference
-    from the measurement), ``MODE_MIMU_REF`` (fixed unit reference [0, b1, b2], ENU).
+    Args:
+        q: 4-tuple (w, x, y, z), sensor → ENU.
+        gyr: (3,) rad/s. acc: (3,) any unit. mag: (3,) any unit (not read in ``MODE_IMU``).
+        mode: ``MODE_IMU`` (no magnetometer), ``MODE_MIMU`` (Madgwick's own reference from
+            the measurement), ``MODE_MIMU_REF`` (the fixed unit reference ``b_ref = (b_n, b_u)``, ENU).
+        beta: gain β, rad/s (eq. 10). dt: s.
+    Scalars only (no allocation: hot path).
     """
+    w, x, y, z = q
+    gx, gy, gz = gyr[0], gyr[1], gyr[2]
+    ax, ay, az = acc[0], acc[1], acc[2]
+    b1, b2 = b_ref
     g0 = 0.0
     g1 = 0.0
     g2 = 0.0
@@ -89,24 +104,26 @@ def step_scalar(w, x, y, z, gx, gy, gz, ax, ay, az, mx, my, mz, mode, b1, b2, be
         g1 += t1
         g2 += t2
         g3 += t3
-        mn = np.sqrt(mx * mx + my * my + mz * mz)
-        if mode != MODE_IMU and mn > 0.0:
-            m0, m1, m2 = mx / mn, my / mn, mz / mn
-            if mode == MODE_MIMU:
-                # h = q ⊗ m̂ ⊗ q* (earth), b = [0, |h_xy|, h_z]  (Madgwick's eqs. 45–46, ENU)
-                tx = y * m2 - z * m1 + w * m0
-                ty = z * m0 - x * m2 + w * m1
-                tz = x * m1 - y * m0 + w * m2
-                h0 = m0 + 2.0 * (y * tz - z * ty)
-                h1 = m1 + 2.0 * (z * tx - x * tz)
-                h2 = m2 + 2.0 * (x * ty - y * tx)
-                b1 = np.sqrt(h0 * h0 + h1 * h1)
-                b2 = h2
-            t0, t1, t2, t3 = _grad(w, x, y, z, 0.0, b1, b2, m0, m1, m2)
-            g0 += t0
-            g1 += t1
-            g2 += t2
-            g3 += t3
+        if mode != MODE_IMU:
+            mx, my, mz = mag[0], mag[1], mag[2]
+            mn = np.sqrt(mx * mx + my * my + mz * mz)
+            if mn > 0.0:
+                m0, m1, m2 = mx / mn, my / mn, mz / mn
+                if mode == MODE_MIMU:
+                    # h = q ⊗ m̂ ⊗ q* (earth), b = [0, |h_xy|, h_z]  (Madgwick's eqs. 45–46, ENU)
+                    tx = y * m2 - z * m1 + w * m0
+                    ty = z * m0 - x * m2 + w * m1
+                    tz = x * m1 - y * m0 + w * m2
+                    h0 = m0 + 2.0 * (y * tz - z * ty)
+                    h1 = m1 + 2.0 * (z * tx - x * tz)
+                    h2 = m2 + 2.0 * (x * ty - y * tx)
+                    b1 = np.sqrt(h0 * h0 + h1 * h1)
+                    b2 = h2
+                t0, t1, t2, t3 = _grad(w, x, y, z, 0.0, b1, b2, m0, m1, m2)
+                g0 += t0
+                g1 += t1
+                g2 += t2
+                g3 += t3
     # eq. 9: q̇ = ½ q ⊗ [0, ω] − β ∇f/‖∇f‖
     dw = 0.5 * (-x * gx - y * gy - z * gz)
     dx = 0.5 * (w * gx + y * gz - z * gy)
@@ -134,18 +151,21 @@ def _as_array(t):
     return out
 
 
+@njit(cache=True, inline="always")
+def _as_tuple(q):
+    return q[0], q[1], q[2], q[3]
+
+
 @njit(cache=True)
 def imu_step1(q, gyr, acc, beta, dt):
     """One IMU update (gyro + accelerometer). q (4,) unit, gyr rad/s, acc m/s² (any scale), β rad/s, dt s."""
-    return _as_array(step_scalar(q[0], q[1], q[2], q[3], gyr[0], gyr[1], gyr[2], acc[0], acc[1], acc[2],
-                                 0.0, 0.0, 0.0, MODE_IMU, 0.0, 0.0, beta, dt))
+    return _as_array(step(_as_tuple(q), gyr, acc, _NO_MAG, MODE_IMU, NO_REF, beta, dt))
 
 
 @njit(cache=True)
 def mimu_ref_step1(q, gyr, acc, mag, b_ref, beta, dt):
     """One MIMU update with a fixed unit earth-frame magnetic reference ``b_ref = [0, b_n, b_u]`` (ENU)."""
-    return _as_array(step_scalar(q[0], q[1], q[2], q[3], gyr[0], gyr[1], gyr[2], acc[0], acc[1], acc[2],
-                                 mag[0], mag[1], mag[2], MODE_MIMU_REF, b_ref[1], b_ref[2], beta, dt))
+    return _as_array(step(_as_tuple(q), gyr, acc, mag, MODE_MIMU_REF, (b_ref[1], b_ref[2]), beta, dt))
 
 
 @njit(cache=True)
@@ -156,8 +176,7 @@ def mimu_step1(q, gyr, acc, mag, beta, dt):
     mag in any unit (normalised here). A zero accelerometer reading skips all
     correction (as Madgwick's), a zero magnetometer reading the magnetic part.
     """
-    return _as_array(step_scalar(q[0], q[1], q[2], q[3], gyr[0], gyr[1], gyr[2], acc[0], acc[1], acc[2],
-                                 mag[0], mag[1], mag[2], MODE_MIMU, 0.0, 0.0, beta, dt))
+    return _as_array(step(_as_tuple(q), gyr, acc, mag, MODE_MIMU, NO_REF, beta, dt))
 
 
 @njit(cache=True, inline="always")

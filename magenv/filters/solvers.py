@@ -25,9 +25,12 @@ the quaternion is the dominant column of ``adj(N − λI)`` — exact, no
 iteration, no 180° singularity. A symmetric eigensolver is the fallback for
 degenerate input. Kernels (``*1``) return NaN for degenerate input (a zero
 vector, or acc ∥ mag); the array functions raise :class:`SolverError`.
+Filters that pick a solver by name hold a :class:`Solver` and call :func:`solve1`.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -40,6 +43,23 @@ class SolverError(ValueError):
 
 
 QUEST_WEIGHTS = (0.5, 0.5)  # (w_acc, w_mag): the survey's "same belief to both" reading
+TRIAD, QUEST = 0, 1
+SOLVERS = {"triad": TRIAD, "quest": QUEST}
+
+
+class Solver(NamedTuple):
+    """A single-frame solver chosen by a filter: which one, and QUEST's relative weights."""
+
+    kind: int  # TRIAD or QUEST
+    w_acc: float  # QUEST weight of the gravity pair (relative)
+    w_mag: float  # QUEST weight of the field pair (relative)
+
+
+def make_solver(name: str, weights: tuple[float, float] = QUEST_WEIGHTS) -> Solver:
+    """The :class:`Solver` named ``name`` (``"triad"`` or ``"quest"``) with QUEST ``weights`` (w_acc, w_mag)."""
+    if name not in SOLVERS:
+        raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {name!r}")
+    return Solver(SOLVERS[name], float(weights[0]), float(weights[1]))
 
 
 @njit(cache=True, inline="always")
@@ -212,6 +232,14 @@ def quest1(acc, mag, g_ref, h_ref, w_acc, w_mag):
     if q[0] < 0.0:
         q = -q
     return q
+
+
+@njit(cache=True)
+def solve1(solver, acc, mag, g_ref, h_ref):
+    """Orientation (sensor → ENU) by ``solver`` (:class:`Solver`) from body ``acc``, ``mag`` and ENU references."""
+    if solver.kind == TRIAD:
+        return triad1(acc, mag, g_ref, h_ref)
+    return quest1(acc, mag, g_ref, h_ref, solver.w_acc, solver.w_mag)
 
 
 @njit(cache=True)

@@ -8,14 +8,14 @@ A sample t is stationary when, on every axis,
 Paper values: t0 = 0.5 s, th_a = 0.04 g, th_gyro = 0.5 °/s. Until t0 of
 history exists, no sample is stationary.
 
-Streaming form: the state is a ring buffer of the last ``L = round(t0·rate)``
-accelerometer samples (``buf`` (L, 3)) and a counter array
-``ctr = [next write position, samples seen]`` (int64). ``stationary_peek1``
-evaluates the criterion for a new sample without storing it;
-``stationary_step1`` evaluates and stores.
+Streaming form: :class:`State` holds the last ``L = round(t0·rate)``
+accelerometer samples and two counters. ``peek1`` evaluates the criterion
+for a new sample without storing it; ``step1`` evaluates and stores.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -27,10 +27,17 @@ TH_ACC_G = 0.04  # g, eq. 12
 TH_GYRO_DPS = 0.5  # °/s, eq. 13
 
 
-def make_state(rate: float, t0: float = T0_S) -> tuple[np.ndarray, np.ndarray]:
-    """Empty detector state ``(buf (L, 3), ctr (2,) int64)`` for ``rate`` Hz and interval ``t0`` s."""
+class State(NamedTuple):
+    """Detector state (arrays, updated in place by :func:`step1`)."""
+
+    buf: np.ndarray  # (L, 3) m/s², ring buffer of the last L accelerometer samples, L = round(t0·rate)
+    ctr: np.ndarray  # (2,) int64: [next write position in buf, samples seen]
+
+
+def make_state(rate: float, t0: float = T0_S) -> State:
+    """Empty detector state for ``rate`` Hz and interval ``t0`` s."""
     length = max(1, int(round(t0 * rate)))
-    return np.zeros((length, 3)), np.zeros(2, np.int64)
+    return State(np.zeros((length, 3)), np.zeros(2, np.int64))
 
 
 def thresholds(th_acc_g: float = TH_ACC_G, th_gyro_dps: float = TH_GYRO_DPS) -> tuple[float, float]:
@@ -39,8 +46,12 @@ def thresholds(th_acc_g: float = TH_ACC_G, th_gyro_dps: float = TH_GYRO_DPS) -> 
 
 
 @njit(cache=True, inline="always")
-def stationary_peek1(buf, ctr, acc, gyr, th_a, th_gyro):
-    """Eqs. 11 and 13 for a new sample (acc m/s², gyr rad/s) against the sample t0 ago; no state change."""
+def peek1(state, acc, gyr, th_a, th_gyro):
+    """Eqs. 11 and 13 for a new sample (acc m/s², gyr rad/s) against the sample t0 ago; no state change.
+
+    th_a: m/s² (eq. 12), th_gyro: rad/s (eq. 13), both per axis.
+    """
+    buf, ctr = state.buf, state.ctr
     length = buf.shape[0]
     if ctr[1] < length:
         return False
@@ -54,9 +65,10 @@ def stationary_peek1(buf, ctr, acc, gyr, th_a, th_gyro):
 
 
 @njit(cache=True, inline="always")
-def stationary_step1(buf, ctr, acc, gyr, th_a, th_gyro):
-    """Evaluate the new sample (as ``stationary_peek1``), then store its acc in the ring buffer."""
-    still = stationary_peek1(buf, ctr, acc, gyr, th_a, th_gyro)
+def step1(state, acc, gyr, th_a, th_gyro):
+    """Evaluate the new sample (as :func:`peek1`), then store its acc in the ring buffer."""
+    still = peek1(state, acc, gyr, th_a, th_gyro)
+    buf, ctr = state.buf, state.ctr
     pos = ctr[0]
     buf[pos, 0] = acc[0]
     buf[pos, 1] = acc[1]
@@ -67,18 +79,16 @@ def stationary_step1(buf, ctr, acc, gyr, th_a, th_gyro):
 
 
 @njit(cache=True)
-def _detect(acc, gyr, length, th_a, th_gyro):
-    buf = np.zeros((length, 3))
-    ctr = np.zeros(2, np.int64)
+def _detect(state, acc, gyr, th_a, th_gyro):
     out = np.empty(acc.shape[0], np.bool_)
     for i in range(acc.shape[0]):
-        out[i] = stationary_step1(buf, ctr, acc[i], gyr[i], th_a, th_gyro)
+        out[i] = step1(state, acc[i], gyr[i], th_a, th_gyro)
     return out
 
 
 def detect(acc, gyr, rate: float, t0: float = T0_S, th_acc_g: float = TH_ACC_G,
            th_gyro_dps: float = TH_GYRO_DPS) -> np.ndarray:
     """(N,) bool stationary flags of whole arrays acc (N, 3) m/s², gyr (N, 3) rad/s, streamed causally."""
-    buf, _ = make_state(rate, t0)
     th_a, th_g = thresholds(th_acc_g, th_gyro_dps)
-    return _detect(np.ascontiguousarray(acc, float), np.ascontiguousarray(gyr, float), buf.shape[0], th_a, th_g)
+    return _detect(make_state(rate, t0), np.ascontiguousarray(acc, float), np.ascontiguousarray(gyr, float),
+                   th_a, th_g)
