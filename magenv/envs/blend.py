@@ -15,7 +15,6 @@ reproduced exactly with one decision per sample. The env calls it once per step
 
 from __future__ import annotations
 
-from collections import namedtuple
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -54,9 +53,8 @@ FEATURES = FeatureTable(
             "heading of the measured horizontal field in the estimated earth frame (0 = north, + = east)"),
     Feature("stationary_frac", 0.0, 1.0, "–", f"fraction of {WINDOW} detected stationary"),
 )
-F = namedtuple("FeatureIndex", FEATURES.names)(*range(len(FEATURES)))  # F.norm_dev == 0, … (kernel indices)
-_LOW = FEATURES.low.astype(np.float64)
-_HIGH = FEATURES.high.astype(np.float64)
+F = FEATURES.ix  # named kernel indices
+_LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
 
 class Site(NamedTuple):

@@ -12,18 +12,15 @@ decision per sample reproduces the paper's filter.
 from __future__ import annotations
 
 import math
-from collections import namedtuple
 from typing import Sequence
 
-import numba
 import numpy as np
 from numba import njit
 
 from magenv.envs import CONSTRAINT_ID
-from magenv.envs.common import LoopVectorEnv, TrustEnv
+from magenv.envs.common import LoopVectorEnv, TrialRunner, TrustEnv
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import constraint as cf
-from magenv.filters.common import TrialRunner
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
@@ -47,9 +44,8 @@ FEATURES = FeatureTable(
     Feature("k_prev", 0.0, 1.0, "–", "k applied to the last fused sample (0 after reset)"),
     Feature("mag_dev_mean", 0.0, 10.0, "fraction of m0", f"mean `mag_dev` over {WINDOW}"),
 )
-F = namedtuple("FeatureIndex", FEATURES.names)(*range(len(FEATURES)))  # F.mag_dev == 0, … (kernel indices)
-_LOW = FEATURES.low.astype(np.float64)
-_HIGH = FEATURES.high.astype(np.float64)
+F = FEATURES.ix  # named kernel indices
+_LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
 
 @njit(cache=True, inline="always")
@@ -133,34 +129,22 @@ class ConstraintRunner(TrialRunner):
 
     def __init__(self, trial: Trial, **filter_kwargs):
         self.filter = cf.ConstraintFilter(trial, **filter_kwargs)  # checks link j's channels
-        self.trial = trial
-        n = trial.n
+        super().__init__(trial)
         self.q = self.filter.q0.copy()
-        self.trace = cf.Trace.empty(n)
-        self.est, self.q_true = self.trace.est, trial.q_true
-        dist = trial.truth.get("mag_disturbance")
-        self.has_dist = dist is not None
-        self.dist = np.ascontiguousarray(np.linalg.norm(np.asarray(dist, float), axis=-1) if self.has_dist
-                                         else np.zeros(n))
+        self.trace = cf.Trace.empty(trial.n)
+        self.est = self.trace.est
         self.err = np.zeros(N_ERR)
         self.feat = np.zeros(len(FEATURES))
-        self.pos = 0
-        self.last_count = 0
         self._filter_args = (self.filter.params, self.q, self.filter.inputs)
-        self._outputs = (self.trace, self.q_true, self.dist, self.err, self.feat)
+        self._outputs = (self.trace, self.truth.q_true, self.truth.dist, self.err, self.feat)
         args = (*self._filter_args, cf.Control.of(0.0, 0.0), 0, 0, *self._outputs)
-        # the compiled kernel for these types, called without numba's per-call type dispatch
-        self._advance = advance.compile(tuple(numba.typeof(a) for a in args))
+        self._advance = self.compiled(advance, *args)
         self._advance(*args)  # observation of sample 0
 
-    def advance(self, count: int, w: float, k: float | None = None) -> int:
-        """Fuse the next ``count`` samples (fewer at the end) with weight w ∈ [0, 1] and gain k ≥ 0
-        (None: eq. 18); returns the samples fused."""
-        stop = min(self.pos + int(count), self.trial.n)
-        self._advance(*self._filter_args, cf.Control.of(w, k), self.pos, stop, *self._outputs)
-        self.last_count = stop - self.pos
-        self.pos = stop
-        return self.last_count
+    def _fuse(self, start: int, stop: int, action) -> None:
+        """``action`` = (w ∈ [0, 1], k ≥ 0 or None for eq. 18)."""
+        w, k = action
+        self._advance(*self._filter_args, cf.Control.of(w, k), start, stop, *self._outputs)
 
 
 @document(FEATURES)
@@ -287,7 +271,7 @@ class MagConstraintEnv(TrustEnv):
         runner = self._step_runner()
         w, k, clipped = self._action(action)
         start = runner.pos
-        runner.advance(self.k_steps, w, k)
+        runner.advance(self.k_steps, (w, k))
         return self._step_result(runner, {"w": w, "k": float(np.mean(runner.trace.gain[start:runner.pos])),
                                           "action_clipped": clipped})
 

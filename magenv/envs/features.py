@@ -9,6 +9,7 @@ all come from that one declaration.
 
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +41,10 @@ class FeatureTable:
         self.names: tuple[str, ...] = tuple(names)
         self.low = np.array([f.low for f in features], np.float32)
         self.high = np.array([f.high for f in features], np.float32)
+        #: the bounds as float64 (what the kernels clip to before the observation is cast to float32)
+        self.low64, self.high64 = self.low.astype(np.float64), self.high.astype(np.float64)
+        #: named indices for the kernels: ``ix.norm_dev == 0``, … (a namedtuple numba reads as constants)
+        self.ix = namedtuple("FeatureIndex", names)(*range(len(names)))
 
     def __len__(self) -> int:
         return len(self.features)

@@ -22,7 +22,6 @@ samples 0…j only (causal).
 
 from __future__ import annotations
 
-from collections import namedtuple
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -69,9 +68,8 @@ FEATURES = FeatureTable(
     Feature("field_ref", 0.0, 20.0, f"units of {FIELD_SCALE_UT:g} µT",
             "m0, the site's undisturbed field norm (constant per trial; not truth)"),
 )
-F = namedtuple("FeatureIndex", FEATURES.names)(*range(len(FEATURES)))  # F.norm_dev == 0, … (kernel indices)
-_LOW = FEATURES.low.astype(np.float64)
-_HIGH = FEATURES.high.astype(np.float64)
+F = FEATURES.ix  # named kernel indices
+_LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
 
 class Outputs(NamedTuple):

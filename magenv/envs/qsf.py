@@ -18,18 +18,15 @@ revolutions per second (the heading std stays in rad).
 from __future__ import annotations
 
 import math
-from collections import namedtuple
 from typing import Sequence
 
-import numba
 import numpy as np
 from gymnasium import spaces
 
 from magenv.envs import QSF_ID
-from magenv.envs.common import LoopVectorEnv, TrustEnv
+from magenv.envs.common import LoopVectorEnv, TrialRunner, TrustEnv
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import qsf
-from magenv.filters.common import TrialRunner
 from magenv.filters.qsf import SIGNAL
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
@@ -53,7 +50,7 @@ FEATURES = FeatureTable(
     Feature("heading_std", 0.0, 10.0, "rad", "sqrt of the filter's heading variance"),
     Feature("trust_prev", 0.0, 1.0, "–", "trust applied in the last step (0 after reset)"),
 )
-F = namedtuple("FeatureIndex", FEATURES.names)(*range(len(FEATURES)))  # F.spread == 0, …
+F = FEATURES.ix  # named kernel indices
 VARIANTS = ("delay_magyq", "magyq")
 DECISIONS = ("none", "start", "keep")  # indexed by the qsf.MAG_* codes
 
@@ -92,53 +89,45 @@ class QSFRunner(TrialRunner):
                  init: str = "auto", filter_kwargs: dict | None = None):
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
-        self.trial = trial
+        super().__init__(trial)
         self.params = qsf.make_params(trial.field_norm, trial.field_dip, mode=variant, **(filter_kwargs or {}))
         self.detector = detector or qsf.QSFDetector()
         self.codes, spread = self.detector.detect(trial.gyr, trial.mag, trial.rate)
         self.spread = np.nan_to_num(spread, nan=0.0) / self.detector.th_spread
         self.state = qsf.initial_state(qsf.initial_orientation(trial, init, self.params), trial.dt)
         n = trial.n
-        self.q_true = trial.q_true
-        dist = trial.truth.get("mag_disturbance")
-        self.has_dist = dist is not None
-        self.dist = np.ascontiguousarray(np.linalg.norm(np.asarray(dist, float), axis=-1) if self.has_dist
-                                         else np.zeros(n))
         self.inputs = qsf.Inputs(trial.gyr, trial.acc, trial.mag, np.zeros(n, np.int8), np.zeros(n))
         self.out = qsf.Outputs.empty(n)
         self.est = self.out.q
         self.err = np.zeros(N_ERR)
-        self.pos = 0
-        self.last_count = 0
         self.trust_prev = 0.0
         self.feat = np.zeros(len(FEATURES))
         self._args = (self.params, self.state, self.inputs, trial.dt)
-        # the compiled kernel for these types, called without numba's per-call type dispatch
-        self._run = qsf.run_kernel.compile(tuple(numba.typeof(a) for a in (*self._args, 0, 0, self.out)))
-        self._features()
+        self._run = self.compiled(qsf.run_kernel, *self._args, 0, 0, self.out)
+        self._features(0)
 
-    def advance(self, count: int, code: int, trust: float) -> int:
-        """Fuse the next ``count`` samples (fewer at the end): ``code`` MAG_START starts a period at the first
-        of them and keeps it for the rest, MAG_KEEP keeps, MAG_NONE makes no magnetic update (and ends any
-        period); ``trust`` ∈ [0, 1] scales every magnetic gain. Returns the samples fused."""
-        tr, actions = self.trial, self.inputs.action
-        i0, i1 = self.pos, min(tr.n, self.pos + int(count))
+    def _fuse(self, i0: int, i1: int, action) -> None:
+        """``action`` = (code, trust): ``code`` MAG_START starts a period at sample i0 and keeps it for the
+        rest, MAG_KEEP keeps, MAG_NONE makes no magnetic update (and ends any period); ``trust`` ∈ [0, 1]
+        scales every magnetic gain."""
+        code, trust = action
+        actions = self.inputs.action
         actions[i0:i1] = qsf.MAG_NONE if code == qsf.MAG_NONE else qsf.MAG_KEEP
         if code == qsf.MAG_START and i1 > i0:
             actions[i0] = qsf.MAG_START
         self.inputs.trust[i0:i1] = trust
         qsf.checked(self._run(*self._args, i0, i1, self.out), self.inputs)  # FilterError on a non-finite sample
-        error_sums(self.est, self.q_true, self.dist, i0, i1, self.err)
-        self.pos, self.last_count, self.trust_prev = i1, i1 - i0, float(trust)
-        self._features()
-        return self.last_count
+        error_sums(self.est, self.truth.q_true, self.truth.dist, i0, i1, self.err)
+        self.trust_prev = float(trust)
+        self._features(i1)
 
-    def _features(self) -> None:
-        """Features of sample j = pos (the last sample once all are fused) and of the last fused sample."""
+    def _features(self, pos: int) -> None:
+        """Features of sample j = ``pos``, the next to fuse (the last sample once all are fused), and of the
+        last fused sample."""
         tr, state = self.trial, self.state
-        j = min(self.pos, tr.n - 1)
+        j = min(pos, tr.n - 1)
         q = state.x[qsf.ORIENTATION]
-        last = self.out.sig[self.pos - 1] if self.pos > 0 else np.zeros(qsf.N_SIGNALS)
+        last = self.out.sig[pos - 1] if pos > 0 else np.zeros(qsf.N_SIGNALS)
         active = bool(state.period_active[0])
         m_e = rotate1(q, tr.mag[j])
         sigma_m = self.params.sigma_mag
@@ -280,7 +269,7 @@ class MagQSFEnv(TrustEnv):
     def step(self, action):
         runner = self._step_runner()
         code, trust, clipped = decode_action(action)
-        runner.advance(self.k_steps, code, trust)
+        runner.advance(self.k_steps, (code, trust))
         return self._step_result(runner, {"decision": DECISIONS[code], "trust": trust, "action_clipped": clipped},
                                  {"qsf_active": bool(runner.state.period_active[0])})
 
