@@ -20,6 +20,8 @@ demo: $(STAMP)
 	$(BIN)/magenv demo
 
 test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest -n 2 -q
 
 test-slow: $(STAMP)

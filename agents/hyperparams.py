@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import inspect
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import yaml
 
@@ -94,7 +95,7 @@ def number(lo: float | None = None, hi: float | None = None, lo_open: bool = Fal
 
     def convert(v):
         x = _real(v)
-        if lo is not None and (x < lo or (lo_open and x == lo)) or hi is not None and x > hi:
+        if (lo is not None and (x < lo or (lo_open and x == lo))) or (hi is not None and x > hi):
             raise ValueError
         return float(x)
 
@@ -226,11 +227,23 @@ VALUE_RULES = {
 POLICY_RULES = {
     "net_arch": Rule("a list of layer sizes (positive integers), or a mapping pi/vf/qf → such a list", _net_arch),
     "activation_fn": word(*ACTIVATIONS),
-    "ortho_init": BOOL, "use_sde": BOOL, "log_std_init": number(), "full_std": BOOL, "use_expln": BOOL,
-    "squash_output": BOOL, "share_features_extractor": BOOL, "normalize_images": BOOL, "clip_mean": POSITIVE,
-    "n_critics": POSITIVE_INT, "lstm_hidden_size": POSITIVE_INT, "n_lstm_layers": POSITIVE_INT,
-    "shared_lstm": BOOL, "enable_critic_lstm": BOOL,
-    "optimizer_kwargs": MAPPING, "lstm_kwargs": MAPPING, "features_extractor_kwargs": MAPPING,
+    "ortho_init": BOOL,
+    "use_sde": BOOL,
+    "log_std_init": number(),
+    "full_std": BOOL,
+    "use_expln": BOOL,
+    "squash_output": BOOL,
+    "share_features_extractor": BOOL,
+    "normalize_images": BOOL,
+    "clip_mean": POSITIVE,
+    "n_critics": POSITIVE_INT,
+    "lstm_hidden_size": POSITIVE_INT,
+    "n_lstm_layers": POSITIVE_INT,
+    "shared_lstm": BOOL,
+    "enable_critic_lstm": BOOL,
+    "optimizer_kwargs": MAPPING,
+    "lstm_kwargs": MAPPING,
+    "features_extractor_kwargs": MAPPING,
 }
 #: Constructor arguments a config may not set, and why.
 NOT_IN_CONFIG = {
@@ -238,8 +251,13 @@ NOT_IN_CONFIG = {
     "device": "magenv trains on the CPU",
     "tensorboard_log": "TensorBoard logs go to RUN/tb",
 }
-for _key in ("rollout_buffer_class", "replay_buffer_class", "action_noise", "features_extractor_class",
-             "optimizer_class"):
+for _key in (
+    "rollout_buffer_class",
+    "replay_buffer_class",
+    "action_noise",
+    "features_extractor_class",
+    "optimizer_class",
+):
     NOT_IN_CONFIG[_key] = "it takes a Python object, which a YAML config cannot name"
 
 
@@ -312,10 +330,13 @@ def check_section(algo: str, section, where: str) -> dict:
         refused = [f"{k} ({NOT_IN_CONFIG[k]})" for k in kwargs if k in NOT_IN_CONFIG]
         unknown = sorted(set(kwargs) - (policy_args & set(POLICY_RULES)) - set(NOT_IN_CONFIG))
         if refused or unknown:
-            raise ConfigError(f"{where}: policy_kwargs: unknown key(s) {', '.join(map(str, unknown)) or 'none'}"
-                              f"{'; not allowed: ' + '; '.join(refused) if refused else ''} for {out['policy']}")
-        out["policy_kwargs"] = {k: check_value(where, f"policy_kwargs.{k}", v, POLICY_RULES[k])
-                                for k, v in kwargs.items()}
+            raise ConfigError(
+                f"{where}: policy_kwargs: unknown key(s) {', '.join(map(str, unknown)) or 'none'}"
+                f"{'; not allowed: ' + '; '.join(refused) if refused else ''} for {out['policy']}"
+            )
+        out["policy_kwargs"] = {
+            k: check_value(where, f"policy_kwargs.{k}", v, POLICY_RULES[k]) for k, v in kwargs.items()
+        }
     if "n_steps" in out and algo != "sac" and out["n_steps"] * out["n_envs"] < 2:
         raise ConfigError(f"{where}: n_steps × n_envs must be at least 2, got {out['n_steps']} × {out['n_envs']}")
     if "pretrain" in out:
@@ -353,8 +374,9 @@ def constructor_kwargs(section: dict) -> dict:
     kwargs = {k: v for k, v in section.items() if k not in RUN_KEYS}
     policy_kwargs = dict(kwargs.get("policy_kwargs") or {})
     if "activation_fn" in policy_kwargs:
-        policy_kwargs["activation_fn"] = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU,
-                                          "leaky_relu": nn.LeakyReLU}[policy_kwargs["activation_fn"]]
+        policy_kwargs["activation_fn"] = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU}[
+            policy_kwargs["activation_fn"]
+        ]
     if policy_kwargs:
         kwargs["policy_kwargs"] = policy_kwargs
     if isinstance(kwargs.get("train_freq"), list):

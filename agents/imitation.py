@@ -21,8 +21,13 @@ import numpy as np
 from magenv.agents.hyperparams import NAME, POSITIVE, POSITIVE_INT, ConfigError, check_value
 from magenv.protocols import is_policy
 
-RULES = {"teacher": NAME, "steps": POSITIVE_INT, "epochs": POSITIVE_INT, "learning_rate": POSITIVE,
-         "batch_size": POSITIVE_INT}
+RULES = {
+    "teacher": NAME,
+    "steps": POSITIVE_INT,
+    "epochs": POSITIVE_INT,
+    "learning_rate": POSITIVE,
+    "batch_size": POSITIVE_INT,
+}
 DEFAULTS = {"epochs": 20, "learning_rate": 1e-3, "batch_size": 256}
 
 
@@ -49,8 +54,9 @@ def check_teacher(teacher, name: str, env_id: str, env_kwargs: dict):
     return teacher
 
 
-def demonstrations(env_id: str, env_kwargs: dict, teacher, steps: int, seed: int,
-                   bounds) -> tuple[np.ndarray, np.ndarray]:
+def demonstrations(
+    env_id: str, env_kwargs: dict, teacher, steps: int, seed: int, bounds
+) -> tuple[np.ndarray, np.ndarray]:
     """(observations (M, F), teacher actions rescaled to [-1, 1] (M, A)) over ``steps`` steps of the env
     (``teacher`` checked by :func:`check_teacher`)."""
     low, high = (np.asarray(b, np.float64) for b in bounds)
@@ -70,13 +76,13 @@ def demonstrations(env_id: str, env_kwargs: dict, teacher, steps: int, seed: int
     return np.asarray(obs_list, np.float32), np.asarray(act_list, np.float32)
 
 
-def clone(model, obs: np.ndarray, actions: np.ndarray, epochs: int, learning_rate: float, batch_size: int,
-          seed: int = 0) -> float:
+def clone(
+    model, obs: np.ndarray, actions: np.ndarray, epochs: int, learning_rate: float, batch_size: int, seed: int = 0
+) -> float:
     """Fit the actor's mean action to ``actions`` (least squares, Adam); returns the final mean squared error."""
     import torch
-
-    from stable_baselines3.common.policies import ActorCriticPolicy
     from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
+    from stable_baselines3.common.policies import ActorCriticPolicy
 
     policy = model.policy
     if not isinstance(policy, ActorCriticPolicy) or isinstance(policy, RecurrentActorCriticPolicy):
@@ -94,7 +100,7 @@ def clone(model, obs: np.ndarray, actions: np.ndarray, epochs: int, learning_rat
     for _ in range(int(epochs)):
         perm = torch.randperm(len(x), generator=gen)
         for i in range(0, len(perm), int(batch_size)):
-            idx = perm[i:i + int(batch_size)]
+            idx = perm[i : i + int(batch_size)]
             loss = ((mean_action(x[idx]) - y[idx]) ** 2).mean()
             opt.zero_grad()
             loss.backward()

@@ -62,12 +62,18 @@ def read_run(run_dir: str | Path) -> dict:
     if bounds is not None:
         try:
             low, high = (np.asarray(b, dtype=float) for b in bounds)
-            ok = low.shape == high.shape and low.ndim == 1 and np.all(np.isfinite(low) & np.isfinite(high) & (low < high))
+            ok = (
+                low.shape == high.shape
+                and low.ndim == 1
+                and np.all(np.isfinite(low) & np.isfinite(high) & (low < high))
+            )
         except (TypeError, ValueError):
             ok = False
         if not ok:
-            raise RunError(f"{path}: action_bounds must be [low, high], two equal-length lists of finite numbers "
-                           f"with low < high, got {bounds!r}")
+            raise RunError(
+                f"{path}: action_bounds must be [low, high], two equal-length lists of finite numbers "
+                f"with low < high, got {bounds!r}"
+            )
     try:
         run["hyperparams"] = check_section(run["algo"], run["hyperparams"], f"{path}: hyperparams")
     except ConfigError as exc:
@@ -85,8 +91,9 @@ class AgentPolicy:
     the weights came from, ``which`` the model (``best`` or ``last``).
     """
 
-    def __init__(self, model, env_id: str, env_kwargs: dict, name: str, action_bounds=None,
-                 source: str = "", which: str = ""):
+    def __init__(
+        self, model, env_id: str, env_kwargs: dict, name: str, action_bounds=None, source: str = "", which: str = ""
+    ):
         self.model = model
         self.env_id = env_id
         self.env_kwargs = dict(env_kwargs)
@@ -144,16 +151,18 @@ def build_model(run: dict, env=None, where: str = "", **extra):
         try:
             env = _spaces_env(run["env_id"], run["env_kwargs"], section["n_envs"])
         except Exception as exc:  # the env's own checks of env_kwargs, or an unknown env id
-            raise RunError(f"{where}: cannot make env {run['env_id']} with {run['env_kwargs']} "
-                           f"({type(exc).__name__}: {exc})") from None
+            raise RunError(
+                f"{where}: cannot make env {run['env_id']} with {run['env_kwargs']} ({type(exc).__name__}: {exc})"
+            ) from None
     try:
         return cls(env=env, device="cpu", **constructor_kwargs(section), **extra)
     except (AssertionError, ValueError, TypeError, KeyError) as exc:
         raise RunError(f"{where}: {run['algo']} refuses the hyperparameters ({type(exc).__name__}: {exc})") from None
 
 
-def load_agent(run_dir: str | Path, env_id: str | None = None, which: str = "best",
-               trust_pickle: bool = False) -> AgentPolicy:
+def load_agent(
+    run_dir: str | Path, env_id: str | None = None, which: str = "best", trust_pickle: bool = False
+) -> AgentPolicy:
     """Load the ``best`` (lowest held-out RMSE) or ``last`` model of a run folder.
 
     ``best`` falls back to ``last`` when the run has not been evaluated yet
@@ -183,12 +192,21 @@ def load_agent(run_dir: str | Path, env_id: str | None = None, which: str = "bes
             raise RunError(f"{run_dir}: no trained model ({WEIGHTS[which]}) in the run folder")
         path = run_dir / SB3_EXPORTS[found]
         if not trust_pickle:
-            raise RunError(f"{run_dir}: holds its model only as an SB3 file ({path.name}), which carries pickled "
-                           "Python objects that can run code when loaded; if you trust whoever wrote the folder, "
-                           "load it with trust_pickle=True (--trust-pickle)")
+            raise RunError(
+                f"{run_dir}: holds its model only as an SB3 file ({path.name}), which carries pickled "
+                "Python objects that can run code when loaded; if you trust whoever wrote the folder, "
+                "load it with trust_pickle=True (--trust-pickle)"
+            )
         try:
             model = algorithm_class(run["algo"]).load(path, device="cpu")
         except Exception as exc:  # anything the unpickled file raises
             raise RunError(f"{path}: corrupt model file ({type(exc).__name__}: {exc})") from None
-    return AgentPolicy(model, run["env_id"], run["env_kwargs"], name=f"agent:{run_dir.name}",
-                       action_bounds=run.get("action_bounds"), source=str(path), which=found)
+    return AgentPolicy(
+        model,
+        run["env_id"],
+        run["env_kwargs"],
+        name=f"agent:{run_dir.name}",
+        action_bounds=run.get("action_bounds"),
+        source=str(path),
+        which=found,
+    )

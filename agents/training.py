@@ -20,19 +20,31 @@ import json
 import math
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import yaml
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
-import magenv  # noqa: F401  (registers the environments)
+import magenv
 from magenv.agents import weights
-from magenv.agents.hyperparams import (DEFAULT_EVAL_EVERY, DEFAULT_EVAL_SCENARIOS, DEFAULT_EVAL_SEEDS, DEFAULT_SEED,
-                                       POSITIVE_INT, RUN_RULES, SEED_RULE, ConfigError, algorithm_class,
-                                       check_value, integer, load_hyperparams)
+from magenv.agents.hyperparams import (
+    DEFAULT_EVAL_EVERY,
+    DEFAULT_EVAL_SCENARIOS,
+    DEFAULT_EVAL_SEEDS,
+    DEFAULT_SEED,
+    POSITIVE_INT,
+    RUN_RULES,
+    SEED_RULE,
+    ConfigError,
+    algorithm_class,
+    check_value,
+    integer,
+    load_hyperparams,
+)
 from magenv.agents.imitation import check_teacher, clone, demonstrations
 from magenv.agents.loading import RUN_FILE, SB3_EXPORTS, WEIGHTS, AgentPolicy, RunError, build_model, read_run
 from magenv.agents.wrappers import action_bounds, normalized_actions
@@ -55,8 +67,7 @@ class HeldOutEvaluation(BaseCallback):
     same cadence, so an interrupted run resumes from its last evaluation.
     """
 
-    def __init__(self, run_dir: Path, trials: list, env_id: str, env_kwargs: dict, every: int, state: dict,
-                 bounds):
+    def __init__(self, run_dir: Path, trials: list, env_id: str, env_kwargs: dict, every: int, state: dict, bounds):
         super().__init__()
         self.bounds = bounds
         self.run_dir, self.trials, self.env_id, self.env_kwargs = run_dir, trials, env_id, env_kwargs
@@ -144,8 +155,10 @@ def _check_eval_set(scenarios, seeds) -> tuple[list[str] | None, list[int] | Non
         scenarios = [s.strip() for s in map(str, scenarios) if s.strip()]
         bad = [s for s in scenarios if s not in scenario_names()]
         if not scenarios or bad:
-            raise ConfigError(f"eval_scenarios: unknown scenario(s) {', '.join(bad) or '(none given)'}; "
-                              f"known: {', '.join(scenario_names())}")
+            raise ConfigError(
+                f"eval_scenarios: unknown scenario(s) {', '.join(bad) or '(none given)'}; "
+                f"known: {', '.join(scenario_names())}"
+            )
     if seeds is not None:
         seeds = [check_value("train", "eval_seeds entry", s, integer(0)) for s in seeds]
         if not seeds:
@@ -165,8 +178,11 @@ def _differences(run: dict, requested: dict) -> list[str]:
     for key, new in requested.items():
         old = run.get(key)
         if key == "hyperparams":
-            out += [f"{k} {show(old, k)} → {show(new, k)}" for k in dict.fromkeys([*old, *new])
-                    if old.get(k, defaults.get(k)) != new.get(k, defaults.get(k))]
+            out += [
+                f"{k} {show(old, k)} → {show(new, k)}"
+                for k in dict.fromkeys([*old, *new])
+                if old.get(k, defaults.get(k)) != new.get(k, defaults.get(k))
+            ]
         elif old != new:
             out.append(f"{key} {old!r} → {new!r}")
     return out
@@ -189,8 +205,11 @@ def _legacy_model(out: Path, cls, vec_env, section: dict):
     stats = out / LEGACY_VECNORMALIZE
     try:
         if section.get("normalize_reward"):
-            vec_env = (VecNormalize.load(stats, vec_env) if stats.is_file() else
-                       VecNormalize(vec_env, norm_obs=False, norm_reward=True, gamma=section.get("gamma", 0.99)))
+            vec_env = (
+                VecNormalize.load(stats, vec_env)
+                if stats.is_file()
+                else VecNormalize(vec_env, norm_obs=False, norm_reward=True, gamma=section.get("gamma", 0.99))
+            )
         model = cls.load(out / SB3_EXPORTS["last"], env=vec_env, device="cpu", tensorboard_log=str(out / "tb"))
         if (out / LEGACY_REPLAY).is_file() and hasattr(model, "load_replay_buffer"):
             model.load_replay_buffer(out / LEGACY_REPLAY)
@@ -200,10 +219,20 @@ def _legacy_model(out: Path, cls, vec_env, section: dict):
 
 
 def train(
-    env_id: str, algo: str, steps: int | None, out: Path, config: str | None = None, seed: int | None = None,
-    eval_every: int = DEFAULT_EVAL_EVERY, eval_scenarios: tuple[str, ...] | None = None,
-    eval_seeds: tuple[int, ...] | None = None, n_envs: int | None = None, progress_bar: bool = True,
-    make_method: Callable[[str], Any] | None = None, force: bool = False, trust_pickle: bool = False,
+    env_id: str,
+    algo: str,
+    steps: int | None,
+    out: Path,
+    config: str | None = None,
+    seed: int | None = None,
+    eval_every: int = DEFAULT_EVAL_EVERY,
+    eval_scenarios: tuple[str, ...] | None = None,
+    eval_seeds: tuple[int, ...] | None = None,
+    n_envs: int | None = None,
+    progress_bar: bool = True,
+    make_method: Callable[[str], Any] | None = None,
+    force: bool = False,
+    trust_pickle: bool = False,
 ) -> Path:
     """Train (or resume) a run; returns the run folder. See the module docstring.
 
@@ -232,12 +261,14 @@ def train(
     if resuming:
         run = read_run(out)
         if (run["env_id"], run["algo"]) != (env_id, algo):
-            raise RunError(f"{out}: existing run is {run['algo']} on {run['env_id']}; "
-                           f"use another --out for {algo} on {env_id}")
+            raise RunError(
+                f"{out}: existing run is {run['algo']} on {run['env_id']}; use another --out for {algo} on {env_id}"
+            )
         try:
             run["steps"] = check_value("run.yaml", "steps", run.get("steps"), POSITIVE_INT)
-            run["eval_scenarios"], run["eval_seeds"] = _check_eval_set(run.get("eval_scenarios", []),
-                                                                       run.get("eval_seeds", []))
+            run["eval_scenarios"], run["eval_seeds"] = _check_eval_set(
+                run.get("eval_scenarios", []), run.get("eval_seeds", [])
+            )
         except ConfigError as exc:
             raise RunError(f"{out / RUN_FILE}: {exc}") from None
         requested: dict[str, Any] = {}
@@ -249,17 +280,25 @@ def train(
                 requested[key] = value
         changes = _differences(run, requested)
         if changes and not force:
-            raise RunError(f"{out}: the run was trained with other values: {'; '.join(changes)}. "
-                           "Use another --out for a new run, or --force to continue this one with the new values")
+            raise RunError(
+                f"{out}: the run was trained with other values: {'; '.join(changes)}. "
+                "Use another --out for a new run, or --force to continue this one with the new values"
+            )
         if changes:
             print(f"{out}: continuing with {'; '.join(changes)} (--force)")
             run.update(requested)
             run["env_kwargs"] = run["hyperparams"]["env_kwargs"]
         if not checkpoint.is_file() and not (legacy and trust_pickle):
-            raise RunError(f"{out}: no checkpoint to resume from ({WEIGHTS['last']})" + (
-                f"; the folder holds an older magenv's pickles ({SB3_EXPORTS['last']}), which can run code when "
-                "loaded: resume from them with --trust-pickle (trust_pickle=True) only if you trust whoever "
-                "wrote it" if legacy else "; remove the folder or use another --out"))
+            raise RunError(
+                f"{out}: no checkpoint to resume from ({WEIGHTS['last']})"
+                + (
+                    f"; the folder holds an older magenv's pickles ({SB3_EXPORTS['last']}), which can run code when "
+                    "loaded: resume from them with --trust-pickle (trust_pickle=True) only if you trust whoever "
+                    "wrote it"
+                    if legacy
+                    else "; remove the folder or use another --out"
+                )
+            )
         section = run["hyperparams"]
     else:
         section = load_hyperparams(algo, env_id, config)
@@ -267,11 +306,16 @@ def train(
             section["n_envs"] = n_envs
         _teacher(section, env_id, make_method)  # a bad teacher fails before the run folder is written
         run = {
-            "env_id": env_id, "algo": algo, "env_kwargs": section["env_kwargs"], "hyperparams": section,
+            "env_id": env_id,
+            "algo": algo,
+            "env_kwargs": section["env_kwargs"],
+            "hyperparams": section,
             "action_bounds": action_bounds(env_id, section["env_kwargs"]),
-            "seed": DEFAULT_SEED if seed is None else seed, "steps": int(section.get("n_timesteps", 100_000)),
+            "seed": DEFAULT_SEED if seed is None else seed,
+            "steps": int(section.get("n_timesteps", 100_000)),
             "eval_scenarios": eval_scenarios or list(DEFAULT_EVAL_SCENARIOS),
-            "eval_seeds": eval_seeds or list(DEFAULT_EVAL_SEEDS), "magenv_version": magenv.__version__,
+            "eval_seeds": eval_seeds or list(DEFAULT_EVAL_SEEDS),
+            "magenv_version": magenv.__version__,
         }
         out.mkdir(parents=True, exist_ok=True)
     run["steps"] = steps = steps or run["steps"]
@@ -294,8 +338,13 @@ def train(
         return out
     (out / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
 
-    vec_env = make_vec_env(env_id, n_envs=section["n_envs"], seed=seed + done,
-                           env_kwargs=section["env_kwargs"], wrapper_class=normalized_actions)
+    vec_env = make_vec_env(
+        env_id,
+        n_envs=section["n_envs"],
+        seed=seed + done,
+        env_kwargs=section["env_kwargs"],
+        wrapper_class=normalized_actions,
+    )
     if resuming and legacy:
         model, vec_env = _legacy_model(out, cls, vec_env, section)
     else:
@@ -315,8 +364,9 @@ def train(
     unit, why = rollout_unit(model)
     remaining = math.ceil((steps - done) / unit) * unit
     if remaining != steps - done:
-        print(f"{algo} trains in whole {why} = {unit:,} steps: training {done + remaining:,} steps in all, "
-              f"not {steps:,}")
+        print(
+            f"{algo} trains in whole {why} = {unit:,} steps: training {done + remaining:,} steps in all, not {steps:,}"
+        )
 
     trials = held_out_trials(run["eval_scenarios"], run["eval_seeds"])
     evaluation = HeldOutEvaluation(out, trials, env_id, section["env_kwargs"], eval_every, state, run["action_bounds"])
@@ -326,8 +376,13 @@ def train(
 
     previous = signal.signal(signal.SIGTERM, _stop)
     try:
-        model.learn(remaining, callback=CallbackList([evaluation]), progress_bar=progress_bar,
-                    reset_num_timesteps=done == 0, tb_log_name=algo)
+        model.learn(
+            remaining,
+            callback=CallbackList([evaluation]),
+            progress_bar=progress_bar,
+            reset_num_timesteps=done == 0,
+            tb_log_name=algo,
+        )
         if evaluation.last_evaluated != model.num_timesteps:
             evaluation.evaluate_and_checkpoint()
     except KeyboardInterrupt:

@@ -41,8 +41,11 @@ def _write(path: Path, tensors: dict, meta: dict) -> None:
     from safetensors.torch import save_file
 
     tmp = path.with_name(path.name + ".tmp")
-    save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, str(tmp),
-              metadata={"format": FORMAT, **{k: json.dumps(v) for k, v in meta.items()}})
+    save_file(
+        {k: v.detach().cpu().contiguous() for k, v in tensors.items()},
+        str(tmp),
+        metadata={"format": FORMAT, **{k: json.dumps(v) for k, v in meta.items()}},
+    )
     os.replace(tmp, path)
 
 
@@ -72,7 +75,7 @@ def read(path: Path, algo: str | None = None) -> tuple[dict, dict]:
 
 
 def _group(tensors: dict, prefix: str) -> dict:
-    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+    return {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
 
 
 def _algo(model) -> str:
@@ -95,8 +98,9 @@ def _load_policy(model, tensors: dict, path: Path) -> None:
     try:
         model.policy.load_state_dict(weights, strict=True)
     except (RuntimeError, KeyError, ValueError) as exc:
-        raise RunError(f"{path}: the weights do not fit the policy that run.yaml describes "
-                       f"({str(exc).splitlines()[0]})") from None
+        raise RunError(
+            f"{path}: the weights do not fit the policy that run.yaml describes ({str(exc).splitlines()[0]})"
+        ) from None
 
 
 def load_policy(model, path: Path) -> dict:
@@ -150,8 +154,17 @@ def save_checkpoint(model, path: Path, state: dict) -> None:
         rms = norm.ret_rms
         for key, value in (("mean", rms.mean), ("var", rms.var), ("count", rms.count)):
             tensors[f"vecnormalize/ret_rms/{key}"] = torch.as_tensor(np.asarray(value, np.float64))
-    _write(path, tensors, {"algo": _algo(model), "timesteps": int(state["timesteps"]), "state": state,
-                           "optimizers": groups, "n_updates": int(getattr(model, "_n_updates", 0))})
+    _write(
+        path,
+        tensors,
+        {
+            "algo": _algo(model),
+            "timesteps": int(state["timesteps"]),
+            "state": state,
+            "optimizers": groups,
+            "n_updates": int(getattr(model, "_n_updates", 0)),
+        },
+    )
 
 
 def load_checkpoint(model, path: Path) -> dict:
@@ -185,8 +198,9 @@ def load_checkpoint(model, path: Path) -> dict:
         model._n_updates = int(meta.get("n_updates", 0))
         state["timesteps"] = model.num_timesteps
     except (KeyError, ValueError, TypeError, RuntimeError, AttributeError) as exc:
-        raise RunError(f"{path}: the checkpoint does not fit the model that run.yaml describes "
-                       f"({type(exc).__name__}: {exc})") from None
+        raise RunError(
+            f"{path}: the checkpoint does not fit the model that run.yaml describes ({type(exc).__name__}: {exc})"
+        ) from None
     return state
 
 
@@ -203,8 +217,9 @@ def save_replay_buffer(model, path: Path, timesteps: int) -> None:
     size = buf.buffer_size if buf.full else buf.pos
     arrays = {k: getattr(buf, k) for k in BUFFER_ARRAYS if getattr(buf, k, None) is not None}
     tensors = {k: torch.from_numpy(np.ascontiguousarray(v[:size])) for k, v in arrays.items()}
-    _write(path, tensors, {"algo": _algo(model), "timesteps": int(timesteps), "pos": int(buf.pos),
-                           "full": bool(buf.full)})
+    _write(
+        path, tensors, {"algo": _algo(model), "timesteps": int(timesteps), "pos": int(buf.pos), "full": bool(buf.full)}
+    )
 
 
 def load_replay_buffer(model, path: Path) -> None:

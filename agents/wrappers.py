@@ -15,8 +15,9 @@ def normalized_actions(env: gym.Env) -> gym.Env:
     normalisation for every algorithm. ``AgentPolicy`` maps actions back.
     """
     shape = env.action_space.shape
-    return gym.wrappers.RescaleAction(env, min_action=np.full(shape, -1.0, np.float32),
-                                      max_action=np.full(shape, 1.0, np.float32))
+    return gym.wrappers.RescaleAction(
+        env, min_action=np.full(shape, -1.0, np.float32), max_action=np.full(shape, 1.0, np.float32)
+    )
 
 
 def action_bounds(env_id: str, env_kwargs: dict) -> list[list[float]]:

@@ -28,7 +28,7 @@ Paper check (Table 2): ``magenv paper constraint --seeds 0:5``.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -80,16 +80,32 @@ class ConstraintCF(Tunable, _Base):
     """The constraint-combined adaptive CF (eqs. 4–18); defaults are the published parameters."""
 
     name = "cf_constraint"
-    PARAM_BOUNDS = {"th1": (0.02, 1.0), "th2": (0.0, 1.0), "th3": (0.01, 2.0), "k_min": (0.0, 0.2),
-                    "k_max": (0.02, 1.0)}
+    PARAM_BOUNDS = {
+        "th1": (0.02, 1.0),
+        "th2": (0.0, 1.0),
+        "th3": (0.01, 2.0),
+        "k_min": (0.0, 0.2),
+        "k_max": (0.02, 1.0),
+    }
 
-    def __init__(self, th1: float = cf.TH1, th2: float = cf.TH2, th3: float = cf.TH3, k_min: float = cf.K_MIN,
-                 k_max: float = cf.K_MAX, lever_i=None, lever_j=None, q0=None, use_constraint: bool = True):
+    def __init__(
+        self,
+        th1: float = cf.TH1,
+        th2: float = cf.TH2,
+        th3: float = cf.TH3,
+        k_min: float = cf.K_MIN,
+        k_max: float = cf.K_MAX,
+        lever_i=None,
+        lever_j=None,
+        q0=None,
+        use_constraint: bool = True,
+    ):
         super().__init__(lever_i, lever_j, q0)
         self.use_constraint = bool(use_constraint)
         if not (th1 > 0 and th3 > 0 and 0 <= th2 <= 1 and 0 <= k_min):
-            raise ValueError(f"need th1 > 0, th3 > 0, 0 ≤ th2 ≤ 1, k_min ≥ 0; got th1={th1}, th2={th2}, "
-                             f"th3={th3}, k_min={k_min}")
+            raise ValueError(
+                f"need th1 > 0, th3 > 0, 0 ≤ th2 ≤ 1, k_min ≥ 0; got th1={th1}, th2={th2}, th3={th3}, k_min={k_min}"
+            )
         # CMA-ES may propose k_min > k_max: eq. 18 then needs k_max ≥ k_min, so the larger one is k_max.
         self.th1, self.th2, self.th3 = float(th1), float(th2), float(th3)
         self.k_min, self.k_max = float(min(k_min, k_max)), float(max(k_min, k_max))
@@ -123,9 +139,17 @@ class ConstraintWeightRule(Tunable):
     name = "constraint_rule"
     PARAM_BOUNDS = {"th1": (0.02, 1.0)}
 
-    def __init__(self, th1: float = cf.TH1, control_gain: bool = False, gain_max: float = 1.0,
-                 features: Sequence[str] | None = None, th2: float = cf.TH2, th3: float = cf.TH3,
-                 k_min: float = cf.K_MIN, k_max: float = cf.K_MAX):
+    def __init__(
+        self,
+        th1: float = cf.TH1,
+        control_gain: bool = False,
+        gain_max: float = 1.0,
+        features: Sequence[str] | None = None,
+        th2: float = cf.TH2,
+        th3: float = cf.TH3,
+        k_min: float = cf.K_MIN,
+        k_max: float = cf.K_MAX,
+    ):
         if not th1 > 0:
             raise ValueError(f"th1 must be > 0, got {th1!r}")
         self.th1 = float(th1)
@@ -136,8 +160,10 @@ class ConstraintWeightRule(Tunable):
         need = ("mag_dev", "step_mag", "step_con") if control_gain else ("mag_dev",)
         missing = [f for f in need if f not in self.features]
         if missing:
-            raise ValueError(f"ConstraintWeightRule needs observation feature(s) {missing}; "
-                             f"the env's features are {list(self.features)}")
+            raise ValueError(
+                f"ConstraintWeightRule needs observation feature(s) {missing}; "
+                f"the env's features are {list(self.features)}"
+            )
         self._ix = {f: self.features.index(f) for f in need}
         self.env_kwargs = {} if features is None else {"features": list(self.features)}
         if control_gain:
@@ -157,5 +183,10 @@ class ConstraintWeightRule(Tunable):
 
 def methods() -> dict:
     """Name → factory for ``magenv compare`` (picked up by ``magenv.registry``)."""
-    return {"strapdown": Strapdown, "cf_conventional": ConventionalCF, "cf_constraint": ConstraintCF,
-            "cf_gated": gated, "constraint_rule": ConstraintWeightRule}
+    return {
+        "strapdown": Strapdown,
+        "cf_conventional": ConventionalCF,
+        "cf_constraint": ConstraintCF,
+        "cf_gated": gated,
+        "constraint_rule": ConstraintWeightRule,
+    }

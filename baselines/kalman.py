@@ -18,9 +18,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from magenv.protocols import Estimate
 from magenv.filters.kalman_model import ModelKF
 from magenv.filters.kalman_threshold import ThresholdKF
+from magenv.protocols import Estimate
 from magenv.trial import Trial
 
 

@@ -43,7 +43,7 @@ observation, so rules in µT are exact at any site).
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -106,8 +106,10 @@ class GateTrust(KalmanRule):
         self.th_mag_ut, self.th_dip_deg = float(th_mag_ut), float(th_dip_deg)
 
     def weight(self, obs: np.ndarray) -> float:
-        ok = (abs(self._ut(obs, "norm_dev")) < self.th_mag_ut  # A8, norm test
-              and abs(self._deg(obs, "dip_dev")) < self.th_dip_deg)  # A8, dip test
+        ok = (
+            abs(self._ut(obs, "norm_dev")) < self.th_mag_ut  # A8, norm test
+            and abs(self._deg(obs, "dip_dev")) < self.th_dip_deg
+        )  # A8, dip test
         return 1.0 if ok else 0.0
 
 
@@ -118,8 +120,9 @@ class AdaptiveTrust(KalmanRule):
     PARAM_BOUNDS = {"sigma_mag_ut": (0.1, 20.0), "sigma_dip_deg": (0.5, 45.0)}
     NEEDS = ("norm_dev", "dip_dev")
 
-    def __init__(self, sigma_mag_ut: float = TH_MAG, sigma_dip_deg: float = TH_DIP,
-                 features: Sequence[str] | None = None):
+    def __init__(
+        self, sigma_mag_ut: float = TH_MAG, sigma_dip_deg: float = TH_DIP, features: Sequence[str] | None = None
+    ):
         super().__init__(features)
         if not (sigma_mag_ut > 0 and sigma_dip_deg > 0):
             raise ValueError(f"sigma_mag_ut and sigma_dip_deg must be positive, got {sigma_mag_ut}, {sigma_dip_deg}")
@@ -149,8 +152,12 @@ class ModelTrust(KalmanRule):
         return 1.0 / (1.0 + a * a)
 
 
-RULES: dict[str, type[KalmanRule]] = {"kf_constant": ConstantTrust, "kf_gate": GateTrust,
-                                      "kf_adaptive": AdaptiveTrust, "kf_model": ModelTrust}
+RULES: dict[str, type[KalmanRule]] = {
+    "kf_constant": ConstantTrust,
+    "kf_gate": GateTrust,
+    "kf_adaptive": AdaptiveTrust,
+    "kf_model": ModelTrust,
+}
 
 
 def methods() -> dict:

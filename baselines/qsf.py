@@ -2,7 +2,8 @@
 
 ``methods()`` → ``aekf``, ``magyq``, ``delay_magyq`` (read by
 ``magenv.registry``), plus the Policy ``qsf_detector`` (:class:`DetectorPolicy`);
-``magenv paper qsf|innovation|qsf-recordings`` prints the paper-check tables. Each runs ``magenv.filters.qsf`` with the paper's
+``magenv paper qsf|innovation|qsf-recordings`` prints the paper-check tables. Each runs
+``magenv.filters.qsf`` with the paper's
 noise settings (σ_a = 0.1 g, σ_m = 0.1 m0, §5.3) and the QSF detector's
 default thresholds. ``trust`` per sample = 1 where a magnetic update ran,
 else 0 (the AEKF updates on every sample). After ``run`` the estimator keeps
@@ -19,8 +20,8 @@ as the paper did from its optical reference (§5.3), and every other trial
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 
@@ -65,12 +66,20 @@ class DetectedDelayMAGYQ(Tunable, QSFEstimator):
     """Delay MAGYQ whose QSF detector thresholds are the tunable parameters (``magenv tune --rule delay_magyq``;
     defaults = ``QSFDetector``'s). ``window_s``, ``max_period_s`` in s; ``th_spread``, ``th_drift`` in µT."""
 
-    PARAM_BOUNDS = {"window_s": (0.1, 2.0), "th_spread": (0.2, 10.0), "th_drift": (0.5, 20.0),
-                    "max_period_s": (1.0, 60.0)}
+    PARAM_BOUNDS = {
+        "window_s": (0.1, 2.0),
+        "th_spread": (0.2, 10.0),
+        "th_drift": (0.5, 20.0),
+        "max_period_s": (1.0, 60.0),
+    }
 
     def __init__(self, init: str = "auto", filter_kwargs: dict | None = None, **thresholds):
-        super().__init__(mode="delay_magyq", detector=qsf.QSFDetector(**thresholds), init=init,
-                         filter_kwargs=dict(filter_kwargs or {}))
+        super().__init__(
+            mode="delay_magyq",
+            detector=qsf.QSFDetector(**thresholds),
+            init=init,
+            filter_kwargs=dict(filter_kwargs or {}),
+        )
 
     @property
     def params(self) -> dict[str, float]:

@@ -35,7 +35,7 @@ are imported only when an estimator is built.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -71,8 +71,11 @@ class VQFEstimator:
         """Sensor → ENU estimate of every sample of ``trial`` (rate from ``trial.rate``)."""
         ts = trial.dt
         f = self._vqf.VQF(ts, ts, ts, **self.params)
-        out = f.updateBatch(np.ascontiguousarray(trial.gyr, float), np.ascontiguousarray(trial.acc, float),
-                            np.ascontiguousarray(trial.mag, float))
+        out = f.updateBatch(
+            np.ascontiguousarray(trial.gyr, float),
+            np.ascontiguousarray(trial.acc, float),
+            np.ascontiguousarray(trial.mag, float),
+        )
         if self.params.get("magDistRejectionEnabled", True):
             trust = np.where(np.asarray(out["magDistDetected"], bool), 0.0, 1.0)
         else:  # rejection off: the magnetometer is always used (magDistDetected is then meaningless)
@@ -95,8 +98,15 @@ class FusionEstimator:
         offset_correction: run ``imufusion.Bias`` on the gyroscope first.
     """
 
-    def __init__(self, gain: float = 0.5, acceleration_rejection: float = 10.0, magnetic_rejection: float = 10.0,
-                 rejection_timeout: float = 5.0, gyroscope_range: float = 2000.0, offset_correction: bool = True) -> None:
+    def __init__(
+        self,
+        gain: float = 0.5,
+        acceleration_rejection: float = 10.0,
+        magnetic_rejection: float = 10.0,
+        rejection_timeout: float = 5.0,
+        gyroscope_range: float = 2000.0,
+        offset_correction: bool = True,
+    ) -> None:
         self._fusion = _require("imufusion")
         self.gain = gain
         self.acceleration_rejection = acceleration_rejection
@@ -142,8 +152,10 @@ class FusionEstimator:
         return Estimate(q=q, trust=trust)
 
     def __repr__(self) -> str:
-        return (f"FusionEstimator(gain={self.gain}, magnetic_rejection={self.magnetic_rejection}, "
-                f"rejection_timeout={self.rejection_timeout}, offset_correction={self.offset_correction})")
+        return (
+            f"FusionEstimator(gain={self.gain}, magnetic_rejection={self.magnetic_rejection}, "
+            f"rejection_timeout={self.rejection_timeout}, offset_correction={self.offset_correction})"
+        )
 
 
 def methods() -> dict[str, Callable[[], Estimator]]:

@@ -25,7 +25,7 @@ env applies.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -46,8 +46,10 @@ class RulePolicy(Tunable):
         self.features = tuple(FEATURES.names if features is None else features)
         missing = [f for f in self.NEEDS if f not in self.features]
         if missing:
-            raise ValueError(f"{type(self).__name__} needs observation feature(s) {missing}; "
-                             f"the env's features are {list(self.features)}")
+            raise ValueError(
+                f"{type(self).__name__} needs observation feature(s) {missing}; "
+                f"the env's features are {list(self.features)}"
+            )
         self._ix = {f: self.features.index(f) for f in self.NEEDS}
         # env options this policy runs with: non-default features; the stationary
         # hold if set (None = the env's default, on)
@@ -101,8 +103,13 @@ class FanLambda(RulePolicy):
     PARAM_BOUNDS = {"norm_tol": (0.02, 5.0), "th_dip_deg": (0.1, 90.0)}
     NEEDS = ("norm_dev", "dip_dev")
 
-    def __init__(self, norm_tol: float = 1.0, th_dip_deg: float = 20.0, features: Sequence[str] | None = None,
-                 stationary_hold: bool | None = None):
+    def __init__(
+        self,
+        norm_tol: float = 1.0,
+        th_dip_deg: float = 20.0,
+        features: Sequence[str] | None = None,
+        stationary_hold: bool | None = None,
+    ):
         super().__init__(features, stationary_hold)
         if not (norm_tol > 0 and th_dip_deg > 0):
             raise ValueError(f"norm_tol and th_dip_deg must be positive, got {norm_tol}, {th_dip_deg}")
@@ -122,16 +129,23 @@ class Threshold(RulePolicy):
     PARAM_BOUNDS = {"norm_th": (0.005, 1.0), "dip_th_deg": (0.5, 45.0)}
     NEEDS = ("norm_dev", "dip_dev")
 
-    def __init__(self, norm_th: float = 1.2 / 46.0, dip_th_deg: float = 5.0, features: Sequence[str] | None = None,
-                 stationary_hold: bool | None = None):
+    def __init__(
+        self,
+        norm_th: float = 1.2 / 46.0,
+        dip_th_deg: float = 5.0,
+        features: Sequence[str] | None = None,
+        stationary_hold: bool | None = None,
+    ):
         super().__init__(features, stationary_hold)
         if not (norm_th > 0 and dip_th_deg > 0):
             raise ValueError(f"norm_th and dip_th_deg must be positive, got {norm_th}, {dip_th_deg}")
         self.norm_th, self.dip_th_deg = float(norm_th), float(dip_th_deg)
 
     def weight(self, obs: np.ndarray) -> float:
-        off = (abs(float(obs[self._ix["norm_dev"]])) > self.norm_th
-               or abs(DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])) > self.dip_th_deg)
+        off = (
+            abs(float(obs[self._ix["norm_dev"]])) > self.norm_th
+            or abs(DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])) > self.dip_th_deg
+        )
         return 1.0 if off else 0.0
 
 

@@ -33,8 +33,9 @@ def _to_unit(params: dict[str, float], bounds: dict[str, tuple[float, float]]) -
     return np.array(x)
 
 
-def tune_rule(rule: str, cls: type, trials: list, iterations: int = 30, popsize: int = 8, seed: int = 0,
-              progress: bool = True) -> dict:
+def tune_rule(
+    rule: str, cls: type, trials: list, iterations: int = 30, popsize: int = 8, seed: int = 0, progress: bool = True
+) -> dict:
     """CMA-ES over the parameters of ``cls`` (the tunable rule named ``rule``; a bounded scalar search for
     one parameter); returns the record ``magenv tune`` saves as ``RULE.json``."""
     import cma
@@ -52,12 +53,17 @@ def tune_rule(rule: str, cls: type, trials: list, iterations: int = 30, popsize:
     if len(bounds) == 1:  # CMA-ES needs two dimensions or more: bounded scalar search instead
         from scipy.optimize import minimize_scalar
 
-        res = minimize_scalar(lambda x: objective(_to_params(np.array([x]), bounds)), bounds=(0.0, 1.0),
-                              method="bounded", options={"maxiter": iterations * popsize})
+        res = minimize_scalar(
+            lambda x: objective(_to_params(np.array([x]), bounds)),
+            bounds=(0.0, 1.0),
+            method="bounded",
+            options={"maxiter": iterations * popsize},
+        )
         xbest, fbest = np.array([res.x]), float(res.fun)
     else:
         es = cma.CMAEvolutionStrategy(
-            np.clip(x0, 0.05, 0.95), 0.25,
+            np.clip(x0, 0.05, 0.95),
+            0.25,
             {"bounds": [0, 1], "popsize": popsize, "seed": seed + 1, "verbose": -9, "maxiter": iterations},
         )
         bar = tqdm(total=iterations, desc=f"tune {rule}", disable=not progress)
@@ -73,8 +79,12 @@ def tune_rule(rule: str, cls: type, trials: list, iterations: int = 30, popsize:
     if published_deg <= fbest:  # the search never returns worse than where it started
         best, fbest = published.params, published_deg
     return {
-        "rule": rule, "params": best, "objective_deg": fbest,
-        "published_params": published.params, "published_objective_deg": published_deg,
-        "trials": [t.name for t in trials], "cma": {"iterations": iterations, "popsize": popsize, "seed": seed},
+        "rule": rule,
+        "params": best,
+        "objective_deg": fbest,
+        "published_params": published.params,
+        "published_objective_deg": published_deg,
+        "trials": [t.name for t in trials],
+        "cma": {"iterations": iterations, "popsize": popsize, "seed": seed},
         "date": time.strftime("%Y-%m-%d"),
     }

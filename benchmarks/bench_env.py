@@ -71,30 +71,47 @@ def main() -> None:
     # ends an episode every ~10 steps and resets slow it down).
     cart = rate(gym.make("CartPole-v1"), [0, 1], args.steps)
     lam = [np.array([0.5], np.float32)]
-    fixed = rate(gym.make("magenv/MagBlend-v0", scenario=[make_trial("dynamic_magnet", 0)],
-                          decision_every=args.every), lam, args.steps)
+    fixed = rate(
+        gym.make("magenv/MagBlend-v0", scenario=[make_trial("dynamic_magnet", 0)], decision_every=args.every),
+        lam,
+        args.steps,
+    )
     rand = rate(gym.make("magenv/MagBlend-v0", decision_every=args.every), lam, args.steps)
     print(f"CartPole-v1                                   {cart:10.0f} steps/s")
-    print(f"MagBlend-v0 k={args.every}, one trial (step cost)      {fixed:10.0f} steps/s  "
-          f"ratio {fixed / cart:.2f}  ({fixed * args.every:.0f} samples/s)")
+    print(
+        f"MagBlend-v0 k={args.every}, one trial (step cost)      {fixed:10.0f} steps/s  "
+        f"ratio {fixed / cart:.2f}  ({fixed * args.every:.0f} samples/s)"
+    )
     print(f"MagBlend-v0 k={args.every}, scenario 'random' + resets {rand:10.0f} steps/s  ratio {rand / cart:.2f}")
     env = gym.make("magenv/MagBlend-v0", decision_every=args.every, prefetch=True)
     ahead = rate(env, lam, args.steps)
     env.close()
     print(f"MagBlend-v0 k={args.every}, 'random', prefetch=True  {ahead:10.0f} steps/s  ratio {ahead / cart:.2f}")
-    vec = gym.make_vec("magenv/MagBlend-v0", num_envs=8, vectorization_mode="vector_entry_point",
-                       scenario=[make_trial("dynamic_magnet", 0)], decision_every=args.every)
+    vec = gym.make_vec(
+        "magenv/MagBlend-v0",
+        num_envs=8,
+        vectorization_mode="vector_entry_point",
+        scenario=[make_trial("dynamic_magnet", 0)],
+        decision_every=args.every,
+    )
     acts = np.full((8, 1), 0.5, np.float32)
     vec.reset(seed=0)
     t0 = time.perf_counter()
     for _ in range(args.steps // 8):
         vec.step(acts)
     vrate = 8 * (args.steps // 8) / (time.perf_counter() - t0)
-    print(f"MagBlend-v0 k={args.every}, make_vec 8 envs, one trial   {vrate:10.0f} env-steps/s  ratio {vrate / cart:.2f}")
-    kal = rate(gym.make("magenv/MagKalman-v0", scenario=[make_trial("dynamic_magnet", 0)],
-                        decision_every=args.every), lam, args.steps // 10)
-    print(f"MagKalman-v0 k={args.every}, one trial (step cost)    {kal:10.0f} steps/s  "
-          f"ratio {kal / cart:.2f}  ({kal * args.every:.0f} samples/s)")
+    print(
+        f"MagBlend-v0 k={args.every}, make_vec 8 envs, one trial   {vrate:10.0f} env-steps/s  ratio {vrate / cart:.2f}"
+    )
+    kal = rate(
+        gym.make("magenv/MagKalman-v0", scenario=[make_trial("dynamic_magnet", 0)], decision_every=args.every),
+        lam,
+        args.steps // 10,
+    )
+    print(
+        f"MagKalman-v0 k={args.every}, one trial (step cost)    {kal:10.0f} steps/s  "
+        f"ratio {kal / cart:.2f}  ({kal * args.every:.0f} samples/s)"
+    )
 
     from magenv.envs.blend import BlendRunner
     from magenv.envs.kalman import KalmanRunner
@@ -103,8 +120,10 @@ def main() -> None:
     for name, runner_class, repeats in (("blend", BlendRunner, 20), ("kalman", KalmanRunner, 5)):
         for k in (args.every, trial.n):
             t = kernel_time(runner_class, trial, k, repeats)
-            print(f"{name} kernel, one trial of {trial.n} samples, k={k:<6d} {t * 1e3:8.2f} ms CPU  "
-                  f"({t / trial.n * 1e9:6.0f} ns/sample)")
+            print(
+                f"{name} kernel, one trial of {trial.n} samples, k={k:<6d} {t * 1e3:8.2f} ms CPU  "
+                f"({t / trial.n * 1e9:6.0f} ns/sample)"
+            )
 
 
 if __name__ == "__main__":

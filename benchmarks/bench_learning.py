@@ -26,11 +26,10 @@ from pathlib import Path
 import numpy as np
 
 import magenv  # noqa: F401
-from magenv import registry
-from magenv import evaluation
+from magenv import evaluation, registry
+from magenv.agents.training import held_out_trials, train
 from magenv.train.compare import make_trials, print_table, select_methods
 from magenv.train.seeds import parse_seeds
-from magenv.agents.training import held_out_trials, train
 
 ENV_ID = "magenv/MagBlend-v0"
 RULES = ["mimu", "imu", "fan_lambda", "fan_lambda_tuned", "threshold", "threshold_tuned"]
@@ -42,7 +41,9 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=300_000)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--seeds", default="0:10", help="held-out seeds for the final table")
-    p.add_argument("--eval-seeds", default="5000:5003", help="held-out validation seeds for evaluations during training")
+    p.add_argument(
+        "--eval-seeds", default="5000:5003", help="held-out validation seeds for evaluations during training"
+    )
     p.add_argument("--eval-every", type=int, default=25_000)
     args = p.parse_args()
     out = args.out or Path(f"runs/bench_{args.algo}")
@@ -50,8 +51,17 @@ def main() -> None:
     eval_seeds = tuple(parse_seeds(args.eval_seeds))
     scenarios = ("dynamic_magnet", "dynamic_clean")
     t0 = time.perf_counter()
-    train(ENV_ID, args.algo, args.steps, out, eval_every=args.eval_every, eval_scenarios=scenarios,
-          eval_seeds=eval_seeds, progress_bar=True, make_method=registry.make)
+    train(
+        ENV_ID,
+        args.algo,
+        args.steps,
+        out,
+        eval_every=args.eval_every,
+        eval_scenarios=scenarios,
+        eval_seeds=eval_seeds,
+        progress_bar=True,
+        make_method=registry.make,
+    )
     wall = time.perf_counter() - t0
 
     # fan_lambda_tuned on the same evaluation trials the callback used
@@ -70,13 +80,18 @@ def main() -> None:
     a_mag, t_mag = get(agent, "dynamic_magnet"), get("fan_lambda_tuned", "dynamic_magnet")
     best_clean = min((get(m, "dynamic_clean"), m) for m in RULES)
     a_clean = get(agent, "dynamic_clean")
-    print(f"dynamic_magnet: agent {a_mag:.3f}° vs fan_lambda_tuned {t_mag:.3f}° "
-          f"(ratio {a_mag / t_mag:.3f}; target < 1)")
-    print(f"dynamic_clean:  agent {a_clean:.3f}° vs best rule {best_clean[1]} {best_clean[0]:.3f}° "
-          f"(ratio {a_clean / best_clean[0]:.3f}; target <= 1.05)")
+    print(
+        f"dynamic_magnet: agent {a_mag:.3f}° vs fan_lambda_tuned {t_mag:.3f}° (ratio {a_mag / t_mag:.3f}; target < 1)"
+    )
+    print(
+        f"dynamic_clean:  agent {a_clean:.3f}° vs best rule {best_clean[1]} {best_clean[0]:.3f}° "
+        f"(ratio {a_clean / best_clean[0]:.3f}; target <= 1.05)"
+    )
     if matched:
-        print(f"matched fan_lambda_tuned ({ref:.3f}° on the evaluation trials) after {matched[0]} steps, "
-              f"{matched[1]:.0f} s of training wall-clock")
+        print(
+            f"matched fan_lambda_tuned ({ref:.3f}° on the evaluation trials) after {matched[0]} steps, "
+            f"{matched[1]:.0f} s of training wall-clock"
+        )
     else:
         print(f"did not match fan_lambda_tuned ({ref:.3f}° on the evaluation trials) within {args.steps} steps")
     print(f"this run's training wall-clock: {wall:.0f} s")

@@ -28,7 +28,6 @@ from magenv.recordings import list_recordings, load_recording
 from magenv.sensor_stats import field_norm_dip, sensor_stats
 
 
-
 def _sim_defaults() -> dict[str, float]:
     """The simulator's sensor defaults (``magenv.sim.sensors.SensorConfig``), or
     the values announced in issue 6 if the simulator is not importable."""
@@ -36,12 +35,23 @@ def _sim_defaults() -> dict[str, float]:
         from magenv.sim.sensors import SensorConfig
 
         c = SensorConfig()
-        return {"gyr_noise_dps": c.gyr_noise_dps, "gyr_bias_dps": c.gyr_bias_dps, "acc_noise_ms2": c.acc_noise,
-                "mag_noise_ut": c.mag_noise_ut, "mag_lag_samples": float(c.mag_lag_samples),
-                "mag_hold_fraction": c.mag_hold_fraction}
+        return {
+            "gyr_noise_dps": c.gyr_noise_dps,
+            "gyr_bias_dps": c.gyr_bias_dps,
+            "acc_noise_ms2": c.acc_noise,
+            "mag_noise_ut": c.mag_noise_ut,
+            "mag_lag_samples": float(c.mag_lag_samples),
+            "mag_hold_fraction": c.mag_hold_fraction,
+        }
     except Exception:
-        return {"gyr_noise_dps": 0.5, "gyr_bias_dps": 0.1, "acc_noise_ms2": 0.02, "mag_noise_ut": 0.15,
-                "mag_lag_samples": 4.0, "mag_hold_fraction": 0.29}
+        return {
+            "gyr_noise_dps": 0.5,
+            "gyr_bias_dps": 0.1,
+            "acc_noise_ms2": 0.02,
+            "mag_noise_ut": 0.15,
+            "mag_lag_samples": 4.0,
+            "mag_hold_fraction": 0.29,
+        }
 
 
 SIM_DEFAULTS = _sim_defaults()
@@ -127,8 +137,17 @@ def sensor_model_trial(seed: int = 0, rate: float = 285.714, rest_s: float = 12.
     acc = quat.rotate_inv(q, np.broadcast_to(quat.gravity_up(), (n, 3)))
     mag = quat.rotate_inv(q, np.broadcast_to(quat.earth_field(44.5, 69.0), (n, 3)))
     g, a, m = apply_sensor_model(gyr, acc, mag, rate, SensorConfig(), rng)
-    return Trial(name="sensor_model_default", rate=rate, gyr=g, acc=a, mag=m, q_true=q, field_norm=44.5,
-                 field_dip=69.0, score_mask=t >= rest_s + 2.0)
+    return Trial(
+        name="sensor_model_default",
+        rate=rate,
+        gyr=g,
+        acc=a,
+        mag=m,
+        q_true=q,
+        field_norm=44.5,
+        field_dip=69.0,
+        score_mask=t >= rest_s + 2.0,
+    )
 
 
 def recommend(real) -> dict[str, float]:
@@ -163,9 +182,12 @@ def plot(real_trials, real, sim_trials, sim, rec, out: Path) -> None:
     labels = [s.name[:2] for s in real] + [f"sim:{n}" for n, _ in sim_trials]
     stats = list(real) + list(sim)
     x = np.arange(len(stats))
-    for ax, attr, unit, key in zip(axes[0], ("gyr_noise_axes_dps", "acc_noise_axes_ms2", "mag_noise_axes_ut"),
-                                   ("gyro σ at rest, °/s", "accelerometer σ at rest, m/s²", "magnetometer σ at rest, µT"),
-                                   ("gyr_noise_dps", "acc_noise_ms2", "mag_noise_ut")):
+    for ax, attr, unit, key in zip(
+        axes[0],
+        ("gyr_noise_axes_dps", "acc_noise_axes_ms2", "mag_noise_axes_ut"),
+        ("gyro σ at rest, °/s", "accelerometer σ at rest, m/s²", "magnetometer σ at rest, µT"),
+        ("gyr_noise_dps", "acc_noise_ms2", "mag_noise_ut"),
+    ):
         vals = np.array([getattr(s, attr) for s in stats], float)
         for i, axis in enumerate("xyz"):
             ax.bar(x + (i - 1) * 0.27, vals[:, i], 0.27, label=axis)

@@ -23,9 +23,10 @@ the table has NaN figures and the reason under ``"error"``.
 from __future__ import annotations
 
 import csv
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -33,8 +34,15 @@ from magenv import metrics
 from magenv.protocols import is_policy
 from magenv.trial import META_SCENARIO, Trial
 
-CSV_COLUMNS = ("method", "scenario", "n", "total_rmse_mean", "total_rmse_std", "heading_rmse_mean",
-               "inclination_rmse_mean")
+CSV_COLUMNS = (
+    "method",
+    "scenario",
+    "n",
+    "total_rmse_mean",
+    "total_rmse_std",
+    "heading_rmse_mean",
+    "inclination_rmse_mean",
+)
 
 
 @dataclass
@@ -112,14 +120,16 @@ def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = No
         est = method.run(trial)
         q, lam, trust = np.asarray(est.q, float), None, est.trust
     if q.shape != (trial.n, 4):
-        raise ValueError(f"method {name!r} returned an estimate of shape {q.shape} for trial {trial.name!r} "
-                         f"({trial.n} samples)")
+        raise ValueError(
+            f"method {name!r} returned an estimate of shape {q.shape} for trial {trial.name!r} ({trial.n} samples)"
+        )
     score = metrics.score(q, trial.q_true, trial.score_mask)
     return Run(name, trial, label or trial_label(trial), q, lam, trust, score)
 
 
-def run_policy_on_trials(policy, trials: Sequence[Trial], env_id: str | None = None,
-                         env_kwargs: dict | None = None) -> list[metrics.Score]:
+def run_policy_on_trials(
+    policy, trials: Sequence[Trial], env_id: str | None = None, env_kwargs: dict | None = None
+) -> list[metrics.Score]:
     """Scores of ``policy`` on each trial (env ``env_id`` or the policy's own, with ``env_kwargs``)."""
     runner = PolicyRunner(env_id, env_kwargs)
     return [run_method(getattr(policy, "name", "policy"), policy, t, runner).score for t in trials]
@@ -138,9 +148,14 @@ def named(methods) -> dict[str, Any]:
     return out
 
 
-def evaluate(methods, trials: Iterable[Trial], env_kwargs: dict | None = None,
-             labels: Sequence[str] | None = None, progress: Callable[[str, Trial], None] | None = None,
-             keep_going: bool = False) -> list[Run]:
+def evaluate(
+    methods,
+    trials: Iterable[Trial],
+    env_kwargs: dict | None = None,
+    labels: Sequence[str] | None = None,
+    progress: Callable[[str, Trial], None] | None = None,
+    keep_going: bool = False,
+) -> list[Run]:
     """Every method on every trial (same trials for all). ``progress(method, trial)`` is called after each run.
 
     ``env_kwargs`` are applied to every policy's env (e.g. ``{"decision_every": 1}``);
@@ -178,25 +193,43 @@ def summarize(runs: Sequence[Run]) -> list[dict]:
         failed = [r.error for r in group if r.error is not None]
         if failed:
             nan = float("nan")
-            rows.append({"method": method, "scenario": label, "n": len(group), "total_rmse_mean": nan,
-                         "total_rmse_std": nan, "heading_rmse_mean": nan, "inclination_rmse_mean": nan,
-                         "error": f"failed on {len(failed)} of {len(group)} trial(s): "
-                                  + "; ".join(dict.fromkeys(failed))})
+            rows.append(
+                {
+                    "method": method,
+                    "scenario": label,
+                    "n": len(group),
+                    "total_rmse_mean": nan,
+                    "total_rmse_std": nan,
+                    "heading_rmse_mean": nan,
+                    "inclination_rmse_mean": nan,
+                    "error": f"failed on {len(failed)} of {len(group)} trial(s): " + "; ".join(dict.fromkeys(failed)),
+                }
+            )
             continue
         scores = [r.score for r in group]
         tot = np.array([s.total for s in scores])
-        rows.append({
-            "method": method, "scenario": label, "n": len(scores),
-            "total_rmse_mean": float(np.mean(tot)),
-            "total_rmse_std": float(np.std(tot, ddof=1)) if len(tot) > 1 else float("nan"),
-            "heading_rmse_mean": float(np.mean([s.heading for s in scores])),
-            "inclination_rmse_mean": float(np.mean([s.inclination for s in scores])),
-        })
+        rows.append(
+            {
+                "method": method,
+                "scenario": label,
+                "n": len(scores),
+                "total_rmse_mean": float(np.mean(tot)),
+                "total_rmse_std": float(np.std(tot, ddof=1)) if len(tot) > 1 else float("nan"),
+                "heading_rmse_mean": float(np.mean([s.heading for s in scores])),
+                "inclination_rmse_mean": float(np.mean([s.inclination for s in scores])),
+            }
+        )
     return rows
 
 
-def compare(methods, trials: Iterable[Trial], env_kwargs: dict | None = None,
-            labels: Sequence[str] | None = None, progress=None, keep_going: bool = False) -> list[dict]:
+def compare(
+    methods,
+    trials: Iterable[Trial],
+    env_kwargs: dict | None = None,
+    labels: Sequence[str] | None = None,
+    progress=None,
+    keep_going: bool = False,
+) -> list[dict]:
     """``summarize(evaluate(...))``: the comparison table as a list of dicts (``CSV_COLUMNS``)."""
     return summarize(evaluate(methods, trials, env_kwargs, labels, progress, keep_going))
 

@@ -98,8 +98,9 @@ def errors(q_est, q_true) -> np.ndarray:
     NaN rows where truth is missing, 180° where the estimate is not finite (:func:`errors1`)."""
     q_est, q_true = np.broadcast_arrays(np.asarray(q_est, float), np.asarray(q_true, float))
     out = np.empty(q_est.shape[:-1] + (3,))
-    _error_rows(np.ascontiguousarray(q_est.reshape(-1, 4)), np.ascontiguousarray(q_true.reshape(-1, 4)),
-                out.reshape(-1, 3))
+    _error_rows(
+        np.ascontiguousarray(q_est.reshape(-1, 4)), np.ascontiguousarray(q_true.reshape(-1, 4)), out.reshape(-1, 3)
+    )
     return out
 
 

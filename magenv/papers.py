@@ -17,7 +17,7 @@ Methods are given as ``magenv compare`` names (policies, ``RULE_tuned`` and
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -29,15 +29,23 @@ from magenv.filters.qsf import QSFDetector
 from magenv.recordings import list_recordings, load_recording
 from magenv.trial import Trial
 
-
 #: Jung & Lee 2019 Table 2, RMSE in degrees: test → method → (roll, pitch, yaw).
 PAPER_TABLE2 = {
-    "constraint_test1": {"strapdown": (9.01, 8.30, 8.27), "cf_conventional": (3.27, 3.28, 6.69),
-                         "cf_constraint": (0.81, 1.25, 1.16)},
-    "constraint_test2": {"strapdown": (9.39, 7.42, 8.49), "cf_conventional": (2.65, 4.06, 5.23),
-                         "cf_constraint": (0.95, 1.20, 1.29)},
-    "constraint_test3": {"strapdown": (5.28, 5.85, 5.96), "cf_conventional": (1.69, 1.72, 14.73),
-                         "cf_constraint": (1.53, 0.76, 1.65)},
+    "constraint_test1": {
+        "strapdown": (9.01, 8.30, 8.27),
+        "cf_conventional": (3.27, 3.28, 6.69),
+        "cf_constraint": (0.81, 1.25, 1.16),
+    },
+    "constraint_test2": {
+        "strapdown": (9.39, 7.42, 8.49),
+        "cf_conventional": (2.65, 4.06, 5.23),
+        "cf_constraint": (0.95, 1.20, 1.29),
+    },
+    "constraint_test3": {
+        "strapdown": (5.28, 5.85, 5.96),
+        "cf_conventional": (1.69, 1.72, 14.73),
+        "cf_constraint": (1.53, 0.76, 1.65),
+    },
 }
 
 
@@ -60,14 +68,25 @@ def table2(seeds: Sequence[int], methods_: Sequence[str] = TABLE2_METHODS) -> li
             for tr in trials:
                 q = evaluation.run_method(name, registry.make(name), tr, runner).q
                 e = metrics.euler_error(q, tr.q_true)  # [yaw, pitch, roll]
-                rms.append([metrics.rmse(e[:, 2], tr.score_mask), metrics.rmse(e[:, 1], tr.score_mask),
-                            metrics.rmse(e[:, 0], tr.score_mask)])
+                rms.append(
+                    [
+                        metrics.rmse(e[:, 2], tr.score_mask),
+                        metrics.rmse(e[:, 1], tr.score_mask),
+                        metrics.rmse(e[:, 0], tr.score_mask),
+                    ]
+                )
             rms = np.array(rms)
-            rows.append({"test": test, "method": name, "sim": rms.mean(0), "sim_std": rms.std(0),
-                         "paper": np.array(PAPER_TABLE2[test].get(name, (np.nan,) * 3)),
-                         "ext_acc": float(np.mean([t.meta["mean_ext_acc"] for t in trials]))})
+            rows.append(
+                {
+                    "test": test,
+                    "method": name,
+                    "sim": rms.mean(0),
+                    "sim_std": rms.std(0),
+                    "paper": np.array(PAPER_TABLE2[test].get(name, (np.nan,) * 3)),
+                    "ext_acc": float(np.mean([t.meta["mean_ext_acc"] for t in trials])),
+                }
+            )
     return rows
-
 
 
 PAPER_TABLE1 = {  # Table 1, texting, (μ, σ) in degrees: roll, pitch, yaw
@@ -97,15 +116,22 @@ def qsf_table(seeds=(0, 1, 2, 3), free_seeds=(0,), **params) -> str:
     from magenv.scenarios import make_trial
 
     sig = dict(params)
-    groups = {"handheld_texting": seeds, "handheld_swinging": seeds, "handheld_free": free_seeds,
-              "handheld_corridor": seeds}  # the last is not in the paper: walking *through* the field
+    groups = {
+        "handheld_texting": seeds,
+        "handheld_swinging": seeds,
+        "handheld_free": free_seeds,
+        "handheld_corridor": seeds,
+    }  # the last is not in the paper: walking *through* the field
     ests = {"aekf": bq.aekf, "magyq": bq.magyq, "delay_magyq": bq.delay_magyq}
     lines, pooled = [], {m: [] for m in ests}
     for name, sd in groups.items():
         trials = [make_trial(name, s) for s in sd]
-        lines += [f"\n### {name} (seeds {list(sd)})\n", "| method | roll μ | roll σ | pitch μ | pitch σ | yaw μ | yaw σ "
-                  "| mean abs yaw | paper roll μ/σ | paper pitch μ/σ | paper yaw μ/σ |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines += [
+            f"\n### {name} (seeds {list(sd)})\n",
+            "| method | roll μ | roll σ | pitch μ | pitch σ | yaw μ | yaw σ "
+            "| mean abs yaw | paper roll μ/σ | paper pitch μ/σ | paper yaw μ/σ |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
         for m, factory in ests.items():
             e = _euler_errors(trials, factory(init="truth", filter_kwargs=sig))
             if name != "handheld_corridor":
@@ -115,7 +141,11 @@ def qsf_table(seeds=(0, 1, 2, 3), free_seeds=(0,), **params) -> str:
             cells = [f"{abs(v.mean()):.1f} | {v.std():.1f}" for v in (roll, pitch, yaw)]
             pcells = [f"{a}/{b}" for a, b in paper]
             lines.append(f"| {m} | {' | '.join(cells)} | {np.abs(yaw).mean():.1f} | {' | '.join(pcells)} |")
-    lines += ["\n### yaw over all data of the three paper scenarios\n", "| method | mean abs yaw | yaw μ | yaw σ | paper mean yaw |", "|---|---|---|---|---|"]
+    lines += [
+        "\n### yaw over all data of the three paper scenarios\n",
+        "| method | mean abs yaw | yaw μ | yaw σ | paper mean yaw |",
+        "|---|---|---|---|---|",
+    ]
     for m, parts in pooled.items():
         y = np.concatenate(parts)
         lines.append(f"| {m} | {np.abs(y).mean():.1f} | {abs(y.mean()):.1f} | {y.std():.1f} | {PAPER_YAW_ALL[m]} |")
@@ -139,8 +169,10 @@ def innovation_check(seeds=range(5), seconds=20.0) -> str:
         tr = Trial(f"static#{seed}", rate, gyr, acc, mag, q, 47.0, 61.0)
         act = np.full(n, MAG_KEEP, np.int8)
         act[0] = MAG_START
-        c = [run_trial(tr, mode=m, q0=q[0], actions=act, max_age_s=1e6).sig[1:, SIGNALS.index("corr_norm")].mean()
-             for m in ("magyq", "delay_magyq")]
+        c = [
+            run_trial(tr, mode=m, q0=q[0], actions=act, max_age_s=1e6).sig[1:, SIGNALS.index("corr_norm")].mean()
+            for m in ("magyq", "delay_magyq")
+        ]
         rows.append(f"| {seed} | {c[0]:.2e} | {c[1]:.2e} | {c[1] / c[0]:.2f} |")
     return "\n".join(rows)
 
@@ -151,8 +183,11 @@ def qsf_recordings(folder=None) -> str:
     The detector's thresholds follow the recording's magnetometer noise (``QSFDetector.for_noise``): BROAD's
     ≈ 0.7 µT per axis is above the simulated sensor's 0.3 µT that the default thresholds assume."""
     ests = {"aekf": bq.aekf, "magyq": bq.magyq, "delay_magyq": bq.delay_magyq}
-    rows = ["| recording | " + " | ".join(f"{m} tot/head" for m in (*ests, "vqf")) + " | mag noise µT "
-            "| QSF share (delay) |", "|---|" + "---|" * (len(ests) + 3)]
+    rows = [
+        "| recording | " + " | ".join(f"{m} tot/head" for m in (*ests, "vqf")) + " | mag noise µT "
+        "| QSF share (delay) |",
+        "|---|" + "---|" * (len(ests) + 3),
+    ]
     for path in list_recordings(folder):
         tr = load_recording(path)
         # detector thresholds from the magnetometer noise over the first 2 s (the initial rest, truth-free)
@@ -160,7 +195,7 @@ def qsf_recordings(folder=None) -> str:
         det = QSFDetector.for_noise(noise)
         ms = {**{m: f(detector=det) for m, f in ests.items()}, "vqf": reference.VQFEstimator()}
         cells = []
-        for m, est in ms.items():
+        for est in ms.values():
             s = metrics.score(est.run(tr).q, tr.q_true, tr.score_mask)
             cells.append(f"{s.total:.1f}/{s.heading:.1f}")
         share = ms["delay_magyq"].last.sig[:, 0].mean()
@@ -189,11 +224,15 @@ def score_recordings(estimators: dict | None = None, folder=None) -> dict[str, d
     recording, by the authors' protocol: ``{trial name: {method: Score}}``."""
     if estimators is None:
         estimators = {
-            "vqf": reference.VQFEstimator(), "vqf_norej": reference.VQFEstimator(magDistRejectionEnabled=False),
-            "fusion": reference.FusionEstimator(), "fusion_norej": reference.FusionEstimator(magnetic_rejection=0.0),
+            "vqf": reference.VQFEstimator(),
+            "vqf_norej": reference.VQFEstimator(magDistRejectionEnabled=False),
+            "fusion": reference.FusionEstimator(),
+            "fusion_norej": reference.FusionEstimator(magnetic_rejection=0.0),
         }
     table = {}
     for path in list_recordings(folder):
         trial = load_recording(path)
-        table[trial.name] = {k: metrics.score(e.run(trial).q, trial.q_true, trial.score_mask) for k, e in estimators.items()}
+        table[trial.name] = {
+            k: metrics.score(e.run(trial).q, trial.q_true, trial.score_mask) for k, e in estimators.items()
+        }
     return table

@@ -89,8 +89,9 @@ def find_recording(key: str, folder: str | Path | None = None) -> Path:
     return hits[0]
 
 
-def initial_rest(gyr: np.ndarray, rate: float, threshold: float = REST_GYR_THRESHOLD,
-                 max_seconds: float = REST_MAX_SECONDS) -> slice:
+def initial_rest(
+    gyr: np.ndarray, rate: float, threshold: float = REST_GYR_THRESHOLD, max_seconds: float = REST_MAX_SECONDS
+) -> slice:
     """Samples ``0:k`` of the initial rest: until the 0.1 s moving average of
     |ω| (rad/s) first exceeds ``threshold``, at most ``max_seconds`` s."""
     gyr = np.asarray(gyr, float)
@@ -122,8 +123,10 @@ def estimate_field(gyr, acc, mag, rate: float) -> tuple[float, float, str]:
         dip = dip_angle(a, m)
         steady = norm.std() <= REST_MAX_NORM_STD and dip.std() <= REST_MAX_DIP_STD
         est_norm, est_dip = float(np.median(norm)), float(np.median(dip))
-        plausible = (abs(est_norm - BERLIN_FIELD_NORM) <= MAX_FIELD_DEVIATION[0]
-                     and abs(est_dip - BERLIN_FIELD_DIP) <= MAX_FIELD_DEVIATION[1])
+        plausible = (
+            abs(est_norm - BERLIN_FIELD_NORM) <= MAX_FIELD_DEVIATION[0]
+            and abs(est_dip - BERLIN_FIELD_DIP) <= MAX_FIELD_DEVIATION[1]
+        )
         if steady and plausible:
             return est_norm, est_dip, "initial_rest"
     return BERLIN_FIELD_NORM, BERLIN_FIELD_DIP, "documented"
@@ -149,7 +152,9 @@ def load_recording(path: str | Path) -> Trial:
     with open_hdf5(path) as f:
         missing = [k for k in REQUIRED if k not in f or not isinstance(f[k], h5py.Dataset)]
         if missing:
-            raise TrialError(f"{path}: missing dataset(s) {', '.join(missing)} (a BROAD file needs {', '.join(REQUIRED)})")
+            raise TrialError(
+                f"{path}: missing dataset(s) {', '.join(missing)} (a BROAD file needs {', '.join(REQUIRED)})"
+            )
         if "sampling_rate" not in f.attrs:
             raise TrialError(f"{path}: missing attribute sampling_rate")
         rate = check_rate(f.attrs["sampling_rate"], f"{path}: attribute sampling_rate")
@@ -159,7 +164,14 @@ def load_recording(path: str | Path) -> Trial:
     n = len(data["imu_gyr"]) if np.ndim(data["imu_gyr"]) else -1
     if 0 <= n < 2:
         raise TrialError(f"{path}: dataset imu_gyr has {n} row(s); a recording needs at least 2")
-    shapes = {"imu_gyr": (n, 3), "imu_acc": (n, 3), "imu_mag": (n, 3), "opt_quat": (n, 4), "opt_pos": (n, 3), "movement": (n,)}
+    shapes = {
+        "imu_gyr": (n, 3),
+        "imu_acc": (n, 3),
+        "imu_mag": (n, 3),
+        "opt_quat": (n, 4),
+        "opt_pos": (n, 3),
+        "movement": (n,),
+    }
     bad = [f"{k} {np.shape(data[k])} (expected {shapes[k]})" for k in REQUIRED if np.shape(data[k]) != shapes[k]]
     if bad:
         raise TrialError(f"{path}: mismatched shapes or lengths: {'; '.join(bad)}")
@@ -170,7 +182,9 @@ def load_recording(path: str | Path) -> Trial:
     for k in SENSOR_KEYS:
         bad_rows = np.flatnonzero(~np.all(np.isfinite(data[k]), axis=1))
         if bad_rows.size:
-            raise TrialError(f"{path}: sensor channel {k} has NaN/inf in {bad_rows.size} row(s), first at row {bad_rows[0]}")
+            raise TrialError(
+                f"{path}: sensor channel {k} has NaN/inf in {bad_rows.size} row(s), first at row {bad_rows[0]}"
+            )
     movement = data["movement"]
     if not (movement.dtype == bool or np.all(np.isin(movement, (0, 1)))):
         raise TrialError(f"{path}: dataset movement must be boolean, got dtype {movement.dtype}")
@@ -178,19 +192,32 @@ def load_recording(path: str | Path) -> Trial:
     q_true = unit_truth(data["opt_quat"], f"{path}: dataset opt_quat")
     truth_rows = ~np.isnan(q_true).any(axis=1)
     if not np.any(movement & truth_rows):
-        raise TrialError(f"{path}: no sample to score: dataset movement marks {int(movement.sum())} of {n} "
-                         f"samples and opt_quat has truth in {int(truth_rows.sum())}, none in common")
+        raise TrialError(
+            f"{path}: no sample to score: dataset movement marks {int(movement.sum())} of {n} "
+            f"samples and opt_quat has truth in {int(truth_rows.sum())}, none in common"
+        )
 
     field_norm, field_dip, field_source = estimate_field(data["imu_gyr"], data["imu_acc"], data["imu_mag"], rate)
     rest = initial_rest(data["imu_gyr"], rate)
     try:
         return Trial(
-            name=path.stem, rate=rate,
-            gyr=data["imu_gyr"], acc=data["imu_acc"], mag=data["imu_mag"], q_true=q_true,
-            field_norm=field_norm, field_dip=field_dip, score_mask=movement,
+            name=path.stem,
+            rate=rate,
+            gyr=data["imu_gyr"],
+            acc=data["imu_acc"],
+            mag=data["imu_mag"],
+            q_true=q_true,
+            field_norm=field_norm,
+            field_dip=field_dip,
+            score_mask=movement,
             truth={"opt_pos": data["opt_pos"]},
-            meta={"source": "BROAD", "file": str(path), "info": info, "field_source": field_source,
-                  "initial_rest_s": (rest.stop - rest.start) / rate},
+            meta={
+                "source": "BROAD",
+                "file": str(path),
+                "info": info,
+                "field_source": field_source,
+                "initial_rest_s": (rest.stop - rest.start) / rate,
+            },
         )
     except TrialError as exc:
         raise TrialError(f"{path}: {exc}") from None
@@ -203,8 +230,10 @@ def load_trial_file(path: str | Path) -> Trial:
     with open_hdf5(path) as f:
         own, broad = "format" in f.attrs, any(k in f for k in REQUIRED)
     if not own and not broad:
-        raise TrialError(f"{path}: neither a magenv trial (no attribute format) nor a BROAD recording "
-                         f"(none of the datasets {', '.join(REQUIRED)})")
+        raise TrialError(
+            f"{path}: neither a magenv trial (no attribute format) nor a BROAD recording "
+            f"(none of the datasets {', '.join(REQUIRED)})"
+        )
     return Trial.load(path) if own else load_recording(path)
 
 

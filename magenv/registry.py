@@ -23,9 +23,10 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from magenv.baselines import constraint, kalman, kalman_policies, qsf, reference, rules
 
@@ -75,8 +76,12 @@ def tunable_rules() -> dict[str, type]:
     """Every method with tunable parameters (``PARAM_BOUNDS``, ``params``, ``from_params``), by name:
     the λ rules, the Kalman-trust rules (policies), the constraint filter and Delay MAGYQ's QSF detector
     (estimators)."""
-    return {**rules.RULES, **kalman_policies.RULES, "cf_constraint": constraint.ConstraintCF,
-            "delay_magyq": qsf.DetectedDelayMAGYQ}
+    return {
+        **rules.RULES,
+        **kalman_policies.RULES,
+        "cf_constraint": constraint.ConstraintCF,
+        "delay_magyq": qsf.DetectedDelayMAGYQ,
+    }
 
 
 def rule_class(name: str) -> type:
@@ -102,8 +107,10 @@ def tuned_params(rule: str) -> dict[str, float]:
     ``PARAM_BOUNDS`` (every one present, none unknown, each a finite number). Raises TunedParamsError."""
     path = tuned_file(rule)
     if path is None:
-        raise TunedParamsError(f"no tuned parameters for {rule!r} (looked in {user_tuned_dir()} and "
-                               f"{packaged_tuned_dir()}); run magenv tune --rule {rule}")
+        raise TunedParamsError(
+            f"no tuned parameters for {rule!r} (looked in {user_tuned_dir()} and "
+            f"{packaged_tuned_dir()}); run magenv tune --rule {rule}"
+        )
     try:
         params = json.loads(path.read_text())["params"]
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
@@ -113,8 +120,10 @@ def tuned_params(rule: str) -> dict[str, float]:
     bounds = rule_class(rule).PARAM_BOUNDS
     missing, unknown = sorted(set(bounds) - set(params)), sorted(set(params) - set(bounds))
     if missing or unknown:
-        raise TunedParamsError(f"{path}: parameters do not fit rule {rule!r}: missing {missing}, unknown {unknown}; "
-                               f"expected {sorted(bounds)}")
+        raise TunedParamsError(
+            f"{path}: parameters do not fit rule {rule!r}: missing {missing}, unknown {unknown}; "
+            f"expected {sorted(bounds)}"
+        )
     for key, value in params.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise TunedParamsError(f"{path}: parameter {key!r} must be a finite number, got {value!r}")
@@ -129,8 +138,10 @@ def _tuned() -> dict[str, tuple[Callable[[], Any], str]]:
     for name, (rule, build) in builds.items():
         path = tuned_file(rule)
         if path is not None:
-            out[name] = (lambda rule=rule, build=build, name=name: _named(build(tuned_params(rule)), name),
-                         f"{rule} with the parameters tuned by magenv tune ({path})")
+            out[name] = (
+                lambda rule=rule, build=build, name=name: _named(build(tuned_params(rule)), name),
+                f"{rule} with the parameters tuned by magenv tune ({path})",
+            )
     return out
 
 
@@ -165,11 +176,12 @@ def make(name: str, trust_pickle: bool = False):
     if name.startswith(AGENT_PREFIX):
         from magenv.agents.loading import load_agent
 
-        return load_agent(name[len(AGENT_PREFIX):], trust_pickle=trust_pickle)
+        return load_agent(name[len(AGENT_PREFIX) :], trust_pickle=trust_pickle)
     table = _all()
     if name not in table:
-        raise ValueError(f"unknown method {name!r}; known methods: {', '.join(table)} "
-                         f"(or {AGENT_PREFIX}RUN_DIR for a trained agent)")
+        raise ValueError(
+            f"unknown method {name!r}; known methods: {', '.join(table)} (or {AGENT_PREFIX}RUN_DIR for a trained agent)"
+        )
     method = table[name][0]()
     if not hasattr(method, "name"):
         try:

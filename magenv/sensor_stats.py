@@ -93,8 +93,9 @@ def hold_fraction(x: np.ndarray) -> float:
     return float(np.mean(np.all(x[1:] == x[:-1], axis=-1)))
 
 
-def mag_lag(trial: Trial, max_lag: int = 20, smooth_s: float = 0.05, mask: np.ndarray | None = None,
-            min_rate_dps: float = 20.0) -> float:
+def mag_lag(
+    trial: Trial, max_lag: int = 20, smooth_s: float = 0.05, mask: np.ndarray | None = None, min_rate_dps: float = 20.0
+) -> float:
     """Magnetometer delay behind the gyroscope, samples (positive = mag late).
 
     Fits ``dm/dt = −ω(t−k) × m(t)`` over samples in ``mask`` (default
@@ -108,14 +109,14 @@ def mag_lag(trial: Trial, max_lag: int = 20, smooth_s: float = 0.05, mask: np.nd
     fast = np.linalg.norm(trial.gyr, axis=1) > np.deg2rad(min_rate_dps)
     lags = np.arange(-max_lag, max_lag + 1)
     n = trial.n
-    keep = (mask & fast)[max_lag:n - max_lag]
+    keep = (mask & fast)[max_lag : n - max_lag]
     if keep.sum() < 10 * trial.rate * smooth_s:
         return float("nan")
     cost = np.empty(len(lags))
     for j, k in enumerate(lags):
         w = np.roll(trial.gyr, k, axis=0)  # w[t] = gyr[t − k]
         pred = _moving_average(-np.cross(w, trial.mag), win)
-        r = (dm - pred)[max_lag:n - max_lag][keep]
+        r = (dm - pred)[max_lag : n - max_lag][keep]
         cost[j] = np.mean(np.sum(r * r, axis=1))
     return _parabola_min(lags, cost)
 
@@ -139,8 +140,8 @@ def truth_lag(trial: Trial, channel: str = "mag", max_lag: int = 10, min_rate_dp
     lags = np.arange(-max_lag, max_lag + 1)
     n = trial.n
     base = trial.score_mask & (np.linalg.norm(trial.gyr, axis=1) > np.deg2rad(min_rate_dps))
-    base[:max_lag + 1] = False
-    base[n - max_lag - 1:] = False
+    base[: max_lag + 1] = False
+    base[n - max_lag - 1 :] = False
     if channel == "gyr":
         rate = np.full((n, 3), np.nan)
         with np.errstate(invalid="ignore"):
@@ -225,20 +226,33 @@ def sensor_stats(trial: Trial) -> SensorStats:
     norm, dip = field_norm_dip(trial)
     pct = lambda x, p: float(np.percentile(x, p)) if len(x) else float("nan")
     return SensorStats(
-        name=trial.name, rate_hz=trial.rate, rest_s=noise["rest_s"],
-        gyr_noise_dps=float(np.mean(noise["gyr"])), acc_noise_ms2=float(np.mean(noise["acc"])),
+        name=trial.name,
+        rate_hz=trial.rate,
+        rest_s=noise["rest_s"],
+        gyr_noise_dps=float(np.mean(noise["gyr"])),
+        acc_noise_ms2=float(np.mean(noise["acc"])),
         mag_noise_ut=float(np.mean(noise["mag"])),
-        gyr_noise_axes_dps=tuple(float(v) for v in np.round(noise["gyr"], 4)), acc_noise_axes_ms2=tuple(float(v) for v in np.round(noise["acc"], 4)),
+        gyr_noise_axes_dps=tuple(float(v) for v in np.round(noise["gyr"], 4)),
+        acc_noise_axes_ms2=tuple(float(v) for v in np.round(noise["acc"], 4)),
         mag_noise_axes_ut=tuple(float(v) for v in np.round(noise["mag"], 4)),
         gyr_bias_axes_dps=tuple(float(v) for v in np.round(noise["gyr_bias"], 4)),
-        gyr_autocorr1=rest_autocorr(trial, "gyr"), acc_autocorr1=rest_autocorr(trial, "acc"),
-        mag_autocorr1=rest_autocorr(trial, "mag"), mag_autocorr1_distinct=rest_autocorr(trial, "mag", distinct=True),
-        field_norm_median_ut=pct(norm, 50), field_norm_p05_ut=pct(norm, 5), field_norm_p95_ut=pct(norm, 95),
-        dip_median_deg=pct(dip, 50), dip_p05_deg=pct(dip, 5), dip_p95_deg=pct(dip, 95),
+        gyr_autocorr1=rest_autocorr(trial, "gyr"),
+        acc_autocorr1=rest_autocorr(trial, "acc"),
+        mag_autocorr1=rest_autocorr(trial, "mag"),
+        mag_autocorr1_distinct=rest_autocorr(trial, "mag", distinct=True),
+        field_norm_median_ut=pct(norm, 50),
+        field_norm_p05_ut=pct(norm, 5),
+        field_norm_p95_ut=pct(norm, 95),
+        dip_median_deg=pct(dip, 50),
+        dip_p05_deg=pct(dip, 5),
+        dip_p95_deg=pct(dip, 95),
         mag_lag_samples=mag_lag(trial),
-        mag_truth_lag_samples=truth_lag(trial, "mag"), gyr_truth_lag_samples=truth_lag(trial, "gyr"),
-        gyr_quantum_dps=float(np.rad2deg(quantum(trial.gyr))), acc_quantum_ms2=quantum(trial.acc),
+        mag_truth_lag_samples=truth_lag(trial, "mag"),
+        gyr_truth_lag_samples=truth_lag(trial, "gyr"),
+        gyr_quantum_dps=float(np.rad2deg(quantum(trial.gyr))),
+        acc_quantum_ms2=quantum(trial.acc),
         mag_quantum_ut=quantum(trial.mag),
-        mag_hold_fraction=hold_fraction(trial.mag), gyr_hold_fraction=hold_fraction(trial.gyr),
+        mag_hold_fraction=hold_fraction(trial.mag),
+        gyr_hold_fraction=hold_fraction(trial.gyr),
         acc_hold_fraction=hold_fraction(trial.acc),
     )

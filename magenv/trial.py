@@ -58,8 +58,10 @@ def unit_truth(q: np.ndarray, what: str) -> np.ndarray:
     worst = float(dev.max(initial=0.0))
     if worst > UNIT_TOL:
         row = int(np.argmax(dev))
-        raise TrialError(f"{what}: truth quaternions must have unit norm; row {row} has norm {norm[row]:.6g} "
-                         f"({int((dev > UNIT_TOL).sum())} row(s) off by more than {UNIT_TOL:g})")
+        raise TrialError(
+            f"{what}: truth quaternions must have unit norm; row {row} has norm {norm[row]:.6g} "
+            f"({int((dev > UNIT_TOL).sum())} row(s) off by more than {UNIT_TOL:g})"
+        )
     if worst > UNIT_QUIET:
         warnings.warn(f"{what}: truth quaternions off unit norm by up to {worst:.2g}; normalised", stacklevel=3)
         q = q / norm[:, None]
@@ -158,7 +160,9 @@ class Trial:
             for key, value in getattr(self, group).items():
                 value = np.asarray(value)
                 if len(value) != n:
-                    raise TrialError(f"trial {self.name!r}: {group} channel {key!r} has {len(value)} rows, expected {n}")
+                    raise TrialError(
+                        f"trial {self.name!r}: {group} channel {key!r} has {len(value)} rows, expected {n}"
+                    )
                 getattr(self, group)[key] = value
         self.field_norm = float(self.field_norm)
         self.field_dip = float(self.field_dip)
@@ -188,13 +192,19 @@ class Trial:
         """Length of the trial, s."""
         return self.n / self.rate
 
-    def slice(self, start: int, stop: int) -> "Trial":
+    def slice(self, start: int, stop: int) -> Trial:
         """Samples ``start:stop`` as a new Trial (same metadata)."""
         cut = lambda d: {k: v[start:stop] for k, v in d.items()}
         return dataclasses.replace(
-            self, gyr=self.gyr[start:stop], acc=self.acc[start:stop], mag=self.mag[start:stop],
-            q_true=self.q_true[start:stop], score_mask=self.score_mask[start:stop],
-            truth=cut(self.truth), extra=cut(self.extra), meta=dict(self.meta),
+            self,
+            gyr=self.gyr[start:stop],
+            acc=self.acc[start:stop],
+            mag=self.mag[start:stop],
+            q_true=self.q_true[start:stop],
+            score_mask=self.score_mask[start:stop],
+            truth=cut(self.truth),
+            extra=cut(self.extra),
+            meta=dict(self.meta),
         )
 
     # ------------------------------------------------------------ HDF5
@@ -221,15 +231,17 @@ class Trial:
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "Trial":
+    def load(cls, path: str | Path) -> Trial:
         """Read a trial written by ``save``. Raises TrialError naming the file and the problem: a missing or
         malformed attribute or dataset, a corrupt file, a bad rate or truth, no sample to score."""
         path = Path(path)
         with open_hdf5(path) as f:
             fmt = f.attrs.get("format")
             if fmt is None or as_text(fmt) != FORMAT:
-                raise TrialError(f"{path}: not a magenv trial (attribute format={fmt!r}, expected {FORMAT!r}; "
-                                 "a BROAD recording loads with magenv.recordings.load_recording)")
+                raise TrialError(
+                    f"{path}: not a magenv trial (attribute format={fmt!r}, expected {FORMAT!r}; "
+                    "a BROAD recording loads with magenv.recordings.load_recording)"
+                )
             missing = [f"dataset {k}" for k in DATASETS if k not in f]
             missing += [f"attribute {k}" for k in ("name", "rate", "field_norm", "field_dip") if k not in f.attrs]
             if missing:
@@ -260,6 +272,7 @@ class Trial:
         except TrialError as exc:
             raise TrialError(f"{path}: {exc}") from None
         if trial.n_scored == 0:
-            raise TrialError(f"{path}: no sample to score (score_mask and the rows of q_true with truth have "
-                             "none in common)")
+            raise TrialError(
+                f"{path}: no sample to score (score_mask and the rows of q_true with truth have none in common)"
+            )
         return trial

@@ -75,8 +75,14 @@ def kinematic_trial(
         mag = mag + rng.normal(0, 0.15, (n, 3))
     mag_dist = quat.rotate_inv(q, field - quat.earth_field(field_norm, field_dip))
     return Trial(
-        name=f"kinematic_{seed}", rate=rate, gyr=gyr, acc=acc, mag=mag, q_true=q,
-        field_norm=field_norm, field_dip=field_dip,
+        name=f"kinematic_{seed}",
+        rate=rate,
+        gyr=gyr,
+        acc=acc,
+        mag=mag,
+        q_true=q,
+        field_norm=field_norm,
+        field_dip=field_dip,
         truth={"mag_disturbance": mag_dist, "stationary": np.zeros(n, bool)},
         meta={"scenario": "kinematic", "seed": seed},
     )
@@ -91,8 +97,7 @@ def make_kinematic_trial():
 @pytest.fixture(scope="module")
 def short_trials():
     """Two 3 s kinematic trials, 20 µT disturbance from 1 to 2 s (a test module may define its own)."""
-    return [kinematic_trial(seed=s, duration=3.0, disturbance_ut=20.0, disturbance_window=(1.0, 2.0))
-            for s in range(2)]
+    return [kinematic_trial(seed=s, duration=3.0, disturbance_ut=20.0, disturbance_window=(1.0, 2.0)) for s in range(2)]
 
 
 @pytest.fixture(scope="session")

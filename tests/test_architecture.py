@@ -25,15 +25,22 @@ def stage(dest: Path) -> Path:
     package_dir = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
     for name, folder in sorted(package_dir.items()):  # parents before children
         target = dest.joinpath(*name.split("."))
-        shutil.copytree(ROOT / folder, target, ignore=shutil.ignore_patterns("__pycache__", "*.nbi", "*.nbc"),
-                        dirs_exist_ok=True)
+        shutil.copytree(
+            ROOT / folder, target, ignore=shutil.ignore_patterns("__pycache__", "*.nbi", "*.nbc"), dirs_exist_ok=True
+        )
     return dest
 
 
 def lint_imports(staged: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(staged)}
-    return subprocess.run([str(BIN / "lint-imports"), "--no-cache", str(ROOT / "pyproject.toml")], cwd=staged,
-                          env=env, capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [str(BIN / "lint-imports"), "--no-cache", str(ROOT / "pyproject.toml")],
+        cwd=staged,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def test_layers_are_kept(tmp_path):

@@ -95,9 +95,9 @@ def test_fan_lambda_reduces_the_disturbance_error():
     trial = kinematic_trial(seed=6, duration=10.0, disturbance_ut=30.0, disturbance_window=(3.0, 8.0))
     from magenv.evaluation import run_policy_on_trials
 
-    fan, = run_policy_on_trials(rules.FanLambda(), [trial])
-    mimu, = run_policy_on_trials(registry.make("mimu"), [trial])
-    imu, = run_policy_on_trials(registry.make("imu"), [trial])
+    (fan,) = run_policy_on_trials(rules.FanLambda(), [trial])
+    (mimu,) = run_policy_on_trials(registry.make("mimu"), [trial])
+    (imu,) = run_policy_on_trials(registry.make("imu"), [trial])
     assert fan.total < mimu.total
     assert imu.total < fan.total  # a strong disturbance: the IMU filter is best on this short trial
 
@@ -133,7 +133,9 @@ def test_tuned_rules_are_discovered(tmp_path, monkeypatch):
 
     monkeypatch.setenv(registry.DATA_DIR_ENV, str(tmp_path))
     registry.user_tuned_dir().mkdir(parents=True)
-    (registry.user_tuned_dir() / "fan_lambda.json").write_text(json.dumps({"params": {"norm_tol": 0.2, "th_dip_deg": 7.0}}))
+    (registry.user_tuned_dir() / "fan_lambda.json").write_text(
+        json.dumps({"params": {"norm_tol": 0.2, "th_dip_deg": 7.0}})
+    )
     assert "fan_lambda_tuned" in registry.names()
     tuned = registry.make("fan_lambda_tuned")
     assert tuned.params == {"norm_tol": 0.2, "th_dip_deg": 7.0}

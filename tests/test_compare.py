@@ -7,19 +7,17 @@ import csv
 import numpy as np
 import pytest
 
-from magenv import registry
-from magenv import evaluation, metrics
+from magenv import evaluation, metrics, registry
 from magenv.filters.blend import BlendEstimator
-from tests.conftest import kinematic_trial
 from magenv.train.cli import main
+from tests.conftest import kinematic_trial
 
 HEADER = "method,scenario,n,total_rmse_mean,total_rmse_std,heading_rmse_mean,inclination_rmse_mean"
 
 
 @pytest.fixture(scope="module")
 def trials():
-    return [kinematic_trial(seed=s, duration=4.0, disturbance_ut=25.0, disturbance_window=(1.0, 3.0))
-            for s in range(3)]
+    return [kinematic_trial(seed=s, duration=4.0, disturbance_ut=25.0, disturbance_window=(1.0, 3.0)) for s in range(3)]
 
 
 def test_compare_rows_and_csv(trials, tmp_path):
@@ -66,8 +64,20 @@ def test_cli_on_a_recording(broad_dir, tmp_path, capsys):
     out = tmp_path / "r.csv"
     png = tmp_path / "r.png"
     path = broad_dir / "29_disturbed_stationary_magnet_B.hdf5"
-    code = main(["compare", "--recordings", str(path), "--methods", "mimu,fan_lambda", "--csv", str(out),
-                 "--plot", str(png), "--no-progress"])
+    code = main(
+        [
+            "compare",
+            "--recordings",
+            str(path),
+            "--methods",
+            "mimu,fan_lambda",
+            "--csv",
+            str(out),
+            "--plot",
+            str(png),
+            "--no-progress",
+        ]
+    )
     assert code == 0
     text = capsys.readouterr().out
     assert "fan_lambda" in text and "29_disturbed_stationary_magnet_B" in text
@@ -82,8 +92,20 @@ def test_cli_on_a_recording(broad_dir, tmp_path, capsys):
 def test_cli_on_a_simulated_scenario(tmp_path, capsys):
     pytest.importorskip("magenv.scenarios")
     out = tmp_path / "s.csv"
-    code = main(["compare", "--scenario", "dynamic_clean", "--seeds", "0", "--methods", "mimu,imu",
-                 "--csv", str(out), "--no-progress"])
+    code = main(
+        [
+            "compare",
+            "--scenario",
+            "dynamic_clean",
+            "--seeds",
+            "0",
+            "--methods",
+            "mimu,imu",
+            "--csv",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert code == 0
     lines = out.read_text().splitlines()
     assert lines[0] == HEADER and len(lines) == 3
@@ -93,8 +115,20 @@ def test_cli_on_a_simulated_scenario(tmp_path, capsys):
 def test_compare_keeps_going_past_a_method_that_cannot_run(tmp_path, capsys):
     """A two-link estimator on a one-sensor trial: its cell is n/a with the reason, the rest is complete, exit 1."""
     out = tmp_path / "k.csv"
-    code = main(["compare", "--scenario", "dynamic_clean", "--seeds", "0,1", "--methods", "mimu,cf_constraint,imu",
-                 "--csv", str(out), "--no-progress"])
+    code = main(
+        [
+            "compare",
+            "--scenario",
+            "dynamic_clean",
+            "--seeds",
+            "0,1",
+            "--methods",
+            "mimu,cf_constraint,imu",
+            "--csv",
+            str(out),
+            "--no-progress",
+        ]
+    )
     text = capsys.readouterr().out
     assert code == 1
     assert "n/a: cf_constraint on dynamic_clean: failed on 2 of 2 trial(s): MissingChannelsError" in text

@@ -10,18 +10,21 @@ import numpy as np
 import pytest
 
 import magenv  # noqa: F401  (registers the envs)
-from magenv.baselines import constraint as bc
-from magenv import scenarios as cs
 from magenv import metrics, registry
 from magenv import quaternion as quat
+from magenv import scenarios as cs
+from magenv.baselines import constraint as bc
 from magenv.envs.constraint import MagConstraintEnv
 from magenv.filters import constraint as cf
 from tests.conftest import check_feature_table, check_seeded_replay, check_with_checkers, kinematic_trial
 
 ENV_ID = "magenv/MagConstraint-v0"
 if ENV_ID not in gym.registry:  # until the lead adds it to magenv/__init__.py
-    gym.register(id=ENV_ID, entry_point="magenv.envs.constraint:MagConstraintEnv",
-                 vector_entry_point="magenv.envs.constraint:MagConstraintVectorEnv")
+    gym.register(
+        id=ENV_ID,
+        entry_point="magenv.envs.constraint:MagConstraintEnv",
+        vector_entry_point="magenv.envs.constraint:MagConstraintVectorEnv",
+    )
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +61,9 @@ def test_one_gauss_newton_step_recovers_the_orientation(w):
     u, n = np.array([0.0, 0.0, 1.0]), quat.earth_field(46.0, 49.6) / 46.0
     p = np.array([0.3, -0.2, 0.93]) / np.linalg.norm([0.3, -0.2, 0.93])  # joint acceleration tilted from vertical
     a_s, m_s, h_s = (quat.rotate_inv(q_true, v) for v in (u, n, p))
-    q0 = quat.mul(quat.from_rotvec(np.deg2rad(10.0) * np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])), q_true)
+    q0 = quat.mul(
+        quat.from_rotvec(np.deg2rad(10.0) * np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])), q_true
+    )
     dq = np.zeros(4)
     seen, ref = cf.Directions(a_s, m_s, h_s), cf.Directions(u, n, p)
     step = cf.gn_step(q0, seen, ref, w, 1.0, np.zeros((9, 4)), dq)
@@ -81,7 +86,8 @@ def test_constraint_alone_leaves_heading_unobservable_when_joint_still():
     cf.gn_step(q0, cf.Directions(a_s, m_s, h_s), ref, 1.0, 1.0, np.zeros((9, 4)), dq)
     fixed = quat.normalize(q0 + dq)
     assert metrics.heading_error(metrics.error_quaternion(fixed, q_true)) == pytest.approx(
-        metrics.heading_error(metrics.error_quaternion(q0, q_true)), abs=1e-3)
+        metrics.heading_error(metrics.error_quaternion(q0, q_true)), abs=1e-3
+    )
 
 
 def test_paper_rules_eqs_16_and_18():
@@ -114,7 +120,6 @@ def test_filters_converge_and_strapdown_does_not():
     slow = bc.ConstraintCF(q0=_off(tr, 30.0)).run(tr)
     assert np.mean(1.0 - slow.trust) > 0.95
     assert metrics.score(slow.q[late], tr.q_true[late]).heading > 15.0
-
 
 
 def test_constraint_alone_carries_heading():
@@ -313,7 +318,11 @@ def test_vector_env_replays_the_single_env(short_trials):
 def test_evaluation_runs_estimators_and_the_policy(short_trials):
     from magenv import evaluation
 
-    runs = evaluation.evaluate({n: registry.make(n) for n in ["cf_constraint", "constraint_rule"]}, short_trials[:1], env_kwargs={"decision_every": 1})
+    runs = evaluation.evaluate(
+        {n: registry.make(n) for n in ["cf_constraint", "constraint_rule"]},
+        short_trials[:1],
+        env_kwargs={"decision_every": 1},
+    )
     est, pol = runs
     assert est.score.total == pytest.approx(pol.score.total, abs=1e-3)
     np.testing.assert_allclose(pol.trust, est.trust, atol=1e-5)  # both the magnetometer's weight 1 − w

@@ -19,8 +19,13 @@ from magenv.envs.blend import FEATURES, BlendRunner, MagBlendEnv
 from magenv.filters import madgwick as mg
 from magenv.filters.blend import BlendEstimator
 from tests.conftest import (
-    check_feature_table, check_kernel_layout, check_scalar_action, check_seeded_replay, check_with_checkers,
-    kinematic_trial, run_episode,
+    check_feature_table,
+    check_kernel_layout,
+    check_scalar_action,
+    check_seeded_replay,
+    check_with_checkers,
+    kinematic_trial,
+    run_episode,
 )
 
 ENV_ID = "magenv/MagBlend-v0"
@@ -40,8 +45,9 @@ def test_blend_endpoints_are_the_plain_filters(disturbed, lam, use_mag):
     """λ = 0 is exactly the MIMU filter, λ = 1 exactly the IMU filter (hold off)."""
     runner = BlendRunner(disturbed, hold=False)
     est = runner.run_all(lam)
-    plain = mg.run_madgwick(disturbed.gyr, disturbed.acc, disturbed.mag if use_mag else None,
-                            disturbed.rate, q0=runner.q0)
+    plain = mg.run_madgwick(
+        disturbed.gyr, disturbed.acc, disturbed.mag if use_mag else None, disturbed.rate, q0=runner.q0
+    )
     np.testing.assert_allclose(est, plain, atol=1e-12)
 
 
@@ -59,8 +65,9 @@ def test_imu_ignores_disturbance_mimu_is_pulled_in_heading(disturbed):
 
 
 def test_stationary_hold_keeps_the_estimate():
-    still = kinematic_trial(seed=1, duration=6.0, max_rate_dps=0.0, noise=False, disturbance_ut=40.0,
-                            disturbance_window=(2.0, 6.0))
+    still = kinematic_trial(
+        seed=1, duration=6.0, max_rate_dps=0.0, noise=False, disturbance_ut=40.0, disturbance_window=(2.0, 6.0)
+    )
     held = BlendRunner(still, hold=True)
     est = held.run_all(0.0)
     start = int(0.5 * still.rate)  # the detector needs t0 of history
@@ -204,8 +211,9 @@ def test_episode_seconds_and_trial_option(short_trials, disturbed):
 
 
 def test_stationary_hold_option_reaches_the_filter():
-    still = kinematic_trial(seed=1, duration=3.0, max_rate_dps=0.0, noise=False, disturbance_ut=40.0,
-                            disturbance_window=(1.0, 3.0))
+    still = kinematic_trial(
+        seed=1, duration=3.0, max_rate_dps=0.0, noise=False, disturbance_ut=40.0, disturbance_window=(1.0, 3.0)
+    )
     held, free = (MagBlendEnv(scenario=[still], stationary_hold=h) for h in (True, False))
     for env in (held, free):
         env.reset(seed=0)
@@ -213,7 +221,7 @@ def test_stationary_hold_option_reaches_the_filter():
         while not trunc:
             *_, trunc, _ = env.step(np.array([0.0], np.float32))
     assert held.stationary[200:].all()
-    err = lambda e: metrics.score(e.estimate[-100:], still.q_true[-100:]).heading  # noqa: E731
+    err = lambda e: metrics.score(e.estimate[-100:], still.q_true[-100:]).heading
     assert err(held) < 0.1 < 1.0 < err(free)
 
 
@@ -227,8 +235,14 @@ def test_recording_source(broad_dir):
 
 
 def test_vector_env_replays_single_envs(short_trials):
-    vec = gym.make_vec(ENV_ID, num_envs=3, vectorization_mode="vector_entry_point", scenario=short_trials,
-                       episode_seconds=0.5, decision_every=16)
+    vec = gym.make_vec(
+        ENV_ID,
+        num_envs=3,
+        vectorization_mode="vector_entry_point",
+        scenario=short_trials,
+        episode_seconds=0.5,
+        decision_every=16,
+    )
     assert vec.observation_space.shape == (3, len(FEATURES.names))
     acts = np.random.default_rng(1).uniform(0, 1, (12, 3, 1)).astype(np.float32)
     obs, _ = vec.reset(seed=10)
@@ -327,7 +341,17 @@ def test_env_kernels_load_from_the_numba_cache(tmp_path):
     )
     root = Path(__file__).resolve().parents[1]
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "PYTHONPATH": str(root)}
-    runs = [subprocess.run([sys.executable, "-W", "error", "-c", code], cwd=root, env=env, capture_output=True,
-                           text=True, timeout=600, check=False) for _ in range(2)]
+    runs = [
+        subprocess.run(
+            [sys.executable, "-W", "error", "-c", code],
+            cwd=root,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+            check=False,
+        )
+        for _ in range(2)
+    ]
     assert all(r.returncode == 0 for r in runs), runs[-1].stderr[-2000:]
     assert [r.stdout.split()[-1] for r in runs] == ["3", "0"]

@@ -15,7 +15,11 @@ from magenv.envs.kalman import FEATURES, MagKalmanEnv
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import ModelKF
 from tests.conftest import (
-    check_feature_table, check_kernel_layout, check_scalar_action, check_with_checkers, kinematic_trial,
+    check_feature_table,
+    check_kernel_layout,
+    check_scalar_action,
+    check_with_checkers,
+    kinematic_trial,
 )
 
 ENV_ID = "magenv/MagKalman-v0"
@@ -52,7 +56,7 @@ def test_env_steps_equal_a_whole_trial_run_with_the_same_trust(disturbed):
     acts = np.random.default_rng(3).uniform(0, 1, 400)
     _run(env, acts)
     n_steps = -(-(disturbed.n - 1) // 7)
-    expected = np.concatenate([[1.0], np.repeat(acts[:n_steps].astype(np.float32).astype(float), 7)])[:disturbed.n]
+    expected = np.concatenate([[1.0], np.repeat(acts[:n_steps].astype(np.float32).astype(float), 7)])[: disturbed.n]
     np.testing.assert_array_equal(env.trust, expected)
     np.testing.assert_array_equal(env.lambdas, 1.0 - expected)
     q, sig = kt.run_trial(disturbed, env.trust)
@@ -63,8 +67,7 @@ def test_env_steps_equal_a_whole_trial_run_with_the_same_trust(disturbed):
 
 def test_zero_trust_ignores_the_disturbance(disturbed):
     """γ = 0: the estimate on the disturbed trial is bit for bit the one on the clean twin; γ = 1 is pulled off."""
-    clean = dataclasses.replace(
-        disturbed, mag=disturbed.mag - disturbed.truth["mag_disturbance"], name="clean")
+    clean = dataclasses.replace(disturbed, mag=disturbed.mag - disturbed.truth["mag_disturbance"], name="clean")
     runs = {}
     for name, trial in (("dist", disturbed), ("clean", clean)):
         for g in (0.0, 1.0):
@@ -112,7 +115,8 @@ def test_observation_is_the_a_priori_view_of_the_next_sample(disturbed):
         assert obs[IX["trust_prev"]] == g
         win = slice(j, j + k + 1)  # fused samples j … j+k−1 plus the next one
         assert obs[IX["norm_dev_max"]] == pytest.approx(
-            np.abs(np.linalg.norm(disturbed.mag[win], axis=1) - m0).max() / m0, abs=1e-6)
+            np.abs(np.linalg.norm(disturbed.mag[win], axis=1) - m0).max() / m0, abs=1e-6
+        )
         seen_disturbed |= bool(prev_obs[IX["norm_dev"]] > 0.1 and prev_obs[IX["model_dist"]] > 0.1)
     assert seen_disturbed  # 160 steps of 8 reach past the onset at 4 s (sample 1024)
 

@@ -78,13 +78,18 @@ def test_gradient_is_jacobian_transpose_times_objective():
         # R(q) in the unit-quaternion polynomial form, evaluated off the unit sphere too
         def u(qq):
             w, x, y, z = qq
-            r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                          [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                          [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+            r = np.array(
+                [
+                    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+                ]
+            )
             return r.T @ d
 
-        num = np.array([(0.5 * np.sum((u(q + e) - s) ** 2) - 0.5 * np.sum((u(q - e) - s) ** 2)) / 2e-6
-                        for e in np.eye(4) * 1e-6])
+        num = np.array(
+            [(0.5 * np.sum((u(q + e) - s) ** 2) - 0.5 * np.sum((u(q - e) - s) ** 2)) / 2e-6 for e in np.eye(4) * 1e-6]
+        )
         ana = np.array(mg._grad(*q, *d, *s))
         assert np.allclose(ana, num, atol=1e-6)
 

@@ -39,8 +39,9 @@ def test_wire_field_magnitude_and_right_hand_rule():
 def test_random_field_keeps_sources_away_and_is_smooth():
     rng = np.random.default_rng(3)
     pts = np.stack([np.linspace(-3, 3, 200), np.zeros(200), np.full(200, 1.2)], 1)
-    f = random_indoor_field(rng, EARTH, pts, n_dipoles=(6, 6), strength_ut=(5.0, 5.0), distance_m=(1.0, 2.0),
-                            n_wires=(2, 2))
+    f = random_indoor_field(
+        rng, EARTH, pts, n_dipoles=(6, 6), strength_ut=(5.0, 5.0), distance_m=(1.0, 2.0), n_wires=(2, 2)
+    )
     assert f.min_source_distance(pts) >= 1.0 - 1e-9
     b = f(pts)
     step = np.linalg.norm(np.diff(b, axis=0), axis=1) / np.linalg.norm(np.diff(pts, axis=0), axis=1)
@@ -99,8 +100,9 @@ def test_scenarios_are_deterministic_and_seed_dependent():
     assert not np.array_equal(a.mag, c.mag)
 
 
-@pytest.mark.parametrize("name,duration", [("handheld_texting", 120.0), ("handheld_swinging", 120.0),
-                                           ("handheld_free", 780.0)])
+@pytest.mark.parametrize(
+    "name,duration", [("handheld_texting", 120.0), ("handheld_swinging", 120.0), ("handheld_free", 780.0)]
+)
 def test_paper_scenarios_defaults(name, duration):
     cfg = get_scenario(name)
     assert cfg.rate == 100.0 and cfg.duration == duration and cfg.treadmill_prob == 1.0

@@ -38,9 +38,16 @@ from tests.test_recordings import write_recording
 
 ENV = "magenv/MagBlend-v0"
 ROOT = Path(__file__).resolve().parents[1]
-SECTION = {"env_kwargs": {"scenario": "dynamic_clean", "episode_seconds": 3.0}, "normalize_reward": True,
-           "n_envs": 2, "n_steps": 64, "batch_size": 64, "n_epochs": 1, "learning_rate": 3.0e-4,
-           "policy_kwargs": {"net_arch": [8]}}
+SECTION = {
+    "env_kwargs": {"scenario": "dynamic_clean", "episode_seconds": 3.0},
+    "normalize_reward": True,
+    "n_envs": 2,
+    "n_steps": 64,
+    "batch_size": 64,
+    "n_epochs": 1,
+    "learning_rate": 3.0e-4,
+    "policy_kwargs": {"net_arch": [8]},
+}
 QUICK_EVAL = ["--eval-scenarios", "dynamic_clean", "--eval-seeds", "0", "--no-progress"]
 
 
@@ -52,9 +59,17 @@ def write_config(path: Path, **changes) -> Path:
 def fake_run(folder: Path, files=("best", "last"), **changes) -> Path:
     """A run folder as `magenv train` leaves it, with untrained weights (no training: fast)."""
     section = check_section("ppo", {**SECTION, **changes}, "test")
-    run = {"env_id": ENV, "algo": "ppo", "env_kwargs": section["env_kwargs"], "hyperparams": section,
-           "action_bounds": action_bounds(ENV, section["env_kwargs"]), "seed": 0, "steps": 128,
-           "eval_scenarios": ["dynamic_clean"], "eval_seeds": [0]}
+    run = {
+        "env_id": ENV,
+        "algo": "ppo",
+        "env_kwargs": section["env_kwargs"],
+        "hyperparams": section,
+        "action_bounds": action_bounds(ENV, section["env_kwargs"]),
+        "seed": 0,
+        "steps": 128,
+        "eval_scenarios": ["dynamic_clean"],
+        "eval_seeds": [0],
+    }
     folder.mkdir(parents=True)
     (folder / "run.yaml").write_text(yaml.safe_dump(run))
     model = build_model(run)
@@ -159,7 +174,7 @@ def _corrupt_chunk(c: Case):
         del f["imu_gyr"]
         info = f.create_dataset("imu_gyr", data=data + 0.01, compression="gzip", chunks=(1000, 3)).id.get_chunk_info(0)
     raw = bytearray(path.read_bytes())
-    raw[info.byte_offset:info.byte_offset + info.size] = b"\xff" * info.size
+    raw[info.byte_offset : info.byte_offset + info.size] = b"\xff" * info.size
     path.write_bytes(bytes(raw))
     return c.call(lambda: load_recording(path))
 
@@ -170,31 +185,51 @@ def _scaled_truth(c: Case, factor):
 
 CASES = {
     "a run folder holding its model only as SB3 `.zip` (an older magenv, or SB3)": _pickle_only,
-    "`magenv train` resuming such a folder":
-        lambda c: c.cli("train", "--out", fake_run(c.tmp / "old", files=("last_model.zip",)), *QUICK_EVAL),
+    "`magenv train` resuming such a folder": lambda c: c.cli(
+        "train", "--out", fake_run(c.tmp / "old", files=("last_model.zip",)), *QUICK_EVAL
+    ),
     "a truncated or garbled `best.safetensors`": _truncated_weights,
-    "weights that do not fit `run.yaml` (its `net_arch` edited)":
-        lambda c: _edited_run_yaml(c, policy_kwargs={"net_arch": [16]}),
+    "weights that do not fit `run.yaml` (its `net_arch` edited)": lambda c: _edited_run_yaml(
+        c, policy_kwargs={"net_arch": [16]}
+    ),
     "`run.yaml` with `learning_rate: fast`": lambda c: _edited_run_yaml(c, learning_rate="fast"),
-    "`magenv evaluate RUN` before the run's first evaluation (only `last.safetensors`)":
-        lambda c: c.cli("evaluate", fake_run(c.tmp / "run", files=("last",)), "--scenario", "dynamic_clean",
-                        "--seeds", "0", "--no-progress"),
+    "`magenv evaluate RUN` before the run's first evaluation (only `last.safetensors`)": lambda c: c.cli(
+        "evaluate",
+        fake_run(c.tmp / "run", files=("last",)),
+        "--scenario",
+        "dynamic_clean",
+        "--seeds",
+        "0",
+        "--no-progress",
+    ),
     "`magenv train … --eval-every 0`": lambda c: c.cli("train", "--out", c.tmp / "x", "--eval-every", "0"),
     "`magenv train … --steps 0`": lambda c: c.cli("train", "--out", c.tmp / "x", "--steps", "0"),
     "`magenv train … --steps -5`": lambda c: c.cli("train", "--out", c.tmp / "x", "--steps", "-5"),
     "`magenv train … --n-envs -2`": lambda c: c.cli("train", "--out", c.tmp / "x", "--n-envs", "-2"),
     "`magenv train … --seed -1`": lambda c: c.cli("train", "--out", c.tmp / "x", "--seed", "-1"),
     "`magenv train … --eval-seeds 5:3`": lambda c: c.cli("train", "--out", c.tmp / "x", "--eval-seeds", "5:3"),
-    "`magenv train … --eval-scenarios nowhere`":
-        lambda c: c.cli("train", "--out", c.tmp / "x", "--eval-scenarios", "nowhere"),
+    "`magenv train … --eval-scenarios nowhere`": lambda c: c.cli(
+        "train", "--out", c.tmp / "x", "--eval-scenarios", "nowhere"
+    ),
     "resuming a run with another `--seed`": lambda c: _resume(c, "--seed", "1"),
-    "resuming a run with a `--config` that changes `learning_rate`":
-        lambda c: _resume(c, "--config", write_config(c.tmp / "cfg.yaml", learning_rate=1.0e-3)),
-    "resuming a run with an invalid `--config`":
-        lambda c: _resume(c, "--config", write_config(c.tmp / "cfg.yaml", n_envs="two")),
-    "`magenv train … --steps 64` where PPO's rollout is 128 steps":
-        lambda c: c.cli("train", "--config", write_config(c.tmp / "cfg.yaml"), "--out", c.tmp / "run",
-                        "--steps", "64", "--eval-every", "10000", *QUICK_EVAL),
+    "resuming a run with a `--config` that changes `learning_rate`": lambda c: _resume(
+        c, "--config", write_config(c.tmp / "cfg.yaml", learning_rate=1.0e-3)
+    ),
+    "resuming a run with an invalid `--config`": lambda c: _resume(
+        c, "--config", write_config(c.tmp / "cfg.yaml", n_envs="two")
+    ),
+    "`magenv train … --steps 64` where PPO's rollout is 128 steps": lambda c: c.cli(
+        "train",
+        "--config",
+        write_config(c.tmp / "cfg.yaml"),
+        "--out",
+        c.tmp / "run",
+        "--steps",
+        "64",
+        "--eval-every",
+        "10000",
+        *QUICK_EVAL,
+    ),
     "config `learning_rate: fast`": lambda c: c.config("learning_rate: fast"),
     "config `n_envs: two`": lambda c: c.config("n_envs: two"),
     "config `n_envs: 0`": lambda c: c.config("n_envs: 0"),
@@ -202,31 +237,35 @@ CASES = {
     "config `batch_size: 0`": lambda c: c.config("batch_size: 0"),
     "config `seed: 3`": lambda c: c.config("seed: 3"),
     'config `normalize_reward: "no"`': lambda c: c.config('normalize_reward: "no"'),
-    "a recording whose `opt_quat` is scaled by 1.001":
-        lambda c: c.warning(lambda: load_recording(c.recording(opt_quat=np.tile([1.001, 0, 0, 0], (100, 1))))),
+    "a recording whose `opt_quat` is scaled by 1.001": lambda c: c.warning(
+        lambda: load_recording(c.recording(opt_quat=np.tile([1.001, 0, 0, 0], (100, 1))))
+    ),
     "a recording whose `opt_quat` is scaled by 2": lambda c: _scaled_truth(c, 2.0),
     "a recording whose `opt_quat` is scaled by 0.99": lambda c: _scaled_truth(c, 0.99),
     "a recording with `sampling_rate` 1e12": lambda c: c.call(lambda: load_recording(c.recording(rate=1e12))),
     "a recording with `sampling_rate` 1e-6": lambda c: c.call(lambda: load_recording(c.recording(rate=1e-6))),
     "a recording with 0 rows": lambda c: c.call(lambda: load_recording(c.recording(n=0))),
-    "a recording whose `movement` is all false":
-        lambda c: c.call(lambda: load_recording(c.recording(movement=np.zeros(100, bool)))),
+    "a recording whose `movement` is all false": lambda c: c.call(
+        lambda: load_recording(c.recording(movement=np.zeros(100, bool)))
+    ),
     "a recording with a corrupt compressed dataset": _corrupt_chunk,
-    "`magenv plot` on a trial file without attribute `rate`":
-        lambda c: c.cli("plot", c.trial_file(lambda f: f.attrs.__delitem__("rate"))),
-    "`magenv plot` on a trial file whose `meta` is not JSON":
-        lambda c: c.cli("plot", c.trial_file(lambda f: f.attrs.__setitem__("meta", "{not json"))),
+    "`magenv plot` on a trial file without attribute `rate`": lambda c: c.cli(
+        "plot", c.trial_file(lambda f: f.attrs.__delitem__("rate"))
+    ),
+    "`magenv plot` on a trial file whose `meta` is not JSON": lambda c: c.cli(
+        "plot", c.trial_file(lambda f: f.attrs.__setitem__("meta", "{not json"))
+    ),
     "`magenv plot` on a BROAD recording": lambda c: c.cli("plot", c.recording(), "--out", c.tmp / "rec.png"),
-    "`magenv compare --scenario dynamic_magnet --seeds 0 --methods mimu,cf_constraint`":
-        lambda c: c.cli("compare", "--scenario", "dynamic_magnet", "--seeds", "0", "--methods", "mimu,cf_constraint",
-                        "--no-progress"),
+    "`magenv compare --scenario dynamic_magnet --seeds 0 --methods mimu,cf_constraint`": lambda c: c.cli(
+        "compare", "--scenario", "dynamic_magnet", "--seeds", "0", "--methods", "mimu,cf_constraint", "--no-progress"
+    ),
     "`magenv compare --seeds 5:3`": lambda c: c.cli("compare", "--seeds", "5:3"),
 }
 ROWS = readme_rows()
 
 
 def test_every_readme_row_has_a_case():
-    assert set(ROWS) == set(CASES), (set(ROWS) ^ set(CASES))
+    assert set(ROWS) == set(CASES), set(ROWS) ^ set(CASES)
 
 
 @pytest.mark.parametrize("row", list(ROWS), ids=[f"row{i}" for i in range(len(ROWS))])
@@ -266,14 +305,31 @@ def plant_zip(path: Path, marker: Path) -> None:
 def trained_run(tmp_path_factory) -> Path:
     """A PPO run folder written by train() (one rollout, one evaluation)."""
     tmp = tmp_path_factory.mktemp("trained")
-    return train(ENV, "ppo", 128, tmp / "run", config=write_config(tmp / "cfg.yaml"), eval_every=128,
-                 eval_scenarios=("dynamic_clean",), eval_seeds=(0,), progress_bar=False)
+    return train(
+        ENV,
+        "ppo",
+        128,
+        tmp / "run",
+        config=write_config(tmp / "cfg.yaml"),
+        eval_every=128,
+        eval_scenarios=("dynamic_clean",),
+        eval_seeds=(0,),
+        progress_bar=False,
+    )
 
 
 def test_run_folder_holds_arrays_and_sb3_exports(trained_run):
     names = {p.name for p in trained_run.iterdir()}
-    assert {"run.yaml", "state.json", "best.safetensors", "last.safetensors", "best_model.zip",
-            "last_model.zip", "checkpoints", "evaluations.csv"} <= names
+    assert {
+        "run.yaml",
+        "state.json",
+        "best.safetensors",
+        "last.safetensors",
+        "best_model.zip",
+        "last_model.zip",
+        "checkpoints",
+        "evaluations.csv",
+    } <= names
     assert not list(trained_run.rglob("*.pkl"))
     assert [p.name for p in (trained_run / "checkpoints").iterdir()] == ["step_128.safetensors"]
 
@@ -293,8 +349,23 @@ def test_planted_pickles_never_run(trained_run, tmp_path, capsys):
 
     assert load_agent(run).source == str(run / "best.safetensors") and not marker.exists()
     assert cli(["evaluate", str(run), "--scenario", "dynamic_clean", "--seeds", "0", "--no-progress"]) == 0
-    assert cli(["compare", "--agent", str(run), "--methods", "mimu", "--scenario", "dynamic_clean", "--seeds", "0",
-                "--no-progress"]) == 0
+    assert (
+        cli(
+            [
+                "compare",
+                "--agent",
+                str(run),
+                "--methods",
+                "mimu",
+                "--scenario",
+                "dynamic_clean",
+                "--seeds",
+                "0",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert cli(["train", "--out", str(run), "--steps", "256", "--eval-every", "128", "--no-progress"]) == 0
     assert json.loads((run / "state.json").read_text())["timesteps"] == 256 and not marker.exists()
     capsys.readouterr()
@@ -331,8 +402,12 @@ def test_an_old_run_resumes_from_its_pickles_only_when_trusted(trained_run, tmp_
 SMALL = {
     "ppo": {"n_steps": 32, "batch_size": 32, "n_epochs": 1},
     "sac": {"learning_starts": 8, "batch_size": 8, "buffer_size": 200, "train_freq": 4},
-    "recurrent_ppo": {"n_steps": 16, "batch_size": 16, "n_epochs": 1,
-                      "policy_kwargs": {"lstm_hidden_size": 4, "net_arch": [4]}},
+    "recurrent_ppo": {
+        "n_steps": 16,
+        "batch_size": 16,
+        "n_epochs": 1,
+        "policy_kwargs": {"lstm_hidden_size": 4, "net_arch": [4]},
+    },
 }
 
 
@@ -342,17 +417,31 @@ def _model(algo: str):
 
     from magenv.agents.wrappers import normalized_actions
 
-    section = check_section(algo, {"env_kwargs": {"scenario": "dynamic_clean", "episode_seconds": 1.0},
-                                   "n_envs": 2, "normalize_reward": True, **SMALL[algo]}, "test")
+    section = check_section(
+        algo,
+        {
+            "env_kwargs": {"scenario": "dynamic_clean", "episode_seconds": 1.0},
+            "n_envs": 2,
+            "normalize_reward": True,
+            **SMALL[algo],
+        },
+        "test",
+    )
     run = {"env_id": ENV, "algo": algo, "env_kwargs": section["env_kwargs"], "hyperparams": section}
-    env = VecNormalize(make_vec_env(ENV, n_envs=2, seed=0, env_kwargs=section["env_kwargs"],
-                                    wrapper_class=normalized_actions), norm_obs=False)
+    env = VecNormalize(
+        make_vec_env(ENV, n_envs=2, seed=0, env_kwargs=section["env_kwargs"], wrapper_class=normalized_actions),
+        norm_obs=False,
+    )
     return build_model(run, env=env, seed=0)
 
 
 def _optimizer_arrays(model) -> dict:
-    return {f"{name}/{idx}/{key}": np.asarray(v) for name, opt in weights._optimizers(model).items()
-            for idx, entry in opt.state_dict()["state"].items() for key, v in entry.items()}
+    return {
+        f"{name}/{idx}/{key}": np.asarray(v)
+        for name, opt in weights._optimizers(model).items()
+        for idx, entry in opt.state_dict()["state"].items()
+        for key, v in entry.items()
+    }
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac", "recurrent_ppo"])
@@ -382,7 +471,9 @@ def test_checkpoint_round_trips_what_resuming_needs(algo, tmp_path):
             if getattr(a, key) is not None:
                 np.testing.assert_array_equal(getattr(b, key), getattr(a, key), err_msg=key)
     obs = np.zeros((2, *fresh.observation_space.shape), np.float32)
-    np.testing.assert_array_equal(fresh.predict(obs, deterministic=True)[0], trained.predict(obs, deterministic=True)[0])
+    np.testing.assert_array_equal(
+        fresh.predict(obs, deterministic=True)[0], trained.predict(obs, deterministic=True)[0]
+    )
     fresh.learn(32, reset_num_timesteps=False)  # the restored optimizer state trains on
     assert fresh.num_timesteps > trained.num_timesteps
 

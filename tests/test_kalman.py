@@ -3,32 +3,32 @@
 from __future__ import annotations
 
 import dataclasses
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
 from conftest import kinematic_trial
 
-from magenv.baselines import kalman as bk
-from magenv.protocols import Estimate, Estimator
 from magenv import metrics
 from magenv import quaternion as quat
+from magenv.baselines import kalman as bk
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import ModelKF
 from magenv.filters.kalman_threshold import FilterError, ThresholdKF, repair_cov1
 from magenv.filters.sensors import Sensors
+from magenv.protocols import Estimate, Estimator
 
 STRONG = dict(duration=20.0, disturbance_ut=30.0, disturbance_window=(8.0, 12.0))  # short, strong
 WEAK = dict(duration=25.0, disturbance_ut=5.0, disturbance_window=(5.0, 20.0))  # long, weak (passes Table A1)
 
 
-@lru_cache(maxsize=None)
+@cache
 def trial(seed=0, kind="clean"):
     kw = {"clean": dict(duration=20.0), "strong": STRONG, "weak": WEAK}[kind]
     return kinematic_trial(seed=seed, **kw)
 
 
-@lru_cache(maxsize=None)
+@cache
 def oscillating_trial(seed=0, amp=5.0, freq=0.25):
     """Clean kinematic trial plus an east-pointing earth-frame disturbance amp·sin(2πft), µT."""
     tr = kinematic_trial(seed=seed, duration=20.0)
@@ -225,8 +225,11 @@ def _poisoned(tr, k, value):
     return tr
 
 
-@pytest.mark.parametrize("kf", [ThresholdKF("triad"), ThresholdKF("quest"), ModelKF("triad"), ModelKF("quest")],
-                         ids=["th_triad", "th_quest", "mod_triad", "mod_quest"])
+@pytest.mark.parametrize(
+    "kf",
+    [ThresholdKF("triad"), ThresholdKF("quest"), ModelKF("triad"), ModelKF("quest")],
+    ids=["th_triad", "th_quest", "mod_triad", "mod_quest"],
+)
 def test_nan_sample_fails_loudly(kf):
     tr = _poisoned(trial(), 100, np.nan)
     with pytest.raises(FilterError, match="sample 100"):
@@ -357,8 +360,12 @@ def test_survey_findings_over_seeds():
 
     ``.venv/bin/python -m pytest tests/test_kalman.py -m slow -s``
     """
-    cases = {"clean": lambda s: trial(s, "clean"), "short_strong": lambda s: trial(s, "strong"),
-             "long_weak": lambda s: trial(s, "weak"), "weak_varying": lambda s: oscillating_trial(s)}
+    cases = {
+        "clean": lambda s: trial(s, "clean"),
+        "short_strong": lambda s: trial(s, "strong"),
+        "long_weak": lambda s: trial(s, "weak"),
+        "weak_varying": lambda s: oscillating_trial(s),
+    }
     table = {}
     for case, make in cases.items():
         for name, factory in bk.methods().items():

@@ -7,11 +7,10 @@ import csv
 import numpy as np
 import pytest
 
+from magenv import evaluation, registry
 from magenv.baselines import kalman_policies as kp
-from magenv import registry
-from magenv.protocols import Policy
-from magenv import evaluation
 from magenv.envs.kalman import FEATURES
+from magenv.protocols import Policy
 from tests.conftest import kinematic_trial
 
 IX = {f: i for i, f in enumerate(FEATURES.names)}
@@ -107,9 +106,12 @@ def test_registry_lists_the_methods():
 
 def test_compare_runs_the_rules_and_gating_beats_nominal():
     """On a short strong disturbance the gate and the adaptive rule beat the nominal filter by far."""
-    trials = [kinematic_trial(seed=s, duration=8.0, disturbance_ut=25.0, disturbance_window=(3.0, 6.0))
-              for s in range(2)]
-    runs = evaluation.evaluate({n: registry.make(n) for n in ["kf_nominal", "kf_gate", "kf_adaptive", "kf_model"]}, trials)
+    trials = [
+        kinematic_trial(seed=s, duration=8.0, disturbance_ut=25.0, disturbance_window=(3.0, 6.0)) for s in range(2)
+    ]
+    runs = evaluation.evaluate(
+        {n: registry.make(n) for n in ["kf_nominal", "kf_gate", "kf_adaptive", "kf_model"]}, trials
+    )
     rows = {r["method"]: r for r in evaluation.summarize(runs)}
     assert set(rows) == {"kf_nominal", "kf_gate", "kf_adaptive", "kf_model"}
     assert all(r["n"] == 2 for r in rows.values())
@@ -131,8 +133,20 @@ def test_magenv_compare_cli_runs_the_rules(tmp_path):
     from magenv.train.cli import main
 
     path = tmp_path / "kf.csv"
-    code = main(["compare", "--scenario", "dynamic_magnet", "--seeds", "0:1", "--no-progress", "--csv", str(path),
-                 "--methods", "kf_nominal,kf_gate,kf_adaptive,kf_model"])
+    code = main(
+        [
+            "compare",
+            "--scenario",
+            "dynamic_magnet",
+            "--seeds",
+            "0:1",
+            "--no-progress",
+            "--csv",
+            str(path),
+            "--methods",
+            "kf_nominal,kf_gate,kf_adaptive,kf_model",
+        ]
+    )
     assert code == 0
     with open(path) as f:
         rows = {r["method"]: float(r["total_rmse_mean"]) for r in csv.DictReader(f)}

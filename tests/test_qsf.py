@@ -5,18 +5,17 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import check_feature_table, kinematic_trial
 from gymnasium.utils.env_checker import check_env
 
-from magenv.baselines import qsf as bq
 from magenv import metrics
 from magenv import quaternion as quat
+from magenv.baselines import qsf as bq
 from magenv.baselines.qsf import DetectorPolicy
 from magenv.envs.qsf import MagQSFEnv, MagQSFVectorEnv, decode_action
 from magenv.filters import qsf
 from magenv.filters.kalman_threshold import FilterError
 from magenv.trial import Trial
-
-from conftest import check_feature_table, kinematic_trial
 
 FIELD = (46.0, 49.6)
 
@@ -37,8 +36,13 @@ def _run(trial, mode, **kw):
 
 def _still_inputs(action: int) -> qsf.Inputs:
     """Two samples at rest, level and facing north (zero rate, gravity, the Earth field), trust 1."""
-    return qsf.Inputs(np.zeros((2, 3)), np.tile(quat.gravity_up(), (2, 1)), np.tile(quat.earth_field(*FIELD), (2, 1)),
-                      np.full(2, action, np.int8), np.ones(2))
+    return qsf.Inputs(
+        np.zeros((2, 3)),
+        np.tile(quat.gravity_up(), (2, 1)),
+        np.tile(quat.earth_field(*FIELD), (2, 1)),
+        np.full(2, action, np.int8),
+        np.ones(2),
+    )
 
 
 # ------------------------------------------------------------ maths
@@ -79,8 +83,12 @@ def test_aekf_corrects_heading_but_magyq_cannot():
     """The AEKF has an absolute heading reference (the Earth field); QSF filters only relative ones."""
     tr = kinematic_trial(seed=3, duration=30.0, rate=100.0)
     q0 = quat.mul(quat.from_rotvec(np.deg2rad([0.0, 0.0, 15.0])), tr.q_true[0])
-    head = {m: metrics.heading_error(metrics.error_quaternion(_run(tr, m, q0=q0, p0=dict(
-        p0_angle=np.deg2rad(20.0))).q, tr.q_true))[-300:].mean() for m in ("aekf", "magyq")}
+    head = {
+        m: metrics.heading_error(
+            metrics.error_quaternion(_run(tr, m, q0=q0, p0=dict(p0_angle=np.deg2rad(20.0))).q, tr.q_true)
+        )[-300:].mean()
+        for m in ("aekf", "magyq")
+    }
     assert head["aekf"] < 3.0 and head["magyq"] > 10.0
 
 
@@ -175,8 +183,15 @@ def test_non_finite_input_fails_loudly():
     state = qsf.initial_state(tr.q_true[0], tr.dt)
     x, pa = state.x, state.cov
     with pytest.raises(FilterError, match="sample 50"):
-        qsf.run(params, state, qsf.Inputs(tr.gyr, tr.acc, tr.mag, np.full(tr.n, 2, np.int8), np.ones(tr.n)), tr.dt,
-                0, tr.n, qsf.Outputs.empty(tr.n))
+        qsf.run(
+            params,
+            state,
+            qsf.Inputs(tr.gyr, tr.acc, tr.mag, np.full(tr.n, 2, np.int8), np.ones(tr.n)),
+            tr.dt,
+            0,
+            tr.n,
+            qsf.Outputs.empty(tr.n),
+        )
     assert np.all(np.isfinite(x)) and np.all(np.isfinite(pa))  # state left at sample 49
     params = qsf.make_params(*FIELD)
     state = qsf.initial_state(np.array([1.0, 0, 0, 0]), 0.01)
@@ -257,12 +272,14 @@ def test_registered_env_id():
 
 
 def test_env_draws_handheld_scenarios_by_name():
-    env = MagQSFEnv(scenario="handheld_texting,handheld_swinging", episode_seconds=2.0,
-                    scenario_kwargs=dict(duration=3.0))
+    env = MagQSFEnv(
+        scenario="handheld_texting,handheld_swinging", episode_seconds=2.0, scenario_kwargs=dict(duration=3.0)
+    )
     obs, info = env.reset(seed=3)
     assert info["trial"].startswith("handheld_") and info["n_samples"] == 200
-    obs2, info2 = MagQSFEnv(scenario="handheld_texting,handheld_swinging", episode_seconds=2.0,
-                            scenario_kwargs=dict(duration=3.0)).reset(seed=3)
+    obs2, info2 = MagQSFEnv(
+        scenario="handheld_texting,handheld_swinging", episode_seconds=2.0, scenario_kwargs=dict(duration=3.0)
+    ).reset(seed=3)
     assert info2["trial"] == info["trial"] and np.array_equal(obs, obs2)
 
 
@@ -321,8 +338,9 @@ def test_start_follows_the_trial_protocol():
     other = _env_trial()
     params = qsf.make_params(hand.field_norm, hand.field_dip)
     np.testing.assert_array_equal(qsf.initial_orientation(hand, "auto", params), hand.q_true[0])
-    np.testing.assert_array_equal(qsf.initial_orientation(other, "auto", params),
-                                  qsf.initial_orientation(other, "triad", params))
+    np.testing.assert_array_equal(
+        qsf.initial_orientation(other, "auto", params), qsf.initial_orientation(other, "triad", params)
+    )
     assert not np.allclose(qsf.initial_orientation(hand, "triad", params), hand.q_true[0], atol=1e-3)
     est = bq.delay_magyq().run(hand)  # the estimator and the env start alike
     env = MagQSFEnv(scenario=[hand], decision_every=1)
@@ -430,7 +448,7 @@ def test_named_parameters_state_and_signals():
     state = qsf.initial_state(quat.from_euler_zyx(0.3, 0.0, 0.0), 0.01)
     assert state.x.shape == (qsf.N_AUGMENTED,) and state.cov.shape == (qsf.N_AUGMENTED, qsf.N_AUGMENTED)
     np.testing.assert_allclose(state.x[qsf.ORIENTATION], quat.from_euler_zyx(0.3, 0.0, 0.0), atol=1e-15)
-    assert not state.x[qsf.N_STATE:].any() and not state.cov[qsf.CLONE].any()
+    assert not state.x[qsf.N_STATE :].any() and not state.cov[qsf.CLONE].any()
     assert not state.period_active[0] and state.period_age[0] == 0.0
     assert [getattr(qsf.SIGNAL, s) for s in qsf.SIGNALS] == list(range(qsf.N_SIGNALS))
     tr = _static_trial(n=300)

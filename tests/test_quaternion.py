@@ -49,8 +49,10 @@ def test_euler_zyx_round_trip_and_order():
     q = quat.from_euler_zyx(yaw, pitch, roll)
     assert np.allclose(quat.to_euler_zyx(q), [yaw, pitch, roll])
     # ZYX: yaw applied last in the sensor→earth map
-    expected = quat.mul(quat.from_axis_angle([0, 0, 1], yaw),
-                        quat.mul(quat.from_axis_angle([0, 1, 0], pitch), quat.from_axis_angle([1, 0, 0], roll)))
+    expected = quat.mul(
+        quat.from_axis_angle([0, 0, 1], yaw),
+        quat.mul(quat.from_axis_angle([0, 1, 0], pitch), quat.from_axis_angle([1, 0, 0], roll)),
+    )
     assert np.allclose(q, expected)
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from magenv import metrics
+from magenv.papers import README_VQF
 from magenv.recordings import (
     BERLIN_FIELD_DIP,
     BERLIN_FIELD_NORM,
@@ -18,7 +19,6 @@ from magenv.recordings import (
     list_recordings,
     load_recording,
 )
-from magenv.papers import README_VQF
 from magenv.trial import Trial, TrialError
 
 TOL = 0.05  # degrees; the README's figures are rounded to 0.01
@@ -88,8 +88,12 @@ def test_earth_field_falls_back_without_rest():
 def write_recording(path, n=100, drop=(), rate=100.0, **override):
     """A small BROAD-layout file at ``path``: ``n`` rows at rest, every dataset but ``drop``, ``override``s."""
     data = {
-        "imu_gyr": np.zeros((n, 3)), "imu_acc": np.tile([0, 0, 9.81], (n, 1)), "imu_mag": np.tile([0, 16.0, -41.7], (n, 1)),
-        "opt_quat": np.tile([1.0, 0, 0, 0], (n, 1)), "opt_pos": np.zeros((n, 3)), "movement": np.ones(n, bool),
+        "imu_gyr": np.zeros((n, 3)),
+        "imu_acc": np.tile([0, 0, 9.81], (n, 1)),
+        "imu_mag": np.tile([0, 16.0, -41.7], (n, 1)),
+        "opt_quat": np.tile([1.0, 0, 0, 0], (n, 1)),
+        "opt_pos": np.zeros((n, 3)),
+        "movement": np.ones(n, bool),
     }
     data.update(override)
     with h5py.File(path, "w") as f:
@@ -133,11 +137,15 @@ def test_missing_rate(tmp_path):
 
 
 def test_bad_rate(tmp_path):
-    with pytest.raises(TrialError, match="zerorate.hdf5: attribute sampling_rate must be a sampling rate from 1 to 100000 Hz"):
+    with pytest.raises(
+        TrialError, match="zerorate.hdf5: attribute sampling_rate must be a sampling rate from 1 to 100000 Hz"
+    ):
         load_recording(write_recording(tmp_path / "zerorate.hdf5", rate=0.0))
 
 
-@pytest.mark.parametrize("field,shape", [("imu_acc", (99, 3)), ("opt_quat", (100, 3)), ("movement", (101,)), ("opt_pos", (100, 2))])
+@pytest.mark.parametrize(
+    "field,shape", [("imu_acc", (99, 3)), ("opt_quat", (100, 3)), ("movement", (101,)), ("opt_pos", (100, 2))]
+)
 def test_mismatched_lengths(tmp_path, field, shape):
     p = write_recording(tmp_path / "short.hdf5", **{field: np.zeros(shape, bool if field == "movement" else float)})
     with pytest.raises(TrialError, match=rf"short.hdf5: mismatched shapes or lengths: {field}"):
@@ -149,7 +157,9 @@ def test_nan_in_sensor(tmp_path, field):
     x = np.ones((100, 3))
     x[42, 1] = np.nan
     p = write_recording(tmp_path / "nan.hdf5", **{field: x})
-    with pytest.raises(TrialError, match=rf"nan.hdf5: sensor channel {field} has NaN/inf in 1 row\(s\), first at row 42"):
+    with pytest.raises(
+        TrialError, match=rf"nan.hdf5: sensor channel {field} has NaN/inf in 1 row\(s\), first at row 42"
+    ):
         load_recording(p)
 
 
@@ -169,7 +179,9 @@ def _check(trial, key):
         s = _vqf_scores(trial, **params)
         for got, want, what in zip((s.total, s.heading, s.inclination), expected, ("total", "heading", "inclination")):
             if want is not None:
-                assert got == pytest.approx(want, abs=TOL), f"{trial.name} {params or 'default'} {what}: {got:.3f} vs README {want}"
+                assert got == pytest.approx(want, abs=TOL), (
+                    f"{trial.name} {params or 'default'} {what}: {got:.3f} vs README {want}"
+                )
 
 
 def test_vqf_reproduces_readme_all_nine(broad_dir):
@@ -232,9 +244,16 @@ def test_rest_noise_on_synthetic_rest():
     n, rate = 4000, 200.0
     gyr = rng.normal(0, np.deg2rad(0.1), (n, 3))
     gyr[3000:] += 1.0  # motion starts at 15 s: rest = first 10 s (the cap)
-    trial = Trial(name="rest", rate=rate, gyr=gyr, acc=rng.normal(0, 0.05, (n, 3)) + [0, 0, 9.81],
-                  mag=rng.normal(0, 0.7, (n, 3)) + [0, 16, -41.7], q_true=np.full((n, 4), np.nan),
-                  field_norm=44.7, field_dip=69.0)
+    trial = Trial(
+        name="rest",
+        rate=rate,
+        gyr=gyr,
+        acc=rng.normal(0, 0.05, (n, 3)) + [0, 0, 9.81],
+        mag=rng.normal(0, 0.7, (n, 3)) + [0, 16, -41.7],
+        q_true=np.full((n, 4), np.nan),
+        field_norm=44.7,
+        field_dip=69.0,
+    )
     noise = rest_noise(trial)
     assert noise["rest_s"] == pytest.approx(10.0, abs=0.1)
     np.testing.assert_allclose(noise["gyr"], 0.1, rtol=0.1)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magenv.protocols import Estimate, Estimator
-from magenv.baselines.reference import FusionEstimator, VQFEstimator, methods
 from magenv import metrics
+from magenv.baselines.reference import FusionEstimator, VQFEstimator, methods
+from magenv.protocols import Estimate, Estimator
 from magenv.recordings import find_recording, load_recording
 
 CONVERGED_S = 5.0  # s; Fusion's start-up ramp is 3 s, VQF converges faster
@@ -40,7 +40,6 @@ def test_close_to_truth_on_kinematic_trial(make_kinematic_trial, name, rate):
 def test_fusion_frame_is_enu_not_nwu(make_kinematic_trial):
     """A level sensor facing north (sensor y = north) at rest is the identity in ENU."""
     trial = make_kinematic_trial(seed=0, duration=6.0, rate=100.0, noise=False)
-    n = trial.n
     trial.gyr[:] = 0.0
     trial.acc[:] = [0.0, 0.0, 9.81]
     trial.mag[:] = [0.0, 30.0, -35.0]
@@ -55,8 +54,10 @@ def test_rejection_helps_under_disturbance(make_kinematic_trial):
     report trust 0 inside it; with rejection off their heading error is several degrees."""
     trial = make_kinematic_trial(seed=1, duration=30.0, disturbance_ut=30.0, disturbance_window=(15.0, 20.0))
     inside = (trial.t >= 15.0) & (trial.t < 20.0)
-    for on, off in ((VQFEstimator(), VQFEstimator(magDistRejectionEnabled=False)),
-                    (FusionEstimator(), FusionEstimator(magnetic_rejection=0.0))):
+    for on, off in (
+        (VQFEstimator(), VQFEstimator(magDistRejectionEnabled=False)),
+        (FusionEstimator(), FusionEstimator(magnetic_rejection=0.0)),
+    ):
         est_on, est_off = on.run(trial), off.run(trial)
         s_on, s_off = _score_after(trial, est_on.q), _score_after(trial, est_off.q)
         assert s_on.total < 1.0, (on, s_on)

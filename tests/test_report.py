@@ -6,7 +6,9 @@ from magenv.train.report import write_report
 
 
 def test_report_has_tables_and_plots(tmp_path):
-    trials = [make_trial("dynamic_magnet", s, duration=8.0) for s in (0, 1)] + [make_trial("dynamic_clean", 0, duration=8.0)]
+    trials = [make_trial("dynamic_magnet", s, duration=8.0) for s in (0, 1)] + [
+        make_trial("dynamic_clean", 0, duration=8.0)
+    ]
     runs = evaluation.evaluate({n: registry.make(n) for n in ["mimu", "fan_lambda", "th_triad"]}, trials)
     path = write_report(runs, tmp_path / "report")
     text = path.read_text()

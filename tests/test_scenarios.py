@@ -58,8 +58,10 @@ def test_every_world_writes_the_trial_meta_keys(name):
 
 
 def test_unknown_names_list_the_known_ones():
-    with pytest.raises(ValueError, match="unknown scenario 'nope'; known scenarios: stationary_magnet, .*"
-                                         "constraint_test1, .*handheld_random"):
+    with pytest.raises(
+        ValueError,
+        match="unknown scenario 'nope'; known scenarios: stationary_magnet, .*constraint_test1, .*handheld_random",
+    ):
         scenarios.world_of("nope")
     with pytest.raises(ValueError, match="unknown world 'moon'; known worlds: gimbal, twolink, handheld"):
         scenarios.scenario_names("moon")
@@ -67,14 +69,17 @@ def test_unknown_names_list_the_known_ones():
         scenarios.WORLDS["twolink"].make_trial("dynamic_magnet", 0)
 
 
-@pytest.mark.parametrize("overrides, match", [
-    (dict(durration=5.0), "durration"),
-    (dict(duration=-1.0), "duration"),
-    (dict(rate="fast"), "rate"),
-    (dict(field_dip=120.0), "field_dip"),
-    (dict(mag_noise_ut=-0.1), "mag_noise_ut"),
-    (dict(rates_dps=(40.0, 70.0)), "rates_dps"),
-])
+@pytest.mark.parametrize(
+    "overrides, match",
+    [
+        (dict(durration=5.0), "durration"),
+        (dict(duration=-1.0), "duration"),
+        (dict(rate="fast"), "rate"),
+        (dict(field_dip=120.0), "field_dip"),
+        (dict(mag_noise_ut=-0.1), "mag_noise_ut"),
+        (dict(rates_dps=(40.0, 70.0)), "rates_dps"),
+    ],
+)
 def test_bad_overrides_are_named(overrides, match):
     with pytest.raises(ValueError, match=match):
         scenarios.make_trial("dynamic_magnet", 0, **overrides)
@@ -215,7 +220,9 @@ def test_cli_simulate_and_plot(tmp_path):
     from magenv.train.cli import main
 
     out = tmp_path / "trial.h5"
-    assert main(["simulate", "--scenario", "dynamic_magnet", "--seed", "1", "--set", "duration=4", "--out", str(out)]) == 0
+    assert (
+        main(["simulate", "--scenario", "dynamic_magnet", "--seed", "1", "--set", "duration=4", "--out", str(out)]) == 0
+    )
     tr = Trial.load(out)
     assert tr.name == "dynamic_magnet#1" and tr.n == 4 * 256
     png = tmp_path / "trial.png"

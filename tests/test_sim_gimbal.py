@@ -14,7 +14,9 @@ RATE = 256.0
 G = 9.81
 
 
-def _spin_profile(duration=8.0, rates_dps=(40.0, 70.0, 360.0), phys=gimbal.PHYSICS_RATE, start=1.0, angle0=(0.3, 0.0, 0.0)):
+def _spin_profile(
+    duration=8.0, rates_dps=(40.0, 70.0, 360.0), phys=gimbal.PHYSICS_RATE, start=1.0, angle0=(0.3, 0.0, 0.0)
+):
     p = profiles.empty_profile(duration + 0.1, phys, angle0)
     for axis, r in enumerate(rates_dps):
         if r:
@@ -22,19 +24,22 @@ def _spin_profile(duration=8.0, rates_dps=(40.0, 70.0, 360.0), phys=gimbal.PHYSI
     return p
 
 
-def _run(p, duration, tube=Tube()):
-    return simulate_gimbal(p, tube, RATE, int(duration * RATE))
+def _run(p, duration, tube=None):
+    return simulate_gimbal(p, tube or Tube(), RATE, int(duration * RATE))
 
 
 def _body_rate(angles, rates):
     """Body-frame rate of the ZYX gimbal: ω = φ̇ e_x + R_x(φ)ᵀ θ̇ e_y + R_x(φ)ᵀ R_y(θ)ᵀ ψ̇ e_z."""
     psi_d, th_d, phi_d = rates.T
     th, phi = angles[:, 1], angles[:, 2]
-    return np.stack([
-        phi_d - np.sin(th) * psi_d,
-        np.cos(phi) * th_d + np.sin(phi) * np.cos(th) * psi_d,
-        -np.sin(phi) * th_d + np.cos(phi) * np.cos(th) * psi_d,
-    ], axis=1)
+    return np.stack(
+        [
+            phi_d - np.sin(th) * psi_d,
+            np.cos(phi) * th_d + np.sin(phi) * np.cos(th) * psi_d,
+            -np.sin(phi) * th_d + np.cos(phi) * np.cos(th) * psi_d,
+        ],
+        axis=1,
+    )
 
 
 def _commanded_at_samples(p, n):
@@ -165,11 +170,15 @@ def test_accelerometer_sees_the_base_acceleration():
     r, w, rate = 1.0, 1.0, gimbal.PHYSICS_RATE
     p = profiles.empty_profile(10.1, rate)
     t = np.arange(p.n) / rate
-    base = np.stack([r * np.cos(w * t), r * np.sin(w * t), 0 * t, -r * w * np.sin(w * t), r * w * np.cos(w * t), 0 * t], 1)
+    base = np.stack(
+        [r * np.cos(w * t), r * np.sin(w * t), 0 * t, -r * w * np.sin(w * t), r * w * np.cos(w * t), 0 * t], 1
+    )
     run = simulate_gimbal(p, Tube(), RATE, int(10.0 * RATE), base=base)
     ts = np.arange(len(run.acc)) / RATE
     later = ts > 3.0  # the servos have caught up with the start from rest
     f_world = quat.rotate(run.q, run.acc)[later]
     expect = np.stack([-r * w**2 * np.cos(w * ts), -r * w**2 * np.sin(w * ts), np.full_like(ts, G)], 1)[later]
     np.testing.assert_allclose(f_world, expect, atol=0.01)
-    np.testing.assert_allclose(run.p_imu[later, :2], (r * np.stack([np.cos(w * ts), np.sin(w * ts)], 1))[later], atol=2e-3)
+    np.testing.assert_allclose(
+        run.p_imu[later, :2], (r * np.stack([np.cos(w * ts), np.sin(w * ts)], 1))[later], atol=2e-3
+    )

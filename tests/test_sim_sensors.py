@@ -27,8 +27,16 @@ def _run(cfg, seed=0, **kw):
 
 @pytest.mark.parametrize("preset", [SensorConfig(), SensorConfig.papers()], ids=["broad_measured", "papers"])
 def test_white_noise_levels_match_the_config(preset):
-    cfg = dataclasses.replace(preset, gyr_bias_dps=0, gyr_drift_dps=0, acc_bias=0, mag_hard_iron_ut=0,
-                              mag_soft_iron=0, mag_lag_samples=0, mag_hold_fraction=0)
+    cfg = dataclasses.replace(
+        preset,
+        gyr_bias_dps=0,
+        gyr_drift_dps=0,
+        acc_bias=0,
+        mag_hard_iron_ut=0,
+        mag_soft_iron=0,
+        mag_lag_samples=0,
+        mag_hold_fraction=0,
+    )
     gyr, acc, mag = _run(cfg)
     g, a, m = _ideal()
     assert np.rad2deg(np.std(gyr - g)) == pytest.approx(cfg.gyr_noise_dps, rel=0.03)
@@ -53,7 +61,9 @@ def test_gyro_bias_is_constant_and_drift_grows_like_a_random_walk():
 
 
 def test_magnetometer_lags_by_the_configured_samples():
-    cfg = SensorConfig(mag_noise_ut=0.0, mag_hard_iron_ut=0.0, mag_soft_iron=0.0, mag_hold_fraction=0.0, mag_lag_samples=4)
+    cfg = SensorConfig(
+        mag_noise_ut=0.0, mag_hard_iron_ut=0.0, mag_soft_iron=0.0, mag_hold_fraction=0.0, mag_lag_samples=4
+    )
     _, _, mag = _run(cfg)
     _, _, ideal = _ideal()
     np.testing.assert_array_equal(mag[4:], ideal[:-4])
@@ -93,8 +103,16 @@ def test_same_seed_same_readings_other_seed_differs():
     assert not np.array_equal(a[0], c[0])
 
 
-@pytest.mark.parametrize("field, value", [("gyr_noise_dps", -1.0), ("mag_hold_fraction", 1.0),
-                                          ("mag_lag_samples", 2.5), ("acc_noise", float("nan")), ("mag_range_ut", 0.0)])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("gyr_noise_dps", -1.0),
+        ("mag_hold_fraction", 1.0),
+        ("mag_lag_samples", 2.5),
+        ("acc_noise", float("nan")),
+        ("mag_range_ut", 0.0),
+    ],
+)
 def test_bad_sensor_parameters_are_named(field, value):
     with pytest.raises(ValueError, match=field):
         SensorConfig(**{field: value})

@@ -22,8 +22,7 @@ def random_orientations(n, seed=0):
 
 def ideal_vectors(q, field=H_REF):
     n = len(q)
-    return (quat.rotate_inv(q, np.broadcast_to(G_REF, (n, 3))),
-            quat.rotate_inv(q, np.broadcast_to(field, (n, 3))))
+    return (quat.rotate_inv(q, np.broadcast_to(G_REF, (n, 3))), quat.rotate_inv(q, np.broadcast_to(field, (n, 3))))
 
 
 @pytest.mark.parametrize("solve", [solvers.triad, solvers.quest])
@@ -65,8 +64,9 @@ def test_quest_tends_to_triad_when_gravity_dominates():
     acc, mag = ideal_vectors(q)
     acc = acc + rng.normal(0, 0.1, acc.shape)
     mag = mag + rng.normal(0, 2.0, mag.shape)
-    err = metrics.total_error(metrics.error_quaternion(solvers.quest(acc, mag, H_REF, weights=(1.0, 1e-7)),
-                                                      solvers.triad(acc, mag, H_REF)))
+    err = metrics.total_error(
+        metrics.error_quaternion(solvers.quest(acc, mag, H_REF, weights=(1.0, 1e-7)), solvers.triad(acc, mag, H_REF))
+    )
     assert err.max() < 1e-3  # degrees
 
 
@@ -102,7 +102,8 @@ def test_quest_noise_statistics_match_qmethod_covariance():
     cov = np.linalg.inv(info)  # earth-frame error-angle covariance, rad² (Shuster's QUEST model)
     assert metrics.rmse(metrics.heading_error(qe)) == pytest.approx(np.rad2deg(np.sqrt(cov[2, 2])), rel=0.05)
     assert metrics.rmse(metrics.inclination_error(qe)) == pytest.approx(
-        np.rad2deg(np.sqrt(cov[0, 0] + cov[1, 1])), rel=0.05)
+        np.rad2deg(np.sqrt(cov[0, 0] + cov[1, 1])), rel=0.05
+    )
 
 
 def test_magnetic_disturbance_tilts_quest_but_not_triad():

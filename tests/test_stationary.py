@@ -38,9 +38,9 @@ def test_still_then_moving_then_still():
     assert not flags[:length].any()  # no history yet
     assert flags[length:150].all()
     assert not flags[150:200].any()  # moving
-    assert not flags[200:200 + length].any()  # a_t − a_{t−t0} still spans the push
+    assert not flags[200 : 200 + length].any()  # a_t − a_{t−t0} still spans the push
     assert not flags[250:260].any()  # turning
-    assert flags[200 + length + 1:250].all() and flags[260:].all()
+    assert flags[200 + length + 1 : 250].all() and flags[260:].all()
 
 
 def test_streaming_equals_reference_on_noisy_data():

@@ -6,24 +6,32 @@ import json
 import pytest
 import yaml
 
+from magenv import registry
 from magenv.agents import load_agent
 from magenv.agents.loading import RunError
-from magenv.train.cli import main as cli
-from magenv import registry
 from magenv.agents.training import train
+from magenv.train.cli import main as cli
 
 ENV = "magenv/MagBlend-v0"
 SMALL = {
     "ppo": {"n_envs": 2, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
     "sac": {"n_envs": 1, "learning_starts": 32, "batch_size": 32, "buffer_size": 2000},
-    "recurrent_ppo": {"n_envs": 2, "n_steps": 32, "batch_size": 64, "n_epochs": 1,
-                      "policy_kwargs": {"lstm_hidden_size": 8, "net_arch": [8]}},
+    "recurrent_ppo": {
+        "n_envs": 2,
+        "n_steps": 32,
+        "batch_size": 64,
+        "n_epochs": 1,
+        "policy_kwargs": {"lstm_hidden_size": 8, "net_arch": [8]},
+    },
 }
 
 
 def small_config(tmp_path, algo):
-    section = {"env_kwargs": {"scenario": "dynamic_clean", "episode_seconds": 3.0}, "normalize_reward": True,
-               **SMALL[algo]}
+    section = {
+        "env_kwargs": {"scenario": "dynamic_clean", "episode_seconds": 3.0},
+        "normalize_reward": True,
+        **SMALL[algo],
+    }
     path = tmp_path / f"{algo}.yaml"
     path.write_text(yaml.safe_dump({ENV: section}))
     return path
@@ -31,8 +39,13 @@ def small_config(tmp_path, algo):
 
 def test_train_then_resume_keeps_progress_and_best_model(tmp_path):
     out = tmp_path / "run"
-    kw = dict(config=small_config(tmp_path, "ppo"), eval_every=128, eval_scenarios=("dynamic_clean",),
-              eval_seeds=(0,), progress_bar=False)
+    kw = dict(
+        config=small_config(tmp_path, "ppo"),
+        eval_every=128,
+        eval_scenarios=("dynamic_clean",),
+        eval_seeds=(0,),
+        progress_bar=False,
+    )
     train(ENV, "ppo", 256, out, **kw)
     state = json.loads((out / "state.json").read_text())
     assert state["timesteps"] >= 256 and (out / "best_model.zip").is_file() and (out / "last_model.zip").is_file()
@@ -54,8 +67,13 @@ def test_train_then_resume_keeps_progress_and_best_model(tmp_path):
 @pytest.mark.parametrize("algo", ["sac", "recurrent_ppo"])
 def test_other_algorithms_train_resume_and_load(tmp_path, algo):
     out = tmp_path / algo
-    kw = dict(config=small_config(tmp_path, algo), eval_every=10_000, eval_scenarios=("dynamic_clean",),
-              eval_seeds=(0,), progress_bar=False)
+    kw = dict(
+        config=small_config(tmp_path, algo),
+        eval_every=10_000,
+        eval_scenarios=("dynamic_clean",),
+        eval_seeds=(0,),
+        progress_bar=False,
+    )
     train(ENV, algo, 128, out, **kw)
     train(ENV, algo, 256, out, **kw)  # resumes: weights, optimizers, reward statistics (and SAC's buffer)
     assert json.loads((out / "state.json").read_text())["timesteps"] == 256
@@ -80,17 +98,30 @@ def test_pretrain_clones_the_teacher_before_rl(tmp_path):
     """Behaviour cloning: the cloned agent (then one small PPO update) acts like the teacher rule."""
     import numpy as np
 
-    from magenv.registry import make
     from magenv.evaluation import run_policy_on_trials
+    from magenv.registry import make
     from magenv.scenarios import make_trial
 
-    section = {"env_kwargs": {"scenario": "dynamic_magnet", "episode_seconds": 20.0},
-               "pretrain": {"teacher": "fan_lambda", "steps": 1500, "epochs": 30}, **SMALL["ppo"]}
+    section = {
+        "env_kwargs": {"scenario": "dynamic_magnet", "episode_seconds": 20.0},
+        "pretrain": {"teacher": "fan_lambda", "steps": 1500, "epochs": 30},
+        **SMALL["ppo"],
+    }
     cfg = tmp_path / "ppo.yaml"
     cfg.write_text(yaml.safe_dump({ENV: section}))
     out = tmp_path / "bc"
-    train(ENV, "ppo", 1, out, config=cfg, eval_every=10_000, eval_scenarios=("dynamic_magnet",), eval_seeds=(0,),
-          progress_bar=False, make_method=make)
+    train(
+        ENV,
+        "ppo",
+        1,
+        out,
+        config=cfg,
+        eval_every=10_000,
+        eval_scenarios=("dynamic_magnet",),
+        eval_seeds=(0,),
+        progress_bar=False,
+        make_method=make,
+    )
     state = json.loads((out / "state.json").read_text())
     assert state["pretrain_mse"] < 0.05  # actions in [-1, 1]; an untrained actor is off by ~0.3
     agent, teacher = load_agent(out, which="last"), make("fan_lambda")
@@ -111,9 +142,11 @@ def test_pretrain_clones_the_teacher_before_rl(tmp_path):
 def test_pretrain_config_errors(tmp_path):
     from magenv.agents import ConfigError, load_hyperparams
 
-    cases = [({"teacher": "fan_lambda"}, "needs 'teacher' and 'steps'"),
-             ({"teacher": "fan_lambda", "steps": 10, "epoch": 3}, "unknown key"),
-             ({"teacher": "fan_lambda", "steps": -5}, "pretrain: steps must be an integer ≥ 1, got -5")]
+    cases = [
+        ({"teacher": "fan_lambda"}, "needs 'teacher' and 'steps'"),
+        ({"teacher": "fan_lambda", "steps": 10, "epoch": 3}, "unknown key"),
+        ({"teacher": "fan_lambda", "steps": -5}, "pretrain: steps must be an integer ≥ 1, got -5"),
+    ]
     for spec, msg in cases:
         cfg = tmp_path / "ppo.yaml"
         cfg.write_text(yaml.safe_dump({ENV: {"pretrain": spec}}))
@@ -144,8 +177,13 @@ def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path, monkeypatch):
         return evaluate(self)
 
     out = tmp_path / "run"
-    kw = dict(config=small_config(tmp_path, "ppo"), eval_every=128, eval_scenarios=("dynamic_clean",),
-              eval_seeds=(0,), progress_bar=False)
+    kw = dict(
+        config=small_config(tmp_path, "ppo"),
+        eval_every=128,
+        eval_scenarios=("dynamic_clean",),
+        eval_seeds=(0,),
+        progress_bar=False,
+    )
     monkeypatch.setattr(training.HeldOutEvaluation, "evaluate_and_checkpoint", interrupt_at_the_second)
     with pytest.raises(KeyboardInterrupt):
         train(ENV, "ppo", 512, out, **kw)

@@ -22,8 +22,9 @@ def test_one_world_names_its_scenarios_and_checks_trials():
     assert trial_source("constraint_random", world="twolink") == ("scenario", ["constraint_random"])
     known = ", ".join(scenarios.scenario_names("twolink"))
     for bad in ("random", "recording:a.hdf5"):
-        with pytest.raises(ValueError, match=f"unknown two-link scenario\\(s\\) '{bad}'; known two-link scenarios: "
-                                             f"{known} "):
+        with pytest.raises(
+            ValueError, match=f"unknown two-link scenario\\(s\\) '{bad}'; known two-link scenarios: {known} "
+        ):
             trial_source(bad, world="twolink")
     with pytest.raises(MissingChannelsError, match="gyr_j"):
         trial_source([kinematic_trial()], world="twolink", require=require_two_link)

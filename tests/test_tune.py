@@ -5,9 +5,9 @@ import json
 import pytest
 
 from magenv import registry
+from magenv.baselines.tuning import _to_params, _to_unit, tune_rule
 from magenv.scenarios import make_trial
 from magenv.train.cli import main as cli
-from magenv.baselines.tuning import _to_params, _to_unit, tune_rule
 
 
 def test_unit_mapping_round_trips_linear_and_log_bounds():

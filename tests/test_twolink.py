@@ -58,14 +58,18 @@ def test_joint_centre_geometry():
     np.testing.assert_allclose(run.p_i + quat.rotate(run.q_i, np.broadcast_to(r_i, run.p_i.shape)), run.p_c, atol=1e-9)
     np.testing.assert_allclose(run.p_j + quat.rotate(run.q_j, np.broadcast_to(r_j, run.p_j.shape)), run.p_c, atol=1e-9)
     # at rest (before the envelope rises) the accelerometers read +g up in the world
-    np.testing.assert_allclose(quat.rotate(run.q_i[:20], run.acc_i[:20]), np.tile(quat.gravity_up(), (20, 1)), atol=1e-3)
+    np.testing.assert_allclose(
+        quat.rotate(run.q_i[:20], run.acc_i[:20]), np.tile(quat.gravity_up(), (20, 1)), atol=1e-3
+    )
 
 
 def test_paper_gyro_bias_is_added():
     kw = dict(duration=5.0, gyr_noise_dps=0.0, gyr_drift_dps=0.0)
     with_bias = make_trial("constraint_test1", 0, **kw)
     without = make_trial("constraint_test1", 0, gyro_bias=(0.0, 0.0, 0.0), **kw)
-    np.testing.assert_allclose(with_bias.gyr - without.gyr, np.tile(twolink.PAPER_GYRO_BIAS, (with_bias.n, 1)), atol=1e-15)
+    np.testing.assert_allclose(
+        with_bias.gyr - without.gyr, np.tile(twolink.PAPER_GYRO_BIAS, (with_bias.n, 1)), atol=1e-15
+    )
     np.testing.assert_array_equal(with_bias.extra["gyr_j"], without.extra["gyr_j"])  # only link i's gyro
 
 
@@ -83,8 +87,10 @@ def test_same_name_and_seed_same_trial():
     assert not np.array_equal(a.gyr, c.gyr)
 
 
-@pytest.mark.parametrize("name,target,n_dist,dist_s", [
-    ("constraint_test1", 0.9, 5, 15.0), ("constraint_test2", 2.0, 5, 15.0), ("constraint_test3", 1.9, 1, 30.0)])
+@pytest.mark.parametrize(
+    "name,target,n_dist,dist_s",
+    [("constraint_test1", 0.9, 5, 15.0), ("constraint_test2", 2.0, 5, 15.0), ("constraint_test3", 1.9, 1, 30.0)],
+)
 def test_table1_conditions(name, target, n_dist, dist_s):
     """Mean external acceleration and the tool's approaches after the paper's Table 1."""
     tr = make_trial(name, 0)
@@ -104,7 +110,7 @@ def test_table1_conditions(name, target, n_dist, dist_s):
 
 def test_random_family_varies_and_has_still_stretches():
     trials = [make_trial("constraint_random", s, duration=40.0) for s in range(4)]
-    still = [t.truth["stationary"][int(5 * t.rate):].mean() for t in trials]  # after the start rest
+    still = [t.truth["stationary"][int(5 * t.rate) :].mean() for t in trials]  # after the start rest
     assert max(still) > 0.05
     assert len({round(t.meta["mean_ext_acc"], 3) for t in trials}) == 4
     assert len({t.field_dip for t in trials}) == 4

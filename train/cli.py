@@ -30,8 +30,10 @@ class CommandError(Exception):
 #: Exit statuses: 0 all done; 1 done, but some cell of a table is n/a (the reasons are printed);
 #: 2 a bad command line, file or config (nothing run; the message names it); 130 interrupted.
 PARTIAL = 1
-TRUST_PICKLE_HELP = ("also load agents from SB3 .zip files, which carry pickles that can run code: only for run "
-                     "folders whose author you trust (default: weights-only files)")
+TRUST_PICKLE_HELP = (
+    "also load agents from SB3 .zip files, which carry pickles that can run code: only for run "
+    "folders whose author you trust (default: weights-only files)"
+)
 
 
 def rule_arg(rule):

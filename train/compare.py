@@ -30,16 +30,32 @@ DEFAULT_METHODS = "mimu,imu,fan_lambda,threshold"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", default=None,
-                   help="scenario name(s), comma list (default dynamic_magnet unless --recordings is given)")
-    p.add_argument("--seeds", type=seeds_arg, default="0:10",
-                   help="trial seeds: START:STOP, comma list or one (default %(default)s)")
+    p.add_argument(
+        "--scenario",
+        default=None,
+        help="scenario name(s), comma list (default dynamic_magnet unless --recordings is given)",
+    )
+    p.add_argument(
+        "--seeds",
+        type=seeds_arg,
+        default="0:10",
+        help="trial seeds: START:STOP, comma list or one (default %(default)s)",
+    )
     p.add_argument("--methods", default=DEFAULT_METHODS, help="comma list of methods (default %(default)s)")
-    p.add_argument("--agent", action="append", default=[], metavar="RUN_DIR",
-                   help="add a trained agent from its run folder (repeatable; also as method agent:RUN_DIR)")
+    p.add_argument(
+        "--agent",
+        action="append",
+        default=[],
+        metavar="RUN_DIR",
+        help="add a trained agent from its run folder (repeatable; also as method agent:RUN_DIR)",
+    )
     p.add_argument("--recordings", nargs="+", default=[], metavar="FILE", help="real recordings to add")
-    p.add_argument("--every", type=rule_arg(POSITIVE_INT), default=None,
-                   help="decision interval k (samples) for policies (default: the env's, 8)")
+    p.add_argument(
+        "--every",
+        type=rule_arg(POSITIVE_INT),
+        default=None,
+        help="decision interval k (samples) for policies (default: the env's, 8)",
+    )
     p.add_argument("--no-hold", action="store_true", help="turn the stationary hold off for MagBlend-v0 policies")
     p.add_argument("--csv", default=None, metavar="FILE", help="write the table as CSV")
     p.add_argument("--plot", default=None, metavar="FILE", help="PNG of error and λ over time, first trial")
@@ -108,16 +124,24 @@ def failure_notes(rows: list[dict]) -> list[str]:
     return [f"n/a: {r['method']} on {r['scenario']}: {r['error']}" for r in rows if "error" in r]
 
 
-def run_comparison(methods: dict, trials: list, labels: list[str], env_kwargs: dict | None = None,
-                   progress: bool = True, console=None) -> list:
+def run_comparison(
+    methods: dict, trials: list, labels: list[str], env_kwargs: dict | None = None, progress: bool = True, console=None
+) -> list:
     """Every method on every trial with a progress bar, going on past a method that fails on a trial
     (``magenv.evaluation.evaluate(keep_going=True)``); returns ``magenv.evaluation.Run`` objects."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from magenv import evaluation
 
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, disable=not progress, transient=True) as bar:
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        disable=not progress,
+        transient=True,
+    ) as bar:
         task = bar.add_task("running methods", total=len(trials) * len(methods))
 
         def tick(method, trial):
@@ -133,12 +157,24 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
 
     console = console or Console(width=None if sys.stdout.isatty() else 120)  # no squeezed columns in logs
     table = Table(title=title)
-    for col, justify in (("method", "left"), ("scenario", "left"), ("n", "right"), ("total", "right"),
-                         ("± std", "right"), ("heading", "right"), ("inclination", "right")):
+    for col, justify in (
+        ("method", "left"),
+        ("scenario", "left"),
+        ("n", "right"),
+        ("total", "right"),
+        ("± std", "right"),
+        ("heading", "right"),
+        ("inclination", "right"),
+    ):
         table.add_column(col, justify=justify, no_wrap=True)
     for r in table_order(rows):
-        cells = ["n/a"] * 4 if "error" in r else [_fmt(r[c]) for c in (
-            "total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")]
+        cells = (
+            ["n/a"] * 4
+            if "error" in r
+            else [
+                _fmt(r[c]) for c in ("total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")
+            ]
+        )
         table.add_row(r["method"], r["scenario"], str(r["n"]), *cells)
     console.print(table)
 
@@ -158,11 +194,11 @@ def finish(rows: list[dict], title: str, csv_path: str | None) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from magenv import registry
-    from magenv import evaluation
+    from magenv import evaluation, registry
 
-    methods = select_methods(args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent],
-                             args.trust_pickle)
+    methods = select_methods(
+        args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent], args.trust_pickle
+    )
     env_kwargs = {}
     if args.every is not None:
         env_kwargs["decision_every"] = args.every

@@ -25,7 +25,9 @@ RULES = ["mimu", "imu", "fan_lambda", "fan_lambda_tuned", "threshold", "threshol
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--steps", type=rule_arg(POSITIVE_INT), default=150_000, help="PPO training steps (default %(default)s)")
+    p.add_argument(
+        "--steps", type=rule_arg(POSITIVE_INT), default=150_000, help="PPO training steps (default %(default)s)"
+    )
     p.add_argument("--out", type=Path, default=Path("runs/demo"), help="run folder (default %(default)s)")
     p.add_argument("--seeds", type=seeds_arg, default="0:5", help="held-out seeds per scenario (default %(default)s)")
     p.add_argument("--csv", default="results/demo.csv", help="CSV of the table (default %(default)s)")
@@ -33,17 +35,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from magenv import evaluation, registry
     from magenv.agents.hyperparams import ConfigError
     from magenv.agents.loading import RunError
-    from magenv import registry
-    from magenv import evaluation
-    from magenv.train.compare import finish, make_trials, run_comparison, select_methods
     from magenv.agents.training import train
+    from magenv.train.compare import finish, make_trials, run_comparison, select_methods
 
     print(f"[1/2] training PPO on {ENV_ID} for {args.steps} steps -> {args.out}")
     try:
-        train(ENV_ID, "ppo", args.steps, args.out, eval_every=max(args.steps // 6, 2048),
-              progress_bar=not args.no_progress, make_method=registry.make)
+        train(
+            ENV_ID,
+            "ppo",
+            args.steps,
+            args.out,
+            eval_every=max(args.steps // 6, 2048),
+            progress_bar=not args.no_progress,
+            make_method=registry.make,
+        )
     except (ConfigError, RunError) as exc:
         raise CommandError(str(exc)) from None
     available = set(registry.names())

@@ -19,7 +19,9 @@ from magenv.train.seeds import seeds_arg
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", help="run folder written by `magenv train`")
-    p.add_argument("--scenario", default=None, help="comma list (default dynamic_magnet,dynamic_clean unless --recordings)")
+    p.add_argument(
+        "--scenario", default=None, help="comma list (default dynamic_magnet,dynamic_clean unless --recordings)"
+    )
     p.add_argument("--seeds", type=seeds_arg, default="0:10", help="held-out trial seeds (default %(default)s)")
     p.add_argument("--recordings", nargs="+", default=[], metavar="FILE")
     p.add_argument("--which", choices=("best", "last"), default="best", help="which saved model (default %(default)s)")
@@ -35,8 +37,8 @@ def describe_loaded(agent, asked: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from magenv.agents.loading import RunError, load_agent
     from magenv import evaluation
+    from magenv.agents.loading import RunError, load_agent
     from magenv.train.compare import finish, make_trials, run_comparison
 
     try:
@@ -44,7 +46,9 @@ def run(args: argparse.Namespace) -> int:
     except RunError as exc:
         raise CommandError(str(exc)) from None
     print(describe_loaded(agent, args.which))
-    scenarios = args.scenario if args.scenario is not None else ("" if args.recordings else "dynamic_magnet,dynamic_clean")
+    scenarios = (
+        args.scenario if args.scenario is not None else ("" if args.recordings else "dynamic_magnet,dynamic_clean")
+    )
     trials, labels = make_trials(scenarios, args.seeds, args.recordings)
     rows = evaluation.summarize(run_comparison({agent.name: agent}, trials, labels, progress=not args.no_progress))
     return finish(rows, f"{agent.name} ({agent.which} model): orientation RMSE (°)", args.csv)

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 DEFAULT_METHODS = "mimu,imu,fan_lambda,fan_lambda_tuned,threshold,threshold_tuned"
 
 
@@ -67,10 +66,14 @@ def _plot_bars(rows: list[dict], path: Path) -> Path:
     width = 0.8 / len(methods)
     fig, ax = plt.subplots(figsize=(max(6, 1.8 * len(scenarios)), 4))
     for j, m in enumerate(methods):
-        vals = [next((r["total_rmse_mean"] for r in rows if r["method"] == m and r["scenario"] == s), np.nan)
-                for s in scenarios]
-        errs = [next((r["total_rmse_std"] for r in rows if r["method"] == m and r["scenario"] == s), np.nan)
-                for s in scenarios]
+        vals = [
+            next((r["total_rmse_mean"] for r in rows if r["method"] == m and r["scenario"] == s), np.nan)
+            for s in scenarios
+        ]
+        errs = [
+            next((r["total_rmse_std"] for r in rows if r["method"] == m and r["scenario"] == s), np.nan)
+            for s in scenarios
+        ]
         ax.bar(np.arange(len(scenarios)) + j * width, vals, width, yerr=np.nan_to_num(errs), label=m, capsize=2)
     ax.set_xticks(np.arange(len(scenarios)) + 0.4 - width / 2, scenarios, rotation=15)
     ax.set_ylabel("total RMSE (°)")
@@ -87,10 +90,18 @@ def markdown_table(rows: list[dict]) -> str:
     from magenv.train.compare import failure_notes, table_order
 
     fmt = lambda x: "–" if isinstance(x, float) and math.isnan(x) else f"{x:.2f}"
-    lines = ["| scenario | method | n | total RMSE (°) | ± std | heading | inclination |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| scenario | method | n | total RMSE (°) | ± std | heading | inclination |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in table_order(rows):
-        cells = ["n/a"] * 4 if "error" in r else [fmt(r[c]) for c in (
-            "total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")]
+        cells = (
+            ["n/a"] * 4
+            if "error" in r
+            else [
+                fmt(r[c]) for c in ("total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")
+            ]
+        )
         lines.append(f"| {r['scenario']} | {r['method']} | {r['n']} | " + " | ".join(cells) + " |")
     notes = failure_notes(rows)
     return "\n".join(lines + ([""] + [f"* {n}" for n in notes] if notes else []))
@@ -103,9 +114,17 @@ def write_report(runs: list, out: Path, title: str = "magenv comparison report")
     out.mkdir(parents=True, exist_ok=True)
     rows = evaluation.summarize(runs)
     evaluation.write_csv(rows, out / "comparison.csv")
-    parts = [f"# {title}", "", "Orientation RMSE in degrees over each trial's score mask, mean over trials "
-             "(`magenv.metrics`). Trust is the magnetometer weight each method used (1 − λ for blend policies).", "",
-             markdown_table(rows), "", f"![RMSE per scenario]({_plot_bars(rows, out / 'rmse_bars.png').name})", ""]
+    parts = [
+        f"# {title}",
+        "",
+        "Orientation RMSE in degrees over each trial's score mask, mean over trials "
+        "(`magenv.metrics`). Trust is the magnetometer weight each method used (1 − λ for blend policies).",
+        "",
+        markdown_table(rows),
+        "",
+        f"![RMSE per scenario]({_plot_bars(rows, out / 'rmse_bars.png').name})",
+        "",
+    ]
     for label in dict.fromkeys(r.label for r in runs):
         first = [r for r in runs if r.label == label]
         first = [r for r in first if r.trial is first[0].trial]
@@ -130,13 +149,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from magenv import registry
+    from magenv import evaluation, registry
     from magenv.train.cli import PARTIAL
     from magenv.train.compare import failure_notes, make_trials, run_comparison, select_methods
-    from magenv import evaluation
 
-    methods = select_methods(args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent],
-                             args.trust_pickle)
+    methods = select_methods(
+        args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent], args.trust_pickle
+    )
     trials, labels = make_trials(args.scenario, args.seeds, args.recordings)
     runs = run_comparison(methods, trials, labels)
     print(f"wrote {write_report(runs, args.out)}")

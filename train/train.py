@@ -19,8 +19,15 @@ from pathlib import Path
 
 import gymnasium as gym
 
-from magenv.agents.hyperparams import (DEFAULT_EVAL_EVERY, DEFAULT_EVAL_SCENARIOS, DEFAULT_EVAL_SEEDS, DEFAULT_SEED,
-                                       POSITIVE_INT, RUN_RULES, SEED_RULE)
+from magenv.agents.hyperparams import (
+    DEFAULT_EVAL_EVERY,
+    DEFAULT_EVAL_SCENARIOS,
+    DEFAULT_EVAL_SEEDS,
+    DEFAULT_SEED,
+    POSITIVE_INT,
+    RUN_RULES,
+    SEED_RULE,
+)
 from magenv.envs import BLEND_ID
 from magenv.train.cli import CommandError, rule_arg
 from magenv.train.seeds import seeds_arg
@@ -30,27 +37,59 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     seeds = f"{DEFAULT_EVAL_SEEDS[0]}:{DEFAULT_EVAL_SEEDS[-1] + 1}"
     p.add_argument("--env", default=BLEND_ID, help="environment id (default %(default)s)")
     p.add_argument("--algo", default="ppo", help="ppo, sac or recurrent_ppo (default %(default)s)")
-    p.add_argument("--steps", type=rule_arg(RUN_RULES["n_timesteps"]), default=None,
-                   help="total environment steps (default: the config's n_timesteps, or the run's when resuming)")
+    p.add_argument(
+        "--steps",
+        type=rule_arg(RUN_RULES["n_timesteps"]),
+        default=None,
+        help="total environment steps (default: the config's n_timesteps, or the run's when resuming)",
+    )
     p.add_argument("--out", required=True, type=Path, help="run folder (created, or resumed if it exists)")
-    p.add_argument("--config", default=None,
-                   help="YAML hyperparameter file (default agents/configs/ALGO.yaml, or the run's when resuming)")
-    p.add_argument("--seed", type=rule_arg(SEED_RULE), default=None,
-                   help=f"training seed (default {DEFAULT_SEED}, or the run's when resuming)")
-    p.add_argument("--n-envs", type=rule_arg(RUN_RULES["n_envs"]), default=None,
-                   help="parallel environments (default: the config's)")
-    p.add_argument("--eval-every", type=rule_arg(POSITIVE_INT), default=DEFAULT_EVAL_EVERY,
-                   help="steps between held-out evaluations and checkpoints (default %(default)s)")
-    p.add_argument("--eval-scenarios", default=None,
-                   help=f"comma list (default {','.join(DEFAULT_EVAL_SCENARIOS)}, or the run's when resuming)")
-    p.add_argument("--eval-seeds", type=seeds_arg, default=None,
-                   help=f"held-out validation seeds for model selection, e.g. 5000:5004 (default {seeds}, "
-                        "or the run's when resuming)")
-    p.add_argument("--force", action="store_true",
-                   help="resume even with a config, seed or evaluation set other than the run's (they replace it)")
-    p.add_argument("--trust-pickle", action="store_true",
-                   help="resume an older run folder from its pickle files (.zip, .pkl), which can run code: "
-                        "only for folders whose author you trust")
+    p.add_argument(
+        "--config",
+        default=None,
+        help="YAML hyperparameter file (default agents/configs/ALGO.yaml, or the run's when resuming)",
+    )
+    p.add_argument(
+        "--seed",
+        type=rule_arg(SEED_RULE),
+        default=None,
+        help=f"training seed (default {DEFAULT_SEED}, or the run's when resuming)",
+    )
+    p.add_argument(
+        "--n-envs",
+        type=rule_arg(RUN_RULES["n_envs"]),
+        default=None,
+        help="parallel environments (default: the config's)",
+    )
+    p.add_argument(
+        "--eval-every",
+        type=rule_arg(POSITIVE_INT),
+        default=DEFAULT_EVAL_EVERY,
+        help="steps between held-out evaluations and checkpoints (default %(default)s)",
+    )
+    p.add_argument(
+        "--eval-scenarios",
+        default=None,
+        help=f"comma list (default {','.join(DEFAULT_EVAL_SCENARIOS)}, or the run's when resuming)",
+    )
+    p.add_argument(
+        "--eval-seeds",
+        type=seeds_arg,
+        default=None,
+        help=f"held-out validation seeds for model selection, e.g. 5000:5004 (default {seeds}, "
+        "or the run's when resuming)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="resume even with a config, seed or evaluation set other than the run's (they replace it)",
+    )
+    p.add_argument(
+        "--trust-pickle",
+        action="store_true",
+        help="resume an older run folder from its pickle files (.zip, .pkl), which can run code: "
+        "only for folders whose author you trust",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -65,15 +104,31 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"unknown env {args.env!r}; magenv envs: {known}")
     scenarios = None if args.eval_scenarios is None else tuple(args.eval_scenarios.split(","))
     try:
-        out = train(args.env, args.algo, args.steps, args.out, args.config, args.seed, args.eval_every,
-                    scenarios, args.eval_seeds, args.n_envs, not args.no_progress, make_method=registry.make,
-                    force=args.force, trust_pickle=args.trust_pickle)
+        out = train(
+            args.env,
+            args.algo,
+            args.steps,
+            args.out,
+            args.config,
+            args.seed,
+            args.eval_every,
+            scenarios,
+            args.eval_seeds,
+            args.n_envs,
+            not args.no_progress,
+            make_method=registry.make,
+            force=args.force,
+            trust_pickle=args.trust_pickle,
+        )
     except (ConfigError, RunError, ValueError) as exc:
         raise CommandError(str(exc)) from None
     except KeyboardInterrupt:
         return 130
     state = json.loads((out / STATE_FILE).read_text())
-    best = "none yet" if state.get("best_timesteps") is None else (
-        f"{state['best_score']:.3f}° at {state['best_timesteps']:,} steps -> {out / WEIGHTS['best']}")
+    best = (
+        "none yet"
+        if state.get("best_timesteps") is None
+        else (f"{state['best_score']:.3f}° at {state['best_timesteps']:,} steps -> {out / WEIGHTS['best']}")
+    )
     print(f"trained {state['timesteps']:,} steps; best held-out total RMSE {best}")
     return 0

@@ -27,13 +27,21 @@ from magenv.train.seeds import seeds_arg
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rule", required=True, help="rule to tune (e.g. fan_lambda, threshold)")
     p.add_argument("--scenarios", default=TRAINING_MIX, help="comma list of training scenarios (default %(default)s)")
-    p.add_argument("--seeds", type=seeds_arg, default=f"{TRAIN_SEED_START}:{TRAIN_SEED_START + 12}",
-                   help=f"training trial seeds, all >= {TRAIN_SEED_START} (default %(default)s)")
+    p.add_argument(
+        "--seeds",
+        type=seeds_arg,
+        default=f"{TRAIN_SEED_START}:{TRAIN_SEED_START + 12}",
+        help=f"training trial seeds, all >= {TRAIN_SEED_START} (default %(default)s)",
+    )
     p.add_argument("--iterations", type=rule_arg(POSITIVE_INT), default=30, help="CMA-ES generations")
     p.add_argument("--popsize", type=rule_arg(integer(2)), default=8, help="CMA-ES population (default %(default)s)")
     p.add_argument("--seed", type=rule_arg(SEED_RULE), default=0)
-    p.add_argument("--out", type=Path, default=None,
-                   help="folder for RULE.json (default: the user's data directory, see magenv.registry)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="folder for RULE.json (default: the user's data directory, see magenv.registry)",
+    )
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -55,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{args.rule}.json"
     path.write_text(json.dumps(record, indent=2) + "\n")
-    print(f"{args.rule}: published {record['published_objective_deg']:.3f}° -> tuned {record['objective_deg']:.3f}° "
-          f"on {len(trials)} training trials; params {record['params']} -> {path}")
+    print(
+        f"{args.rule}: published {record['published_objective_deg']:.3f}° -> tuned {record['objective_deg']:.3f}° "
+        f"on {len(trials)} training trials; params {record['params']} -> {path}"
+    )
     return 0

@@ -15,7 +15,8 @@ reproduced exactly with one decision per sample. The env calls it once per step
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -33,24 +34,44 @@ NORM_RATE_SCALE = 10.0  # 1/s: the relative field-norm rate in units of 10 /s
 WINDOW = "the window"  # samples fused in the last step plus sample j
 
 FEATURES = FeatureTable(
-    Feature("norm_dev", -1.0, 10.0, "fraction of m0",
-            "field-norm deviation (‖m_j‖ − m0)/m0 (its absolute value is eq. 15's λ1)"),
-    Feature("dip_dev", -2.0, 2.0, f"units of {DIP_SCALE_DEG:g}°",
-            "dip deviation (θ_dip − θ0), θ_dip by eq. 18 with q_{j−1}"),
+    Feature(
+        "norm_dev",
+        -1.0,
+        10.0,
+        "fraction of m0",
+        "field-norm deviation (‖m_j‖ − m0)/m0 (its absolute value is eq. 15's λ1)",
+    ),
+    Feature(
+        "dip_dev", -2.0, 2.0, f"units of {DIP_SCALE_DEG:g}°", "dip deviation (θ_dip − θ0), θ_dip by eq. 18 with q_{j−1}"
+    ),
     Feature("gyro_norm", 0.0, 10.0, "units of 2π rad/s", "‖ω_j‖"),
     Feature("acc_dev", -1.0, 10.0, "fraction of g", "accelerometer-norm deviation (‖a_j‖ − g)/g"),
     Feature("stationary", 0.0, 1.0, "0/1", "sample j stationary by eqs. 11–13"),
-    Feature("cand_angle", 0.0, 2.0, "units of 4·β·Δt rad",
-            "mean angle between the IMU and MIMU candidate updates over the samples fused in the last step"),
+    Feature(
+        "cand_angle",
+        0.0,
+        2.0,
+        "units of 4·β·Δt rad",
+        "mean angle between the IMU and MIMU candidate updates over the samples fused in the last step",
+    ),
     Feature("lambda_prev", 0.0, 1.0, "–", "λ applied in the last step (0 after reset)"),
     Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
     Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
-    Feature("dip_dev_max", 0.0, 2.0, f"units of {DIP_SCALE_DEG:g}°",
-            f"max of the absolute dip_dev over {WINDOW} (each with its own prior estimate)"),
-    Feature("norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s",
-            f"rate of change of ‖m‖/m0 over {WINDOW}"),
-    Feature("mag_heading", -1.0, 1.0, "units of 180°",
-            "heading of the measured horizontal field in the estimated earth frame (0 = north, + = east)"),
+    Feature(
+        "dip_dev_max",
+        0.0,
+        2.0,
+        f"units of {DIP_SCALE_DEG:g}°",
+        f"max of the absolute dip_dev over {WINDOW} (each with its own prior estimate)",
+    ),
+    Feature("norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s", f"rate of change of ‖m‖/m0 over {WINDOW}"),
+    Feature(
+        "mag_heading",
+        -1.0,
+        1.0,
+        "units of 180°",
+        "heading of the measured horizontal field in the estimated earth frame (0 = north, + = east)",
+    ),
     Feature("stationary_frac", 0.0, 1.0, "–", f"fraction of {WINDOW} detected stationary"),
 )
 F = FEATURES.ix  # named kernel indices
@@ -77,8 +98,15 @@ class Outputs(NamedTuple):
 
     @classmethod
     def empty(cls, n: int) -> Outputs:
-        return cls(np.full((n, 4), np.nan), np.full(n, np.nan), np.zeros(n), np.zeros(n), np.zeros(n, np.bool_),
-                   np.zeros(N_ERR), np.zeros(len(FEATURES)))
+        return cls(
+            np.full((n, 4), np.nan),
+            np.full(n, np.nan),
+            np.zeros(n),
+            np.zeros(n),
+            np.zeros(n, np.bool_),
+            np.zeros(N_ERR),
+            np.zeros(len(FEATURES)),
+        )
 
 
 @njit(cache=True, inline="always")
@@ -193,8 +221,16 @@ class BlendRunner(TrialRunner):
         q0: initial orientation; None = ``ecompass1`` of the first sample (never truth).
     """
 
-    def __init__(self, trial: Trial, beta: float = BETA_DEFAULT, hold: bool = True, t0: float = stationary.T0_S,
-                 th_acc_g: float = stationary.TH_ACC_G, th_gyro_dps: float = stationary.TH_GYRO_DPS, q0=None):
+    def __init__(
+        self,
+        trial: Trial,
+        beta: float = BETA_DEFAULT,
+        hold: bool = True,
+        t0: float = stationary.T0_S,
+        th_acc_g: float = stationary.TH_ACC_G,
+        th_gyro_dps: float = stationary.TH_GYRO_DPS,
+        q0=None,
+    ):
         super().__init__(trial)
         self.params = blend.make_params(trial.dt, beta, hold, th_acc_g, th_gyro_dps)
         self.site = Site(trial.field_norm, trial.field_dip)
@@ -219,7 +255,7 @@ class BlendRunner(TrialRunner):
             raise ValueError(f"λ array must have shape ({self.n},), got {lam.shape}")
         if not np.all((lam >= 0) & (lam <= 1)):
             raise ValueError("λ array must lie in [0, 1]")
-        self.lam[self.pos:] = lam[self.pos:]
+        self.lam[self.pos :] = lam[self.pos :]
         self.advance(self.n - self.pos, -1.0)  # λ < 0: the kernel reads the λ history
         return self.est
 
@@ -326,16 +362,41 @@ class MagBlendEnv(TrustEnv):
 
     env_name = BLEND_ID.split("/")[1]
 
-    def __init__(self, scenario="random", decision_every: int = 8, episode_seconds: float | None = None,
-                 stationary_hold: bool = True, features: Sequence[str] | None = None,
-                 beta: float = BETA_DEFAULT, t0: float = stationary.T0_S, th_acc_g: float = stationary.TH_ACC_G,
-                 th_gyro_dps: float = stationary.TH_GYRO_DPS, scenario_kwargs: dict | None = None,
-                 prefetch: bool = False, render_mode: str | None = None):
-        self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    FEATURES.names, FEATURES.low, FEATURES.high, prefetch=prefetch)
+    def __init__(
+        self,
+        scenario="random",
+        decision_every: int = 8,
+        episode_seconds: float | None = None,
+        stationary_hold: bool = True,
+        features: Sequence[str] | None = None,
+        beta: float = BETA_DEFAULT,
+        t0: float = stationary.T0_S,
+        th_acc_g: float = stationary.TH_ACC_G,
+        th_gyro_dps: float = stationary.TH_GYRO_DPS,
+        scenario_kwargs: dict | None = None,
+        prefetch: bool = False,
+        render_mode: str | None = None,
+    ):
+        self._setup(
+            scenario,
+            decision_every,
+            episode_seconds,
+            render_mode,
+            scenario_kwargs,
+            features,
+            FEATURES.names,
+            FEATURES.low,
+            FEATURES.high,
+            prefetch=prefetch,
+        )
         self.stationary_hold = bool(stationary_hold)
-        self.filter_kwargs = dict(beta=float(beta), hold=self.stationary_hold, t0=float(t0),
-                                  th_acc_g=float(th_acc_g), th_gyro_dps=float(th_gyro_dps))
+        self.filter_kwargs = dict(
+            beta=float(beta),
+            hold=self.stationary_hold,
+            t0=float(t0),
+            th_acc_g=float(th_acc_g),
+            th_gyro_dps=float(th_gyro_dps),
+        )
 
     def _make_runner(self, trial: Trial) -> BlendRunner:
         return BlendRunner(trial, **self.filter_kwargs)

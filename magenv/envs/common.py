@@ -20,7 +20,8 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, NamedTuple, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numba
@@ -34,8 +35,7 @@ from magenv.trial import Trial
 RECORDING_PREFIX = "recording:"
 
 
-def trial_source(scenario, world: str | None = None,
-                 require: Callable[[Trial], None] | None = None) -> tuple[str, Any]:
+def trial_source(scenario, world: str | None = None, require: Callable[[Trial], None] | None = None) -> tuple[str, Any]:
     """Classify the ``scenario`` argument: ("trials", [Trial…]), ("recording", path) or ("scenario", [names]).
 
     A comma list of scenario names is a mixture: each reset picks one at random. ``world`` (a key of
@@ -54,20 +54,23 @@ def trial_source(scenario, world: str | None = None,
         what = "a scenario name, 'recording:PATH'" if world is None else f"a scenario name of the {world!r} world"
         raise TypeError(f"scenario must be {what}, a Trial or a list of Trials, got {type(scenario).__name__}")
     if world is None and scenario.startswith(RECORDING_PREFIX):
-        return "recording", scenario[len(RECORDING_PREFIX):]
+        return "recording", scenario[len(RECORDING_PREFIX) :]
     try:
         from magenv import scenarios
     except ImportError as exc:  # the simulator module is missing
-        raise RuntimeError(f"scenario {scenario!r} needs magenv.scenarios, which cannot be imported ({exc}); "
-                           "pass a list of Trials or 'recording:PATH' instead") from None
+        raise RuntimeError(
+            f"scenario {scenario!r} needs magenv.scenarios, which cannot be imported ({exc}); "
+            "pass a list of Trials or 'recording:PATH' instead"
+        ) from None
     known = scenarios.scenario_names(world)
     names = [s.strip() for s in scenario.split(",")]
     bad = [n for n in names if n not in known]
     if bad:
         kind = "" if world is None else f"{scenarios.WORLDS[world].label} "
         only = "" if world is None else f" (this env takes only {kind}trials)"
-        raise ValueError(f"unknown {kind}scenario(s) {', '.join(map(repr, bad))}; "
-                         f"known {kind}scenarios: {', '.join(known)}{only}")
+        raise ValueError(
+            f"unknown {kind}scenario(s) {', '.join(map(repr, bad))}; known {kind}scenarios: {', '.join(known)}{only}"
+        )
     return "scenario", names
 
 
@@ -93,8 +96,14 @@ class TrialSource:
     reseeded, the guess misses and the trial is made on the spot.
     """
 
-    def __init__(self, scenario, scenario_kwargs: dict | None = None, prefetch: bool = False,
-                 world: str | None = None, require: Callable[[Trial], None] | None = None):
+    def __init__(
+        self,
+        scenario,
+        scenario_kwargs: dict | None = None,
+        prefetch: bool = False,
+        world: str | None = None,
+        require: Callable[[Trial], None] | None = None,
+    ):
         self.kind, self.source = trial_source(scenario, world, require)
         self.label = scenario if isinstance(scenario, str) else "trials"
         self.scenario_kwargs = dict(scenario_kwargs or {})
@@ -182,8 +191,9 @@ def check_env_args(env_name: str, decision_every, episode_seconds, render_mode) 
     return int(decision_every)
 
 
-def select_features(features: Sequence[str] | None, names: tuple[str, ...], low: np.ndarray,
-                    high: np.ndarray) -> tuple[tuple[str, ...], np.ndarray, bool, gym.spaces.Box]:
+def select_features(
+    features: Sequence[str] | None, names: tuple[str, ...], low: np.ndarray, high: np.ndarray
+) -> tuple[tuple[str, ...], np.ndarray, bool, gym.spaces.Box]:
     """The ``features`` option: (chosen names, their indices, all-in-order?, observation Box)."""
     chosen = names if features is None else tuple(features)
     unknown = [f for f in chosen if f not in names]
@@ -314,10 +324,22 @@ class TrustEnv(gym.Env):
     metadata = {"render_modes": []}
     env_name = "TrustEnv"  # registered id without the namespace, for messages
 
-    def _setup(self, scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-               names: tuple[str, ...], low: np.ndarray, high: np.ndarray, action_dim: int = 1,
-               prefetch: bool = False, world: str | None = None,
-               require: Callable[[Trial], None] | None = None) -> None:
+    def _setup(
+        self,
+        scenario,
+        decision_every,
+        episode_seconds,
+        render_mode,
+        scenario_kwargs,
+        features,
+        names: tuple[str, ...],
+        low: np.ndarray,
+        high: np.ndarray,
+        action_dim: int = 1,
+        prefetch: bool = False,
+        world: str | None = None,
+        require: Callable[[Trial], None] | None = None,
+    ) -> None:
         """Check the common arguments; set ``k_steps``, ``trials`` (a :class:`TrialSource`), ``scenario``,
         ``features``, the spaces."""
         self.k_steps = check_env_args(self.env_name, decision_every, episode_seconds, render_mode)
@@ -347,8 +369,14 @@ class TrustEnv(gym.Env):
             raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
         self.trial = cut_trial(trial, self.episode_seconds)
         self._runner = self._make_runner(self.trial)
-        info = {"trial": self.trial.name, "rate": self.trial.rate, "n_samples": self.trial.n,
-                "field_norm": self.trial.field_norm, "field_dip": self.trial.field_dip, "sample": self._runner.pos}
+        info = {
+            "trial": self.trial.name,
+            "rate": self.trial.rate,
+            "n_samples": self.trial.n,
+            "field_norm": self.trial.field_norm,
+            "field_dip": self.trial.field_dip,
+            "sample": self._runner.pos,
+        }
         return self._obs(), info
 
     def _obs(self) -> np.ndarray:
@@ -379,10 +407,16 @@ class TrustEnv(gym.Env):
             reward = 0.0
         last = runner.pos - 1
         info = {
-            "t": last / self.trial.rate, "sample": runner.pos, **action_info,
-            "error_total": total, "error_heading": heading, "error_inclination": incl,
+            "t": last / self.trial.rate,
+            "sample": runner.pos,
+            **action_info,
+            "error_total": total,
+            "error_heading": heading,
+            "error_inclination": incl,
             "disturbance_norm": (err[E_DIST] / runner.last_count) if runner.has_dist else math.nan,
-            "q_est": runner.est[last].copy(), "q_true": runner.q_true[last].copy(), **(extra_info or {}),
+            "q_est": runner.est[last].copy(),
+            "q_true": runner.q_true[last].copy(),
+            **(extra_info or {}),
         }
         return self._obs(), float(reward), False, runner.done, info
 

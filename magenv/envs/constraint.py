@@ -12,7 +12,7 @@ decision per sample reproduces the paper's filter.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from numba import njit
@@ -30,16 +30,17 @@ FEATURES = FeatureTable(
     Feature("mag_dev", 0.0, 10.0, "fraction of m0", "‖C(q)y_M − m_E‖/m0: eq. 16's field deviation"),
     Feature("norm_dev", -1.0, 10.0, "fraction of m0", "(‖y_M‖ − m0)/m0"),
     Feature("dip_dev", -2.0, 2.0, f"units of {DIP_SCALE_DEG:g}°", "dip of C(q)y_M minus the undisturbed dip"),
-    Feature("con_mismatch", 0.0, 10.0, "units of g",
-            "‖C(q)h_i − C(q_j)h_j‖: joint-centre acceleration mismatch (eq. 9)"),
-    Feature("joint_acc", 0.0, 10.0, "units of g",
-            "‖C(q_j)h_j − g·up‖: joint-centre free acceleration seen from link j"),
+    Feature(
+        "con_mismatch", 0.0, 10.0, "units of g", "‖C(q)h_i − C(q_j)h_j‖: joint-centre acceleration mismatch (eq. 9)"
+    ),
+    Feature(
+        "joint_acc", 0.0, 10.0, "units of g", "‖C(q_j)h_j − g·up‖: joint-centre free acceleration seen from link j"
+    ),
     Feature("gyro_norm", 0.0, 10.0, "units of 2π rad/s", "‖ω_i‖ of link i's gyroscope"),
     Feature("acc_dev", -1.0, 10.0, "fraction of g", "(‖y_A‖ − g)/g of link i's accelerometer"),
     Feature("step_mag", 0.0, cf.STEP_ABNORMAL, "quaternion units", "step with w = 0 (gravity + magnetometer)"),
     Feature("step_con", 0.0, cf.STEP_ABNORMAL, "quaternion units", "step with w = 1 (gravity + constraint)"),
-    Feature("con_heading", -1.0, 1.0, "units of 180°",
-            "heading of C(q)h_i minus heading of C(q_j)h_j (about ENU up)"),
+    Feature("con_heading", -1.0, 1.0, "units of 180°", "heading of C(q)h_i minus heading of C(q_j)h_j (about ENU up)"),
     Feature("w_prev", 0.0, 1.0, "–", "w applied in the last step (0 after reset)"),
     Feature("k_prev", 0.0, 1.0, "–", "k applied to the last fused sample (0 after reset)"),
     Feature("mag_dev_mean", 0.0, 10.0, "fraction of m0", f"mean `mag_dev` over {WINDOW}"),
@@ -236,15 +237,37 @@ class MagConstraintEnv(TrustEnv):
 
     env_name = CONSTRAINT_ID.split("/")[1]
 
-    def __init__(self, scenario="constraint_random", decision_every: int = 4, episode_seconds: float | None = None,
-                 control_gain: bool = False, gain_max: float = 1.0, th2: float = cf.TH2, th3: float = cf.TH3,
-                 k_min: float = cf.K_MIN, k_max: float = cf.K_MAX, features: Sequence[str] | None = None,
-                 scenario_kwargs: dict | None = None, render_mode: str | None = None):
+    def __init__(
+        self,
+        scenario="constraint_random",
+        decision_every: int = 4,
+        episode_seconds: float | None = None,
+        control_gain: bool = False,
+        gain_max: float = 1.0,
+        th2: float = cf.TH2,
+        th3: float = cf.TH3,
+        k_min: float = cf.K_MIN,
+        k_max: float = cf.K_MAX,
+        features: Sequence[str] | None = None,
+        scenario_kwargs: dict | None = None,
+        render_mode: str | None = None,
+    ):
         if not (math.isfinite(gain_max) and gain_max > 0):
             raise ValueError(f"gain_max must be a positive number, got {gain_max!r}")
-        self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    FEATURES.names, FEATURES.low, FEATURES.high, 2 if control_gain else 1,
-                    world="twolink", require=cf.require_two_link)
+        self._setup(
+            scenario,
+            decision_every,
+            episode_seconds,
+            render_mode,
+            scenario_kwargs,
+            features,
+            FEATURES.names,
+            FEATURES.low,
+            FEATURES.high,
+            2 if control_gain else 1,
+            world="twolink",
+            require=cf.require_two_link,
+        )
         self.control_gain = bool(control_gain)
         self.gain_max = float(gain_max)
         self.filter_kwargs = dict(th2=float(th2), th3=float(th3), k_min=float(k_min), k_max=float(k_max))
@@ -272,8 +295,9 @@ class MagConstraintEnv(TrustEnv):
         w, k, clipped = self._action(action)
         start = runner.pos
         runner.advance(self.k_steps, (w, k))
-        return self._step_result(runner, {"w": w, "k": float(np.mean(runner.trace.gain[start:runner.pos])),
-                                          "action_clipped": clipped})
+        return self._step_result(
+            runner, {"w": w, "k": float(np.mean(runner.trace.gain[start : runner.pos])), "action_clipped": clipped}
+        )
 
     # ------------------------------------------------------------ evaluation access
 

@@ -22,7 +22,8 @@ samples 0…j only (causal).
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -43,30 +44,54 @@ WINDOW = "the window"  # samples fused in the last step plus sample j
 
 FEATURES = FeatureTable(
     Feature("norm_dev", -1.0, 10.0, "fraction of m0", "field-norm deviation (‖m_j‖ − m0)/m0"),
-    Feature("dip_dev", -2.0, 2.0, f"units of {DIP_SCALE_DEG:g}°",
-            "(θ_j − θ0), θ_j the dip of m_j below the a-priori horizontal"),
+    Feature(
+        "dip_dev",
+        -2.0,
+        2.0,
+        f"units of {DIP_SCALE_DEG:g}°",
+        "(θ_j − θ0), θ_j the dip of m_j below the a-priori horizontal",
+    ),
     Feature("gyro_norm", 0.0, 10.0, "units of 2π rad/s", "‖ω_j‖"),
     Feature("acc_dev", -1.0, 10.0, "fraction of g", "(‖a_j‖ − g)/g"),
-    Feature("innov_norm", 0.0, 10.0, "fraction of m0",
-            "‖ν_m,j‖, ν_m = q̂⁻ ⊗ m_j ⊗ q̂⁻* − h_ENU (a-priori innovation)"),
-    Feature("innov_east", -10.0, 10.0, "m0·cos θ0 (≈ rad)",
-            "east component of ν_m,j (≈ −heading correction of a full update)"),
+    Feature("innov_norm", 0.0, 10.0, "fraction of m0", "‖ν_m,j‖, ν_m = q̂⁻ ⊗ m_j ⊗ q̂⁻* − h_ENU (a-priori innovation)"),
+    Feature(
+        "innov_east",
+        -10.0,
+        10.0,
+        "m0·cos θ0 (≈ rad)",
+        "east component of ν_m,j (≈ −heading correction of a full update)",
+    ),
     Feature("log_nis", 0.0, 10.0, "decades", "log10(1 + ν_mᵀ S⁻¹ ν_m), NIS χ²₃-distributed if consistent"),
     Feature("heading_std", -4.0, 2.0, "decades of 1°", "log10 of the a-priori heading std sqrt(P_zz) at sample j"),
     Feature("trust_prev", 0.0, 1.0, "–", "γ applied in the last step (1 after reset: the TRIAD start uses m fully)"),
     Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
     Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
-    Feature("dip_dev_max", 0.0, 2.0, f"units of {DIP_SCALE_DEG:g}°",
-            f"max of the absolute dip_dev over {WINDOW} (each with its own a-priori estimate)"),
+    Feature(
+        "dip_dev_max",
+        0.0,
+        2.0,
+        f"units of {DIP_SCALE_DEG:g}°",
+        f"max of the absolute dip_dev over {WINDOW} (each with its own a-priori estimate)",
+    ),
     Feature("acc_dev_max", 0.0, 10.0, "fraction of g", f"max of the absolute acc_dev over {WINDOW}"),
     Feature("gyro_norm_mean", 0.0, 10.0, "units of 2π rad/s", f"mean gyro_norm over {WINDOW}"),
     Feature("innov_norm_mean", 0.0, 10.0, "fraction of m0", f"mean innov_norm over {WINDOW}"),
     Feature("log_nis_mean", 0.0, 10.0, "decades", f"log10(1 + mean NIS over {WINDOW})"),
-    Feature("model_dist", 0.0, 10.0, "fraction of m0",
-            "‖d̂_j‖, magnetometer disturbance of the model-based split (survey A.9–A.10, causal)"),
+    Feature(
+        "model_dist",
+        0.0,
+        10.0,
+        "fraction of m0",
+        "‖d̂_j‖, magnetometer disturbance of the model-based split (survey A.9–A.10, causal)",
+    ),
     Feature("model_dist_max", 0.0, 10.0, "fraction of m0", f"max model_dist over {WINDOW}"),
-    Feature("field_ref", 0.0, 20.0, f"units of {FIELD_SCALE_UT:g} µT",
-            "m0, the site's undisturbed field norm (constant per trial; not truth)"),
+    Feature(
+        "field_ref",
+        0.0,
+        20.0,
+        f"units of {FIELD_SCALE_UT:g} µT",
+        "m0, the site's undisturbed field norm (constant per trial; not truth)",
+    ),
 )
 F = FEATURES.ix  # named kernel indices
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
@@ -84,8 +109,14 @@ class Outputs(NamedTuple):
 
     @classmethod
     def empty(cls, n: int) -> Outputs:
-        return cls(np.full((n, 4), np.nan), np.full((n, kt.NSIG), np.nan), np.full(n, np.nan), np.zeros(N_ERR),
-                   np.zeros(len(FEATURES)), np.zeros(kt.NSIG))
+        return cls(
+            np.full((n, 4), np.nan),
+            np.full((n, kt.NSIG), np.nan),
+            np.full(n, np.nan),
+            np.zeros(N_ERR),
+            np.zeros(len(FEATURES)),
+            np.zeros(kt.NSIG),
+        )
 
 
 @njit(cache=True, inline="always")
@@ -137,8 +168,16 @@ def advance(params, state, sensors, truth, mdist, out, gamma, start, stop):
     # peek at the next sample: prediction + acc update + mag innovation, γ = 0, on copies
     if stop < n:
         gyr, acc, mag = sensors
-        st = kt.step1(params, kt.State(state.q.copy(), state.p.copy()), gyr[stop - 1], gyr[stop], acc[stop],
-                      mag[stop], 0.0, out.peek)
+        st = kt.step1(
+            params,
+            kt.State(state.q.copy(), state.p.copy()),
+            gyr[stop - 1],
+            gyr[stop],
+            acc[stop],
+            mag[stop],
+            0.0,
+            out.peek,
+        )
         if st < 0:
             return stop, repairs
         j = stop
@@ -216,14 +255,27 @@ class KalmanRunner(TrialRunner):
             (per-sample correlation, driving std µT, initial reference variance µT²).
     """
 
-    def __init__(self, trial: Trial, params: kt.Params | None = None, model_c_a: float = C_A,
-                 model_c_b: float = C_B, model_p0: float = 1.0):
+    def __init__(
+        self,
+        trial: Trial,
+        params: kt.Params | None = None,
+        model_c_a: float = C_A,
+        model_c_b: float = C_B,
+        model_p0: float = 1.0,
+    ):
         super().__init__(trial, first=1)
         self.params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt) if params is None else params
         if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
             raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a}, {model_c_b}")
-        model = VecParams(self.params.dt, self.params.sigma_gyr, self.params.sigma_mag, float(model_c_a),
-                          float(model_c_b), float(model_p0), self.params.cov_floor)
+        model = VecParams(
+            self.params.dt,
+            self.params.sigma_gyr,
+            self.params.sigma_mag,
+            float(model_c_a),
+            float(model_c_b),
+            float(model_p0),
+            self.params.cov_floor,
+        )
         self.mdist = np.empty(trial.n)
         st = model_disturbance(model, self.sensors, self.mdist)
         if st != OK:
@@ -242,8 +294,10 @@ class KalmanRunner(TrialRunner):
     def _fuse(self, start: int, stop: int, gamma: float) -> None:
         status, repairs = self._advance(*self._args, gamma, start, stop)
         if status != OK:
-            raise kt.FilterError(f"trust KF: non-finite sample or covariance at sample {status} of trial "
-                                 f"{self.trial.name!r} (trust {gamma})")
+            raise kt.FilterError(
+                f"trust KF: non-finite sample or covariance at sample {status} of trial "
+                f"{self.trial.name!r} (trust {gamma})"
+            )
         self.repairs += repairs
 
 
@@ -359,19 +413,46 @@ class MagKalmanEnv(TrustEnv):
 
     env_name = KALMAN_ID.split("/")[1]
 
-    def __init__(self, scenario="random", decision_every: int = 8, episode_seconds: float | None = None,
-                 features: Sequence[str] | None = None, sigma_gyr: float = SIGMA_GYR, sigma_acc: float = SIGMA_ACC,
-                 sigma_mag: float = SIGMA_MAG, th_acc: float = TH_ACC, heading_only: bool = True,
-                 model_c_a: float = C_A, model_c_b: float = C_B, scenario_kwargs: dict | None = None,
-                 prefetch: bool = False, render_mode: str | None = None):
-        self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    FEATURES.names, FEATURES.low, FEATURES.high, prefetch=prefetch)
+    def __init__(
+        self,
+        scenario="random",
+        decision_every: int = 8,
+        episode_seconds: float | None = None,
+        features: Sequence[str] | None = None,
+        sigma_gyr: float = SIGMA_GYR,
+        sigma_acc: float = SIGMA_ACC,
+        sigma_mag: float = SIGMA_MAG,
+        th_acc: float = TH_ACC,
+        heading_only: bool = True,
+        model_c_a: float = C_A,
+        model_c_b: float = C_B,
+        scenario_kwargs: dict | None = None,
+        prefetch: bool = False,
+        render_mode: str | None = None,
+    ):
+        self._setup(
+            scenario,
+            decision_every,
+            episode_seconds,
+            render_mode,
+            scenario_kwargs,
+            features,
+            FEATURES.names,
+            FEATURES.low,
+            FEATURES.high,
+            prefetch=prefetch,
+        )
         if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
             raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a!r}, {model_c_b!r}")
         if not th_acc > 0:
             raise ValueError(f"th_acc must be positive (math.inf disables the gate), got {th_acc!r}")
-        self.filter_kwargs = dict(sigma_gyr=float(sigma_gyr), sigma_acc=float(sigma_acc), sigma_mag=float(sigma_mag),
-                                  th_acc=float(th_acc), heading_only=bool(heading_only))
+        self.filter_kwargs = dict(
+            sigma_gyr=float(sigma_gyr),
+            sigma_acc=float(sigma_acc),
+            sigma_mag=float(sigma_mag),
+            th_acc=float(th_acc),
+            heading_only=bool(heading_only),
+        )
         kt.make_params(46.0, 49.6, 1.0 / 256.0, **self.filter_kwargs)  # validate the noise model now, not at reset
         self.model_kwargs = dict(model_c_a=float(model_c_a), model_c_b=float(model_c_b))
 

@@ -18,7 +18,7 @@ revolutions per second (the heading std stays in rad).
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from gymnasium import spaces
@@ -34,8 +34,13 @@ from magenv.trial import Trial
 
 AGE_SCALE_S = 10.0  # period age in units of 10 s
 FEATURES = FeatureTable(
-    Feature("spread", 0.0, 100.0, "th_spread",
-            "RMS spread of the gyro-frame field over the detector window (0 while it fills)"),
+    Feature(
+        "spread",
+        0.0,
+        100.0,
+        "th_spread",
+        "RMS spread of the gyro-frame field over the detector window (0 while it fills)",
+    ),
     Feature("det_start", 0.0, 1.0, "0/1", "the detector would start a period at j"),
     Feature("det_keep", 0.0, 1.0, "0/1", "the detector would continue its period at j"),
     Feature("ref_mismatch", 0.0, 100.0, "σ_m", "‖m_ref − q̂ m_j q̂*‖ (0 without period)"),
@@ -59,7 +64,9 @@ def decode_action(action) -> tuple[int, float, bool]:
     """(magnetic action code, trust, clipped) of an action ``[a0, a1]`` (see MagQSFEnv docstring)."""
     a = np.asarray(action, dtype=float).reshape(-1)
     if a.shape != (2,):
-        raise ValueError(f"action must have shape (2,) = [decision in [-1, 1], trust in [0, 1]], got {np.shape(action)}")
+        raise ValueError(
+            f"action must have shape (2,) = [decision in [-1, 1], trust in [0, 1]], got {np.shape(action)}"
+        )
     if not np.all(np.isfinite(a)):
         raise ValueError(f"action must be finite, got {a}")
     clipped = bool(a[0] < -1 or a[0] > 1 or a[1] < 0 or a[1] > 1)
@@ -85,8 +92,14 @@ class QSFRunner(TrialRunner):
     (``magenv.filters.qsf.Params``, ``State``, ``Inputs``, ``Outputs``: ``out.sig`` the filter's signals).
     """
 
-    def __init__(self, trial: Trial, variant: str = "delay_magyq", detector: qsf.QSFDetector | None = None,
-                 init: str = "auto", filter_kwargs: dict | None = None):
+    def __init__(
+        self,
+        trial: Trial,
+        variant: str = "delay_magyq",
+        detector: qsf.QSFDetector | None = None,
+        init: str = "auto",
+        filter_kwargs: dict | None = None,
+    ):
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
         super().__init__(trial)
@@ -242,18 +255,37 @@ class MagQSFEnv(TrustEnv):
 
     env_name = QSF_ID.split("/")[1]
 
-    def __init__(self, scenario="handheld_random", decision_every: int = 10, episode_seconds: float | None = None,
-                 variant: str = "delay_magyq", init: str = "auto", features: Sequence[str] | None = None,
-                 detector: qsf.QSFDetector | dict | None = None, filter_kwargs: dict | None = None,
-                 scenario_kwargs: dict | None = None, render_mode: str | None = None):
+    def __init__(
+        self,
+        scenario="handheld_random",
+        decision_every: int = 10,
+        episode_seconds: float | None = None,
+        variant: str = "delay_magyq",
+        init: str = "auto",
+        features: Sequence[str] | None = None,
+        detector: qsf.QSFDetector | dict | None = None,
+        filter_kwargs: dict | None = None,
+        scenario_kwargs: dict | None = None,
+        render_mode: str | None = None,
+    ):
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
         if init not in qsf.INITS:
             raise ValueError(f"init must be one of {qsf.INITS}, got {init!r}")
-        self._setup(scenario, decision_every, episode_seconds, render_mode, scenario_kwargs, features,
-                    FEATURES.names, FEATURES.low, FEATURES.high)
-        self.action_space = spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 1.0], np.float32),
-                                       dtype=np.float32)
+        self._setup(
+            scenario,
+            decision_every,
+            episode_seconds,
+            render_mode,
+            scenario_kwargs,
+            features,
+            FEATURES.names,
+            FEATURES.low,
+            FEATURES.high,
+        )
+        self.action_space = spaces.Box(
+            np.array([-1.0, 0.0], np.float32), np.array([1.0, 1.0], np.float32), dtype=np.float32
+        )
         self.variant, self.init = variant, init
         if isinstance(detector, dict):
             detector = qsf.QSFDetector(**detector)
@@ -270,8 +302,11 @@ class MagQSFEnv(TrustEnv):
         runner = self._step_runner()
         code, trust, clipped = decode_action(action)
         runner.advance(self.k_steps, (code, trust))
-        return self._step_result(runner, {"decision": DECISIONS[code], "trust": trust, "action_clipped": clipped},
-                                 {"qsf_active": bool(runner.state.period_active[0])})
+        return self._step_result(
+            runner,
+            {"decision": DECISIONS[code], "trust": trust, "action_clipped": clipped},
+            {"qsf_active": bool(runner.state.period_active[0])},
+        )
 
     # ------------------------------------------------------------ evaluation access
 

@@ -56,8 +56,13 @@ class State(NamedTuple):
     detector: stationary.State  # eqs. 11–13
 
 
-def make_params(dt: float, beta: float = BETA_DEFAULT, hold: bool = True, th_acc_g: float = stationary.TH_ACC_G,
-                th_gyro_dps: float = stationary.TH_GYRO_DPS) -> Params:
+def make_params(
+    dt: float,
+    beta: float = BETA_DEFAULT,
+    hold: bool = True,
+    th_acc_g: float = stationary.TH_ACC_G,
+    th_gyro_dps: float = stationary.TH_GYRO_DPS,
+) -> Params:
     """Parameters for sample interval ``dt`` s, gain β rad/s and the stationary thresholds (g, °/s)."""
     th_acc, th_gyro = stationary.thresholds(th_acc_g, th_gyro_dps)
     return Params(float(beta), float(dt), float(th_acc), float(th_gyro), bool(hold))
@@ -66,8 +71,7 @@ def make_params(dt: float, beta: float = BETA_DEFAULT, hold: bool = True, th_acc
 def make_state(trial: Trial, t0: float = stationary.T0_S, q0=None) -> State:
     """Initial state: ``q0`` (normalised) or, if None, ``ecompass1`` of the first sample (never truth);
     an empty stationary detector of interval ``t0`` s."""
-    q = (ecompass1(trial.acc[0], trial.mag[0]) if q0 is None
-         else np.array(normalize1(np.asarray(q0, float)), float))
+    q = ecompass1(trial.acc[0], trial.mag[0]) if q0 is None else np.array(normalize1(np.asarray(q0, float)), float)
     return State(q, stationary.make_state(trial.rate, t0))
 
 
@@ -119,8 +123,16 @@ class BlendEstimator:
         q0: initial orientation; None = ``ecompass1`` of the first sample.
     """
 
-    def __init__(self, lam: float = 0.0, hold: bool = True, beta: float = BETA_DEFAULT, t0: float = stationary.T0_S,
-                 th_acc_g: float = stationary.TH_ACC_G, th_gyro_dps: float = stationary.TH_GYRO_DPS, q0=None):
+    def __init__(
+        self,
+        lam: float = 0.0,
+        hold: bool = True,
+        beta: float = BETA_DEFAULT,
+        t0: float = stationary.T0_S,
+        th_acc_g: float = stationary.TH_ACC_G,
+        th_gyro_dps: float = stationary.TH_GYRO_DPS,
+        q0=None,
+    ):
         if not 0.0 <= lam <= 1.0:
             raise ValueError(f"λ must lie in [0, 1], got {lam}")
         self.lam, self.hold, self.beta, self.t0, self.q0 = float(lam), hold, beta, t0, q0
@@ -132,4 +144,3 @@ class BlendEstimator:
         est = np.empty((trial.n, 4))
         run_kernel(params, make_state(trial, self.t0, self.q0), Sensors.of(trial), lam, est)
         return Estimate(q=est, trust=1.0 - lam)
-

@@ -113,8 +113,9 @@ class Control(NamedTuple):
     @classmethod
     def of(cls, weight: float | None = None, gain: float | None = None) -> Control:
         """w and k as given; None = by eq. 16 / eq. 18."""
-        return cls(0.0 if weight is None else float(weight), 0.0 if gain is None else float(gain),
-                   weight is None, gain is None)
+        return cls(
+            0.0 if weight is None else float(weight), 0.0 if gain is None else float(gain), weight is None, gain is None
+        )
 
 
 class Directions(NamedTuple):
@@ -137,12 +138,14 @@ def require_two_link(trial: Trial) -> None:
         raise MissingChannelsError(
             f"trial {trial.name!r} has no second-sensor channel(s) {', '.join(f'extra[{k!r}]' for k in missing)}; "
             f"the constraint filter needs link j's gyroscope (gyr_j, rad/s), accelerometer (acc_j, m/s²) and true "
-            f"orientation (q_j) — make two-link trials with magenv.scenarios.make_trial")
+            f"orientation (q_j) — make two-link trials with magenv.scenarios.make_trial"
+        )
     for key, cols in (("gyr_j", 3), ("acc_j", 3), ("q_j", 4)):
         arr = np.asarray(trial.extra[key])
         if arr.shape != (trial.n, cols) or not np.all(np.isfinite(arr)):
-            raise MissingChannelsError(f"trial {trial.name!r}: extra[{key!r}] must be finite with shape "
-                                       f"({trial.n}, {cols}), got {arr.shape}")
+            raise MissingChannelsError(
+                f"trial {trial.name!r}: extra[{key!r}] must be finite with shape ({trial.n}, {cols}), got {arr.shape}"
+            )
 
 
 def joint_vectors(gyr: np.ndarray, acc: np.ndarray, r: np.ndarray, rate: float) -> np.ndarray:
@@ -348,8 +351,15 @@ def fuse(p, q, inputs, control, start, stop, trace):
 # ------------------------------------------------------------------ offline use
 
 
-def make_params(trial: Trial, th1: float = TH1, th2: float = TH2, th3: float = TH3, k_min: float = K_MIN,
-                k_max: float = K_MAX, use_constraint: bool = True) -> Params:
+def make_params(
+    trial: Trial,
+    th1: float = TH1,
+    th2: float = TH2,
+    th3: float = TH3,
+    k_min: float = K_MIN,
+    k_max: float = K_MAX,
+    use_constraint: bool = True,
+) -> Params:
     """:class:`Params` for ``trial`` (its Δt and Earth field); raises ValueError for thresholds out of range."""
     for name, v in (("th1", th1), ("th3", th3)):
         if not v > 0:
@@ -357,16 +367,27 @@ def make_params(trial: Trial, th1: float = TH1, th2: float = TH2, th3: float = T
     if not (0 <= th2 <= 1 and 0 <= k_min <= k_max):
         raise ValueError(f"need 0 ≤ th2 ≤ 1 and 0 ≤ k_min ≤ k_max, got th2={th2}, k_min={k_min}, k_max={k_max}")
     n = earth_field(trial.field_norm, trial.field_dip) / trial.field_norm
-    return Params(float(trial.dt), float(trial.field_norm), (float(n[0]), float(n[1]), float(n[2])), float(th1),
-                  float(th2), float(th3), float(k_min), float(k_max), bool(use_constraint))
+    return Params(
+        float(trial.dt),
+        float(trial.field_norm),
+        (float(n[0]), float(n[1]), float(n[2])),
+        float(th1),
+        float(th2),
+        float(th3),
+        float(k_min),
+        float(k_max),
+        bool(use_constraint),
+    )
 
 
 def _lever(trial: Trial, given, key: str) -> np.ndarray:
     """Lever arm r (3,) m, sensor → joint centre: ``given`` or ``trial.meta[key]``."""
     if given is None:
         if key not in trial.meta:
-            raise MissingChannelsError(f"trial {trial.name!r} has no meta[{key!r}] (sensor → joint centre, m); "
-                                       f"pass lever_i / lever_j to the filter")
+            raise MissingChannelsError(
+                f"trial {trial.name!r} has no meta[{key!r}] (sensor → joint centre, m); "
+                f"pass lever_i / lever_j to the filter"
+            )
         given = trial.meta[key]
     r = np.asarray(given, float)
     if r.shape != (3,) or not np.all(np.isfinite(r)):
@@ -376,8 +397,9 @@ def _lever(trial: Trial, given, key: str) -> np.ndarray:
 
 def make_inputs(trial: Trial, lever_i: np.ndarray, lever_j: np.ndarray) -> Inputs:
     """:class:`Inputs` of a two-link trial: link i's readings and both joint vectors (eq. 9)."""
-    h_j = joint_vectors(np.asarray(trial.extra["gyr_j"], float), np.asarray(trial.extra["acc_j"], float),
-                        lever_j, trial.rate)
+    h_j = joint_vectors(
+        np.asarray(trial.extra["gyr_j"], float), np.asarray(trial.extra["acc_j"], float), lever_j, trial.rate
+    )
     joint_j = np.ascontiguousarray(rotate(np.ascontiguousarray(trial.extra["q_j"], float), h_j))
     return Inputs(trial.gyr, trial.acc, trial.mag, joint_vectors(trial.gyr, trial.acc, lever_i, trial.rate), joint_j)
 
@@ -396,9 +418,19 @@ class ConstraintFilter:
     Raises MissingChannelsError if the trial lacks link j's channels or the lever arms.
     """
 
-    def __init__(self, trial: Trial, lever_i=None, lever_j=None, th1: float = TH1, th2: float = TH2,
-                 th3: float = TH3, k_min: float = K_MIN, k_max: float = K_MAX, q0=None,
-                 use_constraint: bool = True):
+    def __init__(
+        self,
+        trial: Trial,
+        lever_i=None,
+        lever_j=None,
+        th1: float = TH1,
+        th2: float = TH2,
+        th3: float = TH3,
+        k_min: float = K_MIN,
+        k_max: float = K_MAX,
+        q0=None,
+        use_constraint: bool = True,
+    ):
         require_two_link(trial)
         self.lever_i, self.lever_j = _lever(trial, lever_i, "lever_i_m"), _lever(trial, lever_j, "lever_j_m")
         self.params = make_params(trial, th1, th2, th3, k_min, k_max, use_constraint)

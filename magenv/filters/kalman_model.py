@@ -44,7 +44,15 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.filters.kalman_threshold import (
-    COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, FilterError, finite3, repair_cov1, skew1,
+    COV_FLOOR,
+    OK,
+    SIGMA_ACC,
+    SIGMA_GYR,
+    SIGMA_MAG,
+    FilterError,
+    finite3,
+    repair_cov1,
+    skew1,
 )
 from magenv.filters.sensors import Sensors
 from magenv.filters.solvers import Solver, make_solver, solve1
@@ -83,7 +91,7 @@ def vec_init(vp, y0):
     x = np.zeros(6)
     x[:3] = y0
     p = np.zeros((6, 6))
-    vd = vp.c_b ** 2 / max(1.0 - vp.c_a ** 2, 1e-12)
+    vd = vp.c_b**2 / max(1.0 - vp.c_a**2, 1e-12)
     for i in range(3):
         p[i, i] = vp.p0_ref
         p[3 + i, 3 + i] = vd
@@ -233,10 +241,24 @@ class ModelKF:
         for name in ("c_a", "c_a_mag"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be in [0, 1) for a stable Gauss–Markov model, got {getattr(self, name)}")
-        acc = VecParams(float(dt), float(self.sigma_gyr), float(self.sigma_acc), float(self.c_a), float(self.c_b),
-                        float(self.p0_acc), COV_FLOOR)
-        mag = VecParams(float(dt), float(self.sigma_gyr), float(self.sigma_mag), float(self.c_a_mag),
-                        float(self.c_b_mag), float(self.p0_mag), COV_FLOOR)
+        acc = VecParams(
+            float(dt),
+            float(self.sigma_gyr),
+            float(self.sigma_acc),
+            float(self.c_a),
+            float(self.c_b),
+            float(self.p0_acc),
+            COV_FLOOR,
+        )
+        mag = VecParams(
+            float(dt),
+            float(self.sigma_gyr),
+            float(self.sigma_mag),
+            float(self.c_a_mag),
+            float(self.c_b_mag),
+            float(self.p0_mag),
+            COV_FLOOR,
+        )
         return Params(acc, mag, solver, quat.gravity_up(), quat.earth_field(field_norm, field_dip))
 
     def run(self, trial) -> ModelResult:
@@ -254,5 +276,12 @@ class ModelKF:
                 f"covariance at sample {status} (gyr={trial.gyr[status]}, acc={trial.acc[status]}, "
                 f"mag={trial.mag[status]})"
             )
-        return ModelResult(q=q, gravity=xa[:, :3], body_acc=xa[:, 3:], earth_field=xm[:, :3],
-                           disturbance=xm[:, 3:], gain_mag=gm, repairs=int(repairs))
+        return ModelResult(
+            q=q,
+            gravity=xa[:, :3],
+            body_acc=xa[:, 3:],
+            earth_field=xm[:, :3],
+            disturbance=xm[:, 3:],
+            gain_mag=gm,
+            repairs=int(repairs),
+        )

@@ -351,10 +351,21 @@ class ThresholdKF:
         sig = self.sigma_meas
         if sig is None:
             sig = np.hypot(self.sigma_acc / GRAVITY, self.sigma_mag / (field_norm * np.cos(np.deg2rad(field_dip))))
-        return Params(float(dt), float(self.sigma_gyr), float(0.25 * sig * sig), float(field_norm),
-                      float(np.deg2rad(field_dip)), float(self.th_acc), float(self.th_mag),
-                      float(np.deg2rad(self.th_dip)), solver, quat.gravity_up(), quat.earth_field(field_norm, field_dip),
-                      COV_FLOOR, float(self.p0))
+        return Params(
+            float(dt),
+            float(self.sigma_gyr),
+            float(0.25 * sig * sig),
+            float(field_norm),
+            float(np.deg2rad(field_dip)),
+            float(self.th_acc),
+            float(self.th_mag),
+            float(np.deg2rad(self.th_dip)),
+            solver,
+            quat.gravity_up(),
+            quat.earth_field(field_norm, field_dip),
+            COV_FLOOR,
+            float(self.p0),
+        )
 
     def run(self, trial) -> ThresholdResult:
         """Run causally over a :class:`magenv.trial.Trial`; raises FilterError on non-finite data."""

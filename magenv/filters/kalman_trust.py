@@ -68,14 +68,36 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.filters.kalman_threshold import (
-    COV_FLOOR, OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC, FilterError, finite3, repair_cov1, skew1,
+    COV_FLOOR,
+    OK,
+    SIGMA_ACC,
+    SIGMA_GYR,
+    SIGMA_MAG,
+    TH_ACC,
+    FilterError,
+    finite3,
+    repair_cov1,
+    skew1,
 )
 from magenv.filters.sensors import Sensors
 from magenv.filters.solvers import triad1
 from magenv.quaternion import from_rotvec1, mul1, normalize1, rotate1
 
-SIGNALS = ("nu_e", "nu_n", "nu_u", "nu_norm", "nis", "s_trace", "p_trace", "heading_std",
-           "mag_norm_dev", "dip_dev", "acc_norm_dev", "acc_used", "trust")
+SIGNALS = (
+    "nu_e",
+    "nu_n",
+    "nu_u",
+    "nu_norm",
+    "nis",
+    "s_trace",
+    "p_trace",
+    "heading_std",
+    "mag_norm_dev",
+    "dip_dev",
+    "acc_norm_dev",
+    "acc_used",
+    "trust",
+)
 SIG = namedtuple("SignalIndex", SIGNALS)(*range(len(SIGNALS)))  # SIG.nu_e == 0, … (column of a signal)
 NSIG = len(SIGNALS)
 P0 = np.deg2rad(5.0) ** 2  # initial variance per axis, rad²
@@ -105,9 +127,17 @@ class State(NamedTuple):
     p: np.ndarray  # (3, 3) covariance of the earth-frame error angle δθ, rad²
 
 
-def make_params(field_norm: float, field_dip: float, dt: float, sigma_gyr: float = SIGMA_GYR,
-                sigma_acc: float = SIGMA_ACC, sigma_mag: float = SIGMA_MAG, th_acc: float = TH_ACC,
-                heading_only: bool = True, p0: float = P0) -> Params:
+def make_params(
+    field_norm: float,
+    field_dip: float,
+    dt: float,
+    sigma_gyr: float = SIGMA_GYR,
+    sigma_acc: float = SIGMA_ACC,
+    sigma_mag: float = SIGMA_MAG,
+    th_acc: float = TH_ACC,
+    heading_only: bool = True,
+    p0: float = P0,
+) -> Params:
     """Parameters for a site and sample interval.
 
     Args:
@@ -117,13 +147,29 @@ def make_params(field_norm: float, field_dip: float, dt: float, sigma_gyr: float
         heading_only: the magnetometer corrects the heading only (Schmidt gain).
         p0: initial variance of each error angle, rad².
     """
-    for name, v in (("sigma_gyr", sigma_gyr), ("sigma_acc", sigma_acc), ("sigma_mag", sigma_mag), ("p0", p0),
-                    ("dt", dt)):
+    for name, v in (
+        ("sigma_gyr", sigma_gyr),
+        ("sigma_acc", sigma_acc),
+        ("sigma_mag", sigma_mag),
+        ("p0", p0),
+        ("dt", dt),
+    ):
         if not (np.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be a positive finite number, got {v!r}")
-    return Params(float(dt), float(sigma_gyr), float(sigma_acc), float(sigma_mag), float(th_acc), bool(heading_only),
-                  quat.gravity_up(), quat.earth_field(field_norm, field_dip), float(field_norm),
-                  float(np.deg2rad(field_dip)), COV_FLOOR, float(p0))
+    return Params(
+        float(dt),
+        float(sigma_gyr),
+        float(sigma_acc),
+        float(sigma_mag),
+        float(th_acc),
+        bool(heading_only),
+        quat.gravity_up(),
+        quat.earth_field(field_norm, field_dip),
+        float(field_norm),
+        float(np.deg2rad(field_dip)),
+        COV_FLOOR,
+        float(p0),
+    )
 
 
 @njit(cache=True)
@@ -210,8 +256,7 @@ def step1(params, state, gyr_prev, gyr, acc, mag, trust, sig):
     sig[SIG.p_trace] = p[0, 0] + p[1, 1] + p[2, 2]
     sig[SIG.heading_std] = np.sqrt(p[2, 2])
     sig[SIG.mag_norm_dev] = nm - params.m0
-    sig[SIG.dip_dev] = (np.rad2deg(np.arcsin(min(1.0, max(-1.0, -m_e[2] / nm))) - params.dip0) if nm > 0.0
-                      else np.nan)
+    sig[SIG.dip_dev] = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -m_e[2] / nm))) - params.dip0) if nm > 0.0 else np.nan
     sig[SIG.acc_norm_dev] = na - ng
     sig[SIG.acc_used] = 1.0 if acc_used else 0.0
     sig[SIG.trust] = trust

@@ -200,11 +200,20 @@ class Outputs(NamedTuple):
         return cls(np.full((n, 4), np.nan), np.zeros((n, N_SIGNALS)))
 
 
-def make_params(field_norm: float, field_dip: float, mode="delay_magyq", sigma_gyr: float = SIGMA_GYR,
-                sigma_acc: float | None = None, sigma_mag: float | None = None, th_acc: float = TH_ACC,
-                sigma_bias_walk: float = SIGMA_BIAS_WALK, sigma_acc_bias_walk: float = SIGMA_ACC_BIAS_WALK,
-                update_reference: bool = True, max_age_s: float = MAX_AGE_S,
-                acc_adaptive: float = 0.0) -> Params:
+def make_params(
+    field_norm: float,
+    field_dip: float,
+    mode="delay_magyq",
+    sigma_gyr: float = SIGMA_GYR,
+    sigma_acc: float | None = None,
+    sigma_mag: float | None = None,
+    th_acc: float = TH_ACC,
+    sigma_bias_walk: float = SIGMA_BIAS_WALK,
+    sigma_acc_bias_walk: float = SIGMA_ACC_BIAS_WALK,
+    update_reference: bool = True,
+    max_age_s: float = MAX_AGE_S,
+    acc_adaptive: float = 0.0,
+) -> Params:
     """:class:`Params` of the kernels.
 
     Args:
@@ -222,9 +231,15 @@ def make_params(field_norm: float, field_dip: float, mode="delay_magyq", sigma_g
         raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
     sigma_acc = 0.1 * GRAVITY if sigma_acc is None else sigma_acc
     sigma_mag = 0.1 * field_norm if sigma_mag is None else sigma_mag
-    for name, v in (("sigma_gyr", sigma_gyr), ("sigma_acc", sigma_acc), ("sigma_mag", sigma_mag),
-                    ("sigma_bias_walk", sigma_bias_walk), ("sigma_acc_bias_walk", sigma_acc_bias_walk),
-                    ("max_age_s", max_age_s), ("field_norm", field_norm)):
+    for name, v in (
+        ("sigma_gyr", sigma_gyr),
+        ("sigma_acc", sigma_acc),
+        ("sigma_mag", sigma_mag),
+        ("sigma_bias_walk", sigma_bias_walk),
+        ("sigma_acc_bias_walk", sigma_acc_bias_walk),
+        ("max_age_s", max_age_s),
+        ("field_norm", field_norm),
+    ):
         if not (np.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be a positive finite number, got {v!r}")
     if not th_acc > 0:
@@ -232,10 +247,22 @@ def make_params(field_norm: float, field_dip: float, mode="delay_magyq", sigma_g
     if not (np.isfinite(acc_adaptive) and acc_adaptive >= 0):
         raise ValueError(f"acc_adaptive must be a finite number ≥ 0, got {acc_adaptive!r}")
     vector = lambda v: tuple(float(c) for c in v)
-    return Params(MODES[mode], float(sigma_gyr), float(sigma_bias_walk), float(sigma_acc_bias_walk),
-                  float(sigma_acc), float(sigma_mag), float(th_acc), vector(quat.gravity_up()),
-                  vector(quat.earth_field(field_norm, field_dip)), float(COV_FLOOR), float(RADIAL_EPS),
-                  bool(update_reference), float(max_age_s), float(acc_adaptive))
+    return Params(
+        MODES[mode],
+        float(sigma_gyr),
+        float(sigma_bias_walk),
+        float(sigma_acc_bias_walk),
+        float(sigma_acc),
+        float(sigma_mag),
+        float(th_acc),
+        vector(quat.gravity_up()),
+        vector(quat.earth_field(field_norm, field_dip)),
+        float(COV_FLOOR),
+        float(RADIAL_EPS),
+        bool(update_reference),
+        float(max_age_s),
+        float(acc_adaptive),
+    )
 
 
 # ------------------------------------------------------------ small matrices
@@ -375,7 +402,7 @@ def step1(p, state, inputs, i, dt, sig):
             pp[r, r] += qg
             pp[GYRO_BIAS.start + r, GYRO_BIAS.start + r] += (0.5 * dt * p.sigma_bias_walk) ** 2 * dt
         for r in range(3):
-            pp[ACC_BIAS.start + r, ACC_BIAS.start + r] += p.sigma_acc_bias_walk ** 2 * dt
+            pp[ACC_BIAS.start + r, ACC_BIAS.start + r] += p.sigma_acc_bias_walk**2 * dt
         ps[:na, :na] = pp
         if active:
             age += dt
@@ -397,12 +424,12 @@ def step1(p, state, inputs, i, dt, sig):
         nu = rotate1(q, v)
         for c in range(3):
             nu[c] = g[c] - nu[c]  # z − h(x), z = g_ENU
-        _kalman_update(xs, ps, na, nu, h, p.sigma_acc ** 2 + dev * dev, 1.0)
+        _kalman_update(xs, ps, na, nu, h, p.sigma_acc**2 + dev * dev, 1.0)
         _renormalise(xs, ps, na, p.radial_eps)
         if active and mode == MODE_DELAY and p.update_reference:
             mag_ref = rotate1(xs[CLONE], mag_t0)
     # 3. magnetic update
-    sm2 = p.sigma_mag ** 2
+    sm2 = p.sigma_mag**2
     innov = 0.0
     nis = 0.0
     corr = 0.0
@@ -447,7 +474,7 @@ def step1(p, state, inputs, i, dt, sig):
             if na == N_AUGMENTED:
                 h[:, CLONE] = -rot_jacobian1(xs[CLONE], mag_t0)
             q_before = xs[ORIENTATION].copy()
-            k, s_inv = _kalman_update(xs, ps, na, nu, h, r_diag, trust)
+            _, s_inv = _kalman_update(xs, ps, na, nu, h, r_diag, trust)
             nis = nu @ s_inv @ nu
             dq = xs[ORIENTATION] - q_before
             corr = np.sqrt(dq @ dq)
@@ -564,7 +591,7 @@ class QSFDetector:
                 raise ValueError(f"QSFDetector.{k} must be a positive finite number, got {v!r}")
 
     @classmethod
-    def for_noise(cls, sigma_ut: float, **kw) -> "QSFDetector":
+    def for_noise(cls, sigma_ut: float, **kw) -> QSFDetector:
         """Thresholds scaled to a magnetometer's white noise σ (µT per axis): the 3D spread of pure noise is
         ≈ √3·σ, so th_spread = 2√3·σ and th_drift = 4√3·σ (σ = 0.3 µT gives the defaults 1.0 / 2.0 µT)."""
         if not (np.isfinite(sigma_ut) and sigma_ut > 0):
@@ -583,16 +610,26 @@ class QSFDetector:
         code = np.zeros(n, np.int8)
         spread = np.empty(n)
         window = max(1, int(round(self.window_s * rate)))
-        detect_kernel(gyr, mag, 1.0 / rate, window, self.th_spread, self.th_drift,
-                      max(1, int(round(self.max_period_s * rate))), code, spread)
+        detect_kernel(
+            gyr,
+            mag,
+            1.0 / rate,
+            window,
+            self.th_spread,
+            self.th_drift,
+            max(1, int(round(self.max_period_s * rate))),
+            code,
+            spread,
+        )
         return code, spread
 
 
 # ------------------------------------------------------------ Python wrappers
 
 
-def initial_state(q0, dt: float, p0_angle: float = P0_ANGLE, p0_gyr_bias: float = P0_GYR_BIAS,
-                  p0_acc_bias: float = P0_ACC_BIAS) -> State:
+def initial_state(
+    q0, dt: float, p0_angle: float = P0_ANGLE, p0_gyr_bias: float = P0_GYR_BIAS, p0_acc_bias: float = P0_ACC_BIAS
+) -> State:
     """:class:`State` at orientation q0 (4,): zero biases, no QSF period.
 
     p0_angle: rad (quaternion variance (p0/2)² per component); p0_gyr_bias: rad/s (quaternion bias
@@ -613,8 +650,12 @@ def initial_state(q0, dt: float, p0_angle: float = P0_ANGLE, p0_gyr_bias: float 
 
 def triad_init(acc0, mag0, params) -> np.ndarray:
     """Orientation from the first sample by TRIAD against g and the Earth field of ``params``."""
-    q = triad1(np.ascontiguousarray(acc0, float), np.ascontiguousarray(mag0, float), np.array(params.gravity),
-               np.array(params.earth_field))
+    q = triad1(
+        np.ascontiguousarray(acc0, float),
+        np.ascontiguousarray(mag0, float),
+        np.array(params.gravity),
+        np.array(params.earth_field),
+    )
     if not np.all(np.isfinite(q)):
         raise FilterError(f"QSF filters: cannot initialise by TRIAD from acc={acc0}, mag={mag0}")
     return q
@@ -654,8 +695,10 @@ def checked(result: tuple[int, int], inputs: Inputs) -> int:
     """The repairs of a :func:`run_kernel` result ``(bad, repairs)``; FilterError naming sample ``bad`` if ≥ 0."""
     bad, repairs = result
     if bad >= 0:
-        raise FilterError(f"QSF filter: non-finite sample or covariance at sample {bad} "
-                          f"(gyr={inputs.gyr[bad]}, acc={inputs.acc[bad]}, mag={inputs.mag[bad]})")
+        raise FilterError(
+            f"QSF filter: non-finite sample or covariance at sample {bad} "
+            f"(gyr={inputs.gyr[bad]}, acc={inputs.acc[bad]}, mag={inputs.mag[bad]})"
+        )
     return repairs
 
 
@@ -671,8 +714,18 @@ class QSFResult:
     repairs: int
 
 
-def run_trial(trial, mode="delay_magyq", detector: QSFDetector | None = None, q0=None, trust=1.0,
-              params=None, actions=None, p0: dict | None = None, init: str = "auto", **param_kw) -> QSFResult:
+def run_trial(
+    trial,
+    mode="delay_magyq",
+    detector: QSFDetector | None = None,
+    q0=None,
+    trust=1.0,
+    params=None,
+    actions=None,
+    p0: dict | None = None,
+    init: str = "auto",
+    **param_kw,
+) -> QSFResult:
     """Whole trial. ``q0``: initial orientation (4,); default :func:`initial_orientation` by ``init``.
     ``actions`` (N,) overrides the detector's codes. ``p0``: keywords of :func:`initial_state`. Extra
     keywords go to :func:`make_params`."""

@@ -191,8 +191,7 @@ def quest1(acc, mag, g_ref, h_ref, w_acc, w_mag):
     nm = _norm3(mag)
     ng = _norm3(g_ref)
     nh = _norm3(h_ref)
-    if not (na > 0.0 and nm > 0.0 and ng > 0.0 and nh > 0.0 and w_acc >= 0.0 and w_mag >= 0.0
-            and w_acc + w_mag > 0.0):
+    if not (na > 0.0 and nm > 0.0 and ng > 0.0 and nh > 0.0 and w_acc >= 0.0 and w_mag >= 0.0 and w_acc + w_mag > 0.0):
         return np.full(4, np.nan)
     b1 = acc / na
     b2 = mag / nm
@@ -227,7 +226,7 @@ def quest1(acc, mag, g_ref, h_ref, w_acc, w_mag):
     else:  # near-degenerate spectrum: fall back to the eigensolver
         for i in range(4):
             n[i, i] += lam
-        vals, vecs = np.linalg.eigh(n)
+        _, vecs = np.linalg.eigh(n)
         q = vecs[:, 3].copy()
     if q[0] < 0.0:
         q = -q

@@ -86,9 +86,9 @@ def _detect(state, acc, gyr, th_a, th_gyro):
     return out
 
 
-def detect(acc, gyr, rate: float, t0: float = T0_S, th_acc_g: float = TH_ACC_G,
-           th_gyro_dps: float = TH_GYRO_DPS) -> np.ndarray:
+def detect(
+    acc, gyr, rate: float, t0: float = T0_S, th_acc_g: float = TH_ACC_G, th_gyro_dps: float = TH_GYRO_DPS
+) -> np.ndarray:
     """(N,) bool stationary flags of whole arrays acc (N, 3) m/s², gyr (N, 3) rad/s, streamed causally."""
     th_a, th_g = thresholds(th_acc_g, th_gyro_dps)
-    return _detect(make_state(rate, t0), np.ascontiguousarray(acc, float), np.ascontiguousarray(gyr, float),
-                   th_a, th_g)
+    return _detect(make_state(rate, t0), np.ascontiguousarray(acc, float), np.ascontiguousarray(gyr, float), th_a, th_g)

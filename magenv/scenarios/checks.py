@@ -15,7 +15,11 @@ from magenv.sim.sensors import SensorConfig
 
 def check_number(name: str, value, lo=-math.inf, hi=math.inf, lo_open=False) -> None:
     """``value`` is a finite real number (not a bool) in [lo, hi] (or (lo, hi] with ``lo_open``)."""
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = (
+        isinstance(value, (int, float, np.integer, np.floating))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+    )
     if not ok or value < lo or value > hi or (lo_open and value == lo):
         raise ValueError(f"{name} must be a number in {'(' if lo_open else '['}{lo}, {hi}], got {value!r}")
 

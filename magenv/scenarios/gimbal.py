@@ -368,15 +368,20 @@ def _span(cfg: ScenarioConfig) -> float:
 
 
 def _random_tilt(rng: np.random.Generator, max_deg: float) -> tuple[float, float, float]:
-    return (float(rng.uniform(-np.pi, np.pi)), float(np.deg2rad(rng.uniform(-max_deg, max_deg))),
-            float(np.deg2rad(rng.uniform(-max_deg, max_deg))))
+    return (
+        float(rng.uniform(-np.pi, np.pi)),
+        float(np.deg2rad(rng.uniform(-max_deg, max_deg))),
+        float(np.deg2rad(rng.uniform(-max_deg, max_deg))),
+    )
 
 
 def _plan_stationary_magnet(cfg: StationaryMagnetConfig, rngs) -> Plan:
     r_motion, r_magnet, _, _ = rngs
     prof = profiles.empty_profile(_span(cfg), cfg.physics_rate, _random_tilt(r_motion, cfg.max_tilt_deg))
-    apps = [Approach(start=max(0.0, s + r_magnet.uniform(-cfg.jitter_s, cfg.jitter_s)), hold=h, travel=cfg.travel)
-            for s, h in cfg.approaches]
+    apps = [
+        Approach(start=max(0.0, s + r_magnet.uniform(-cfg.jitter_s, cfg.jitter_s)), hold=h, travel=cfg.travel)
+        for s, h in cfg.approaches
+    ]
     path_rng_seed = int(r_magnet.integers(2**63))
     hand = lambda t: hand_path(t, apps, cfg.far, cfg.near, np.random.default_rng(path_rng_seed))
     meta = {"approach_starts_s": [a.start for a in apps]}
@@ -386,8 +391,15 @@ def _plan_stationary_magnet(cfg: StationaryMagnetConfig, rngs) -> Plan:
 def _plan_dynamic_clean(cfg: DynamicCleanConfig, rngs) -> Plan:
     r_motion = rngs[0]
     prof = profiles.intermittent_moves(
-        r_motion, _span(cfg), cfg.physics_rate, _random_tilt(r_motion, 10.0), cfg.pause_s, cfg.move_s,
-        cfg.amplitude_deg, cfg.start_rest)
+        r_motion,
+        _span(cfg),
+        cfg.physics_rate,
+        _random_tilt(r_motion, 10.0),
+        cfg.pause_s,
+        cfg.move_s,
+        cfg.amplitude_deg,
+        cfg.start_rest,
+    )
     return Plan(prof, "none", Tube(), None, 0.0, (cfg.field_norm, cfg.field_dip), cfg.sensor, {})
 
 
@@ -459,19 +471,29 @@ def _plan_random(cfg: RandomConfig, rngs) -> Plan:
     prof = _random_profile(cfg, r_motion)
     kind = ("none", "tube", "hand")[int(r_magnet.choice(3, p=cfg.magnet_probs))]
     diameter = float(r_magnet.uniform(*cfg.diameter_m))
-    magnet = DiscMagnet(diameter=diameter, thickness=diameter * 2 / 15, remanence=float(r_magnet.uniform(*cfg.remanence_t)))
+    magnet = DiscMagnet(
+        diameter=diameter, thickness=diameter * 2 / 15, remanence=float(r_magnet.uniform(*cfg.remanence_t))
+    )
     side = float(r_magnet.choice((-1.0, 1.0)))
     length = float(r_magnet.uniform(*cfg.tube_length_m))
     x_near = float(r_magnet.uniform(*cfg.tube_x_m))
-    start = (x_near if side > 0 else -x_near - length, float(r_magnet.uniform(*cfg.tube_yz_m)),
-             0.005 + float(r_magnet.uniform(*cfg.tube_yz_m)))
+    start = (
+        x_near if side > 0 else -x_near - length,
+        float(r_magnet.uniform(*cfg.tube_yz_m)),
+        0.005 + float(r_magnet.uniform(*cfg.tube_yz_m)),
+    )
     dip_dir = r_magnet.normal(size=3)
     dip_dir[0] = 0.0  # the disc stands on edge in the tube: moment across the tube
     if np.linalg.norm(dip_dir) < 1e-6:
         dip_dir = np.array([0.0, 0.0, 1.0])
-    tube = Tube(start=start, length=length, dipole=tuple(float(v) for v in dip_dir / np.linalg.norm(dip_dir)),
-                friction=float(r_magnet.uniform(0.3, 1.5) * 0.3 * magnet.mass * 9.81), magnet=magnet,
-                start_at=float(r_magnet.uniform()))
+    tube = Tube(
+        start=start,
+        length=length,
+        dipole=tuple(float(v) for v in dip_dir / np.linalg.norm(dip_dir)),
+        friction=float(r_magnet.uniform(0.3, 1.5) * 0.3 * magnet.mass * 9.81),
+        magnet=magnet,
+        start_at=float(r_magnet.uniform()),
+    )
     hand = None
     meta = {"magnet": kind}
     if kind == "hand":
@@ -527,12 +549,27 @@ def _plan_manual_routines(cfg: ManualRoutinesConfig, rngs) -> Plan:
     axis = r_magnet.normal(size=3)
     axis /= np.linalg.norm(axis)
     t_phys = np.arange(prof.n) / prof.rate
-    base = base_paths.reach(t_phys, reach_start, cfg.reach_travel, cfg.reach_hold,
-                            (cfg.reach_distance_m - near) * u, r_magnet)
-    meta = {"reach_start_s": reach_start, "near_m": near, "magnet_position_m": list(p_magnet),
-            "magnet_axis": list(axis)}
-    return Plan(prof, "world", Tube(), None, cfg.magnet.moment, (cfg.field_norm, cfg.field_dip), cfg.sensor, meta,
-                base=base, sources=(p_magnet[None], (cfg.magnet.moment * axis)[None]))
+    base = base_paths.reach(
+        t_phys, reach_start, cfg.reach_travel, cfg.reach_hold, (cfg.reach_distance_m - near) * u, r_magnet
+    )
+    meta = {
+        "reach_start_s": reach_start,
+        "near_m": near,
+        "magnet_position_m": list(p_magnet),
+        "magnet_axis": list(axis),
+    }
+    return Plan(
+        prof,
+        "world",
+        Tube(),
+        None,
+        cfg.magnet.moment,
+        (cfg.field_norm, cfg.field_dip),
+        cfg.sensor,
+        meta,
+        base=base,
+        sources=(p_magnet[None], (cfg.magnet.moment * axis)[None]),
+    )
 
 
 def _plan_gait_field(cfg: GaitFieldConfig, rngs) -> Plan:
@@ -540,8 +577,9 @@ def _plan_gait_field(cfg: GaitFieldConfig, rngs) -> Plan:
     n = int(round(_span(cfg) * cfg.physics_rate))
     t = np.arange(n) / cfg.physics_rate
     step_hz = float(r_motion.uniform(*cfg.step_hz))
-    base = base_paths.figure_eight(t, cfg.half_length, cfg.half_width, float(r_motion.uniform(*cfg.period_s)),
-                                   cfg.bounce_m, step_hz, cfg.sway_m)
+    base = base_paths.figure_eight(
+        t, cfg.half_length, cfg.half_width, float(r_motion.uniform(*cfg.period_s)), cfg.bounce_m, step_hz, cfg.sway_m
+    )
     psi, psi_rate = base_paths.heading(base, cfg.physics_rate)
     prof = profiles.DriveProfile(rate=cfg.physics_rate, omega=np.zeros((n, 3)), angle0=np.array([psi[0], 0.0, 0.0]))
     prof.omega[:, 0] = psi_rate
@@ -557,8 +595,18 @@ def _plan_gait_field(cfg: GaitFieldConfig, rngs) -> Plan:
     k = int(r_magnet.integers(cfg.n_sources[0], cfg.n_sources[1] + 1))
     pos, mom = indoor.random_sources(r_magnet, k, cfg.source_distance_m, cfg.source_field_ut)
     meta = {"step_hz": step_hz, "source_positions_m": pos.tolist(), "source_moments_am2": mom.tolist()}
-    return Plan(prof, "world", Tube(), None, float(np.abs(mom).sum()), (cfg.field_norm, cfg.field_dip), cfg.sensor,
-                meta, base=base, sources=(pos, mom))
+    return Plan(
+        prof,
+        "world",
+        Tube(),
+        None,
+        float(np.abs(mom).sum()),
+        (cfg.field_norm, cfg.field_dip),
+        cfg.sensor,
+        meta,
+        base=base,
+        sources=(pos, mom),
+    )
 
 
 def _simulate(scenario: str, cfg: ScenarioConfig, seed: int, rngs: list[np.random.Generator]) -> Trial:
@@ -587,11 +635,21 @@ def _simulate(scenario: str, cfg: ScenarioConfig, seed: int, rngs: list[np.rando
     # At rest: not turning and (on a moving base) not travelling.
     step = np.diff(run.p_imu, axis=0, prepend=run.p_imu[:1])
     stationary = (norms(run.gyr) < STATIONARY_RATE) & (norms(step) * cfg.rate < STATIONARY_SPEED)
-    meta = trial_meta(scenario, seed, cfg, {"magnet": plan.magnet, "moment_am2": float(plan.moment),
-                                            "physics_steps": run.physics_steps, **plan.meta})
+    meta = trial_meta(
+        scenario,
+        seed,
+        cfg,
+        {"magnet": plan.magnet, "moment_am2": float(plan.moment), "physics_steps": run.physics_steps, **plan.meta},
+    )
     return Trial(
-        name=trial_name(scenario, seed), rate=cfg.rate, gyr=gyr, acc=acc, mag=mag, q_true=run.q,
-        field_norm=plan.field[0], field_dip=plan.field[1],
+        name=trial_name(scenario, seed),
+        rate=cfg.rate,
+        gyr=gyr,
+        acc=acc,
+        mag=mag,
+        q_true=run.q,
+        field_norm=plan.field[0],
+        field_dip=plan.field[1],
         truth={
             "mag_disturbance": b_mag,
             "stationary": stationary,

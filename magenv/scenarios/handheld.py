@@ -57,9 +57,18 @@ from magenv.trial import START_FROM_TRUTH, Trial
 #: Nantes (IFSTTAR, the paper's lab), approximate IGRF values: 47 µT, dip 61°.
 NANTES = (47.0, 61.0)
 
-HANDHELD_SENSOR = SensorConfig(gyr_noise_dps=0.1, gyr_bias_dps=0.3, gyr_drift_dps=0.01, acc_noise=0.03,
-                               acc_bias=0.05, mag_noise_ut=0.3, mag_hard_iron_ut=0.5, mag_soft_iron=0.005,
-                               mag_lag_samples=0, mag_hold_fraction=0.0)
+HANDHELD_SENSOR = SensorConfig(
+    gyr_noise_dps=0.1,
+    gyr_bias_dps=0.3,
+    gyr_drift_dps=0.01,
+    acc_noise=0.03,
+    acc_bias=0.05,
+    mag_noise_ut=0.3,
+    mag_hard_iron_ut=0.5,
+    mag_soft_iron=0.005,
+    mag_lag_samples=0,
+    mag_hold_fraction=0.0,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,10 +139,17 @@ def _simulate(scenario: str, cfg: HandheldConfig, seed: int, rngs: list[np.rando
     r_motion, r_field, r_loc, r_sensor = rngs
     n = int(round(cfg.duration * cfg.rate))
     t = np.arange(n) / cfg.rate
-    motion = Motion(r_motion, cfg.modes, cfg.duration, cfg.segment_s, cfg.transition_s,
-                    speed=r_motion.uniform(*cfg.speed_mps), step_hz=r_motion.uniform(*cfg.step_hz),
-                    path_m=(a := r_motion.uniform(*cfg.path_m), 0.5 * a),
-                    travel=bool(r_motion.uniform() >= cfg.treadmill_prob))
+    motion = Motion(
+        r_motion,
+        cfg.modes,
+        cfg.duration,
+        cfg.segment_s,
+        cfg.transition_s,
+        speed=r_motion.uniform(*cfg.speed_mps),
+        step_hz=r_motion.uniform(*cfg.step_hz),
+        path_m=(a := r_motion.uniform(*cfg.path_m), 0.5 * a),
+        travel=bool(r_motion.uniform() >= cfg.treadmill_prob),
+    )
     if cfg.random_location:
         norm, dip = earth.random_location(r_loc)
     else:
@@ -141,21 +157,44 @@ def _simulate(scenario: str, cfg: HandheldConfig, seed: int, rngs: list[np.rando
     b_earth = quat.earth_field(norm, dip)
     # the field's sources are placed around the region the sensor visits (sampled every 0.1 s)
     p_visit, _ = motion.pose(t[:: max(1, int(cfg.rate // 10))])
-    field = random_indoor_field(r_field, b_earth, p_visit, cfg.n_dipoles, cfg.dipole_ut, cfg.dipole_distance_m,
-                                cfg.n_wires, cfg.wire_current_a)
+    field = random_indoor_field(
+        r_field, b_earth, p_visit, cfg.n_dipoles, cfg.dipole_ut, cfg.dipole_distance_m, cfg.n_wires, cfg.wire_current_a
+    )
     p, q, gyr, acc, mag, b_e = ideal_readings(motion, t, field)
     scale = float(r_sensor.uniform(*cfg.noise_scale))
     gyr_m, acc_m, mag_m = apply_sensor_model(gyr, acc, mag, cfg.rate, cfg.sensor.scaled(scale), r_sensor)
-    meta = trial_meta(scenario, seed, cfg, {
-        "modes": motion.mode_names, START_FROM_TRUTH: True, "mode_bounds_s": motion.bounds, "speed_mps": motion.speed,
-        "step_hz": motion.f_step, "treadmill": not motion.travel, "noise_scale": scale,
-        "n_dipoles": len(field.dipole_pos), "n_wires": len(field.wire_point),
-        "min_source_distance_m": field.min_source_distance(p_visit)})
+    meta = trial_meta(
+        scenario,
+        seed,
+        cfg,
+        {
+            "modes": motion.mode_names,
+            START_FROM_TRUTH: True,
+            "mode_bounds_s": motion.bounds,
+            "speed_mps": motion.speed,
+            "step_hz": motion.f_step,
+            "treadmill": not motion.travel,
+            "noise_scale": scale,
+            "n_dipoles": len(field.dipole_pos),
+            "n_wires": len(field.wire_point),
+            "min_source_distance_m": field.min_source_distance(p_visit),
+        },
+    )
     return Trial(
-        name=trial_name(scenario, seed), rate=cfg.rate, gyr=gyr_m, acc=acc_m, mag=mag_m, q_true=q,
-        field_norm=norm, field_dip=dip,
-        truth={"mag_disturbance": quat.rotate_inv(q, b_e - b_earth), "position": p,
-               "mode": motion.mode_index(t), "stationary": np.zeros(n, bool)},
+        name=trial_name(scenario, seed),
+        rate=cfg.rate,
+        gyr=gyr_m,
+        acc=acc_m,
+        mag=mag_m,
+        q_true=q,
+        field_norm=norm,
+        field_dip=dip,
+        truth={
+            "mag_disturbance": quat.rotate_inv(q, b_e - b_earth),
+            "position": p,
+            "mode": motion.mode_index(t),
+            "stationary": np.zeros(n, bool),
+        },
         meta=meta,
     )
 
@@ -166,10 +205,20 @@ SCENARIOS: dict[str, HandheldConfig] = {
     "handheld_swinging": HandheldConfig(modes=("swinging",)),
     "handheld_free": HandheldConfig(duration=780.0, modes=MODES, speed_mps=(1.0, 1.7), segment_s=(20.0, 90.0)),
     "handheld_corridor": HandheldConfig(modes=("texting",), treadmill_prob=0.0),
-    "handheld_random": HandheldConfig(duration=60.0, modes=MODES, segment_s=(8.0, 40.0), speed_mps=(0.8, 1.8),
-                                      step_hz=(1.5, 2.2), path_m=(3.0, 8.0), n_dipoles=(0, 8),
-                                      dipole_ut=(1.0, 25.0), n_wires=(0, 3), random_location=True,
-                                      noise_scale=(0.5, 2.0), treadmill_prob=0.5),
+    "handheld_random": HandheldConfig(
+        duration=60.0,
+        modes=MODES,
+        segment_s=(8.0, 40.0),
+        speed_mps=(0.8, 1.8),
+        step_hz=(1.5, 2.2),
+        path_m=(3.0, 8.0),
+        n_dipoles=(0, 8),
+        dipole_ut=(1.0, 25.0),
+        n_wires=(0, 3),
+        random_location=True,
+        noise_scale=(0.5, 2.0),
+        treadmill_prob=0.5,
+    ),
 }
 
 WORLD = World("handheld", "hand-held", SCENARIOS, _simulate, n_streams=4)

@@ -71,9 +71,18 @@ PAPER_GYRO_BIAS = (1.4e-3, 1.4e-3, 1.6e-3)
 #: An Xsens MTw-like unit at 100 Hz (noise densities 0.01 °/s/√Hz, ~200 µg/√Hz,
 #: 0.2 mGs/√Hz over ~50 Hz); no magnetometer lag or sample-and-hold. Its own
 #: gyro bias is left out: the paper's deliberate bias dominates it.
-MTW = SensorConfig(gyr_noise_dps=0.07, gyr_bias_dps=0.0, gyr_drift_dps=0.001, acc_noise=0.02, acc_bias=0.01,
-                   mag_noise_ut=0.14, mag_hard_iron_ut=0.3, mag_soft_iron=0.005, mag_lag_samples=0,
-                   mag_hold_fraction=0.0)
+MTW = SensorConfig(
+    gyr_noise_dps=0.07,
+    gyr_bias_dps=0.0,
+    gyr_drift_dps=0.001,
+    acc_noise=0.02,
+    acc_bias=0.01,
+    mag_noise_ut=0.14,
+    mag_hard_iron_ut=0.3,
+    mag_soft_iron=0.005,
+    mag_lag_samples=0,
+    mag_hold_fraction=0.0,
+)
 #: Motion amplitude per joint at motion_scale 1 (m for tx, ty, tz; rad for jz … ix).
 BASE_AMPLITUDE = (0.08, 0.08, 0.04, 0.4, 0.25, 0.3, 0.5, 0.5, 0.5)
 #: Radius of the workspace over which the lab's inhomogeneity is scaled, m.
@@ -221,10 +230,21 @@ def _plan_fixed(cfg: ConstraintConfig, rngs) -> _Plan:
     env = tl.envelope(t, [(cfg.start_rest, 1.0)])
     amp = cfg.motion_scale * np.asarray(cfg.amplitude)
     cmd = tl.smooth_motion(r_motion, cfg.duration, cfg.physics_rate, env, amp, cfg.freq_hz)
-    apps = [Approach(start=max(0.0, s + r_tool.uniform(-cfg.jitter_s, cfg.jitter_s)), hold=h, travel=cfg.tool_travel)
-            for s, h in cfg.disturbances]
-    return _Plan(cmd, apps, cfg.tool_near, cfg.tool_moment, cfg.lab_inhomogeneity,
-                 (cfg.field_norm, cfg.field_dip), cfg.sensor, np.asarray(cfg.gyro_bias, float), {})
+    apps = [
+        Approach(start=max(0.0, s + r_tool.uniform(-cfg.jitter_s, cfg.jitter_s)), hold=h, travel=cfg.tool_travel)
+        for s, h in cfg.disturbances
+    ]
+    return _Plan(
+        cmd,
+        apps,
+        cfg.tool_near,
+        cfg.tool_moment,
+        cfg.lab_inhomogeneity,
+        (cfg.field_norm, cfg.field_dip),
+        cfg.sensor,
+        np.asarray(cfg.gyro_bias, float),
+        {},
+    )
 
 
 def _plan_random(cfg: ConstraintRandomConfig, rngs) -> _Plan:
@@ -234,13 +254,16 @@ def _plan_random(cfg: ConstraintRandomConfig, rngs) -> _Plan:
     levels, s = [], cfg.start_rest
     while s < cfg.duration:
         u = r_motion.uniform()
-        lvl = 0.0 if u < cfg.still_prob else 0.15 if u < cfg.still_prob + cfg.slow_prob else r_motion.uniform(*cfg.level)
+        lvl = (
+            0.0 if u < cfg.still_prob else 0.15 if u < cfg.still_prob + cfg.slow_prob else r_motion.uniform(*cfg.level)
+        )
         levels.append((s, float(lvl)))
         s += r_motion.uniform(*cfg.segment_s)
     scale = float(r_motion.uniform(*cfg.motion_scale_range))
     env = tl.envelope(t, levels)
-    cmd = tl.smooth_motion(r_motion, cfg.duration, cfg.physics_rate, env, scale * np.asarray(cfg.amplitude),
-                           cfg.freq_hz)
+    cmd = tl.smooth_motion(
+        r_motion, cfg.duration, cfg.physics_rate, env, scale * np.asarray(cfg.amplitude), cfg.freq_hz
+    )
     apps, s = [], float(r_tool.uniform(cfg.start_rest + 1.0, cfg.start_rest + 10.0))
     for _ in range(int(r_tool.integers(cfg.n_tool[0], cfg.n_tool[1] + 1))):
         hold = float(r_tool.uniform(*cfg.tool_hold_s))
@@ -255,8 +278,14 @@ def _plan_random(cfg: ConstraintRandomConfig, rngs) -> _Plan:
     noise = float(r_sensor.uniform(*cfg.noise_scale))
     d = r_sensor.normal(size=3)
     bias = d / np.linalg.norm(d) * r_sensor.uniform(0.0, cfg.gyro_bias_max)
-    meta = {"motion_levels": levels, "motion_scale": scale, "noise_scale": noise, "tool_near_m": near,
-            "tool_moment_am2": moment, "lab_inhomogeneity": lab}
+    meta = {
+        "motion_levels": levels,
+        "motion_scale": scale,
+        "noise_scale": noise,
+        "tool_near_m": near,
+        "tool_moment_am2": moment,
+        "lab_inhomogeneity": lab,
+    }
     return _Plan(cmd, apps, near, moment, lab, field, cfg.sensor.scaled(noise), bias, meta)
 
 
@@ -305,23 +334,51 @@ def _simulate(scenario: str, cfg: ConstraintConfig, seed: int, rngs: list[np.ran
     for s, p, q in (("i", run.p_i, run.q_i), ("j", run.p_j, run.q_j)):
         b_lab = lab(p)
         b_tool = dipole_field(p - p_tool, m_tool)
-        fields[s] = (quat.rotate_inv(q, b_earth + b_lab + b_tool), quat.rotate_inv(q, b_lab + b_tool),
-                     quat.rotate_inv(q, b_tool))
+        fields[s] = (
+            quat.rotate_inv(q, b_earth + b_lab + b_tool),
+            quat.rotate_inv(q, b_lab + b_tool),
+            quat.rotate_inv(q, b_tool),
+        )
     gyr_i, acc_i, mag_i = apply_sensor_model(run.gyr_i, run.acc_i, fields["i"][0], cfg.rate, plan.sensor, r_si)
     gyr_j, acc_j, mag_j = apply_sensor_model(run.gyr_j, run.acc_j, fields["j"][0], cfg.rate, plan.sensor, r_sj)
     gyr_i = gyr_i + plan.gyro_bias  # paper §3.1: bias added on purpose
     ext = np.linalg.norm(quat.rotate(run.q_i, run.acc_i) - quat.gravity_up(), axis=1)
-    still = (np.linalg.norm(run.gyr_i, axis=1) < STATIONARY_RATE) & (np.linalg.norm(run.gyr_j, axis=1) < STATIONARY_RATE)
+    still = (np.linalg.norm(run.gyr_i, axis=1) < STATIONARY_RATE) & (
+        np.linalg.norm(run.gyr_j, axis=1) < STATIONARY_RATE
+    )
     r_i, r_j = tl.lever_arms()
-    meta = trial_meta(scenario, seed, cfg, {
-        "lever_i_m": r_i, "lever_j_m": r_j, "gyro_bias_rad_s": plan.gyro_bias, "mean_ext_acc": ext.mean(),
-        "approach_starts_s": [a.start for a in plan.approaches], "approach_holds_s": [a.hold for a in plan.approaches],
-        "tool_azimuth_rad": az, "physics_steps": run.physics_steps, **plan.meta})
+    meta = trial_meta(
+        scenario,
+        seed,
+        cfg,
+        {
+            "lever_i_m": r_i,
+            "lever_j_m": r_j,
+            "gyro_bias_rad_s": plan.gyro_bias,
+            "mean_ext_acc": ext.mean(),
+            "approach_starts_s": [a.start for a in plan.approaches],
+            "approach_holds_s": [a.hold for a in plan.approaches],
+            "tool_azimuth_rad": az,
+            "physics_steps": run.physics_steps,
+            **plan.meta,
+        },
+    )
     return Trial(
-        name=trial_name(scenario, seed), rate=cfg.rate, gyr=gyr_i, acc=acc_i, mag=mag_i, q_true=run.q_i,
-        field_norm=plan.field[0], field_dip=plan.field[1],
-        truth={"mag_disturbance": fields["i"][1], "tool_field": fields["i"][2],
-               "tool_distance": np.linalg.norm(p_tool - run.p_i, axis=1), "ext_acc": ext, "stationary": still},
+        name=trial_name(scenario, seed),
+        rate=cfg.rate,
+        gyr=gyr_i,
+        acc=acc_i,
+        mag=mag_i,
+        q_true=run.q_i,
+        field_norm=plan.field[0],
+        field_dip=plan.field[1],
+        truth={
+            "mag_disturbance": fields["i"][1],
+            "tool_field": fields["i"][2],
+            "tool_distance": np.linalg.norm(p_tool - run.p_i, axis=1),
+            "ext_acc": ext,
+            "stationary": still,
+        },
         extra={"gyr_j": gyr_j, "acc_j": acc_j, "mag_j": mag_j, "q_j": run.q_j},
         meta=meta,
     )
@@ -331,8 +388,9 @@ def _simulate(scenario: str, cfg: ConstraintConfig, seed: int, rngs: list[np.ran
 SCENARIOS: dict[str, ConstraintConfig] = {
     "constraint_test1": ConstraintConfig(motion_scale=0.5, target_ext_acc=0.9),
     "constraint_test2": ConstraintConfig(motion_scale=1.0, target_ext_acc=2.0),
-    "constraint_test3": ConstraintConfig(duration=60.0, motion_scale=1.0, target_ext_acc=1.9,
-                                         disturbances=((13.0, 30.0),), jitter_s=0.0),
+    "constraint_test3": ConstraintConfig(
+        duration=60.0, motion_scale=1.0, target_ext_acc=1.9, disturbances=((13.0, 30.0),), jitter_s=0.0
+    ),
     "constraint_random": ConstraintRandomConfig(),
 }
 

@@ -75,8 +75,10 @@ def apply_overrides(name: str, cfg, overrides: dict):
     sensor_fields = {f.name for f in dataclasses.fields(SensorConfig)}
     unknown = sorted(k for k in overrides if k not in own and k not in sensor_fields)
     if unknown:
-        raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} for scenario {name!r}; "
-                         f"known: {', '.join(sorted(own))}; sensor: {', '.join(sorted(sensor_fields))}")
+        raise ValueError(
+            f"unknown parameter(s) {', '.join(map(repr, unknown))} for scenario {name!r}; "
+            f"known: {', '.join(sorted(own))}; sensor: {', '.join(sorted(sensor_fields))}"
+        )
     sensor_over = {k: v for k, v in overrides.items() if k not in own}
     cfg_over = {k: v for k, v in overrides.items() if k in own}
     try:

@@ -10,8 +10,15 @@ from __future__ import annotations
 import numpy as np
 
 
-def reach(t: np.ndarray, start: float, travel: float, hold: float, target: np.ndarray,
-          rng: np.random.Generator, tremor_m: float = 0.002) -> np.ndarray:
+def reach(
+    t: np.ndarray,
+    start: float,
+    travel: float,
+    hold: float,
+    target: np.ndarray,
+    rng: np.random.Generator,
+    tremor_m: float = 0.002,
+) -> np.ndarray:
     """Move from the origin to ``target`` (m, world) and back.
 
     The base travels to ``target`` in ``travel`` s (half-cosine profile),
@@ -58,8 +65,16 @@ def start_envelope(t: np.ndarray, ramp_s: float) -> tuple[np.ndarray, np.ndarray
     return e, phi
 
 
-def figure_eight(t: np.ndarray, half_length: float, half_width: float, period: float,
-                 bounce_m: float, step_hz: float, sway_m: float, ramp_s: float = 2.0) -> np.ndarray:
+def figure_eight(
+    t: np.ndarray,
+    half_length: float,
+    half_width: float,
+    period: float,
+    bounce_m: float,
+    step_hz: float,
+    sway_m: float,
+    ramp_s: float = 2.0,
+) -> np.ndarray:
     """A figure-eight walk (lemniscate of Gerono) with gait bounce and sway.
 
     x = L·sin(Ωφ), y = W·sin(Ωφ)·cos(Ωφ) with Ω = 2π/period and φ the time

@@ -177,8 +177,10 @@ def _model(mobile: bool = False) -> tuple[mujoco.MjModel, mujoco.MjData, dict]:
         "magnet_site": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, "magnet"),
         "slide": mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "slide"),
     }
-    qadr = {name: int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)])
-            for name in ("z", "y", "x", "slide") + (("base_x", "base_y", "base_z") if mobile else ())}
+    qadr = {
+        name: int(model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)])
+        for name in ("z", "y", "x", "slide") + (("base_x", "base_y", "base_z") if mobile else ())
+    }
     return model, data, {"adr": adr, "ids": ids, "qadr": qadr}
 
 
@@ -220,8 +222,9 @@ def _segments(still: np.ndarray, min_len: int) -> list[tuple[int, int, bool]]:
     return segs
 
 
-def simulate_gimbal(profile: DriveProfile, tube: Tube, sample_rate: float, n_samples: int,
-                    base: np.ndarray | None = None) -> GimbalRun:
+def simulate_gimbal(
+    profile: DriveProfile, tube: Tube, sample_rate: float, n_samples: int, base: np.ndarray | None = None
+) -> GimbalRun:
     """Roll the gimbal out along ``profile`` and read its sensors at ``sample_rate``.
 
     Args:
@@ -242,7 +245,9 @@ def simulate_gimbal(profile: DriveProfile, tube: Tube, sample_rate: float, n_sam
     phys_rate = profile.rate
     need = int(math.floor((n_samples - 1) * phys_rate / sample_rate)) + 3
     if profile.n < need:
-        raise ValueError(f"drive profile has {profile.n} steps, needs {need} for {n_samples} samples at {sample_rate} Hz")
+        raise ValueError(
+            f"drive profile has {profile.n} steps, needs {need} for {n_samples} samples at {sample_rate} Hz"
+        )
     _configure(model, info["ids"], tube, phys_rate)
 
     angles = profile.angles
@@ -275,7 +280,9 @@ def simulate_gimbal(profile: DriveProfile, tube: Tube, sample_rate: float, n_sam
     hold[3:6] = 0.0
     if base is not None:
         hold[9:12] = 0.0
-    st, _ = mj_rollout.rollout(model, data, state[None], np.tile(hold, (1, settle, 1)), initial_warmstart=warmstart[None])
+    st, _ = mj_rollout.rollout(
+        model, data, state[None], np.tile(hold, (1, settle, 1)), initial_warmstart=warmstart[None]
+    )
     state = st[0, -1].copy()
     state[0] = 0.0
     steps = settle
@@ -288,18 +295,22 @@ def simulate_gimbal(profile: DriveProfile, tube: Tube, sample_rate: float, n_sam
         state = st[0, -1].copy()
         steps += stop - a
         if skippable:
-            qvel = state[1 + model.nq: 1 + model.nq + model.nv]
+            qvel = state[1 + model.nq : 1 + model.nq + model.nv]
             if np.max(np.abs(qvel)) * (b - stop) / phys_rate < SETTLE_TOL:
                 sens[stop:b] = sd[0, -1]
                 state[0] = b / phys_rate
             else:  # not at rest yet: simulate the whole pause
-                st, sd = mj_rollout.rollout(model, data, state[None], ctrl[None, stop:b], initial_warmstart=warmstart[None])
+                st, sd = mj_rollout.rollout(
+                    model, data, state[None], ctrl[None, stop:b], initial_warmstart=warmstart[None]
+                )
                 sens[stop:b] = sd[0]
                 state = st[0, -1].copy()
                 steps += b - stop
     bad = [mujoco.mjtWarning(int(i)).name for i in np.flatnonzero(data.warning.number)]
     if bad or not np.all(np.isfinite(sens)):
-        raise SimulationError(f"MuJoCo instability in the gimbal model: warnings {bad or 'none'}, finite={np.all(np.isfinite(sens))}")
+        raise SimulationError(
+            f"MuJoCo instability in the gimbal model: warnings {bad or 'none'}, finite={np.all(np.isfinite(sens))}"
+        )
 
     # MuJoCo's quaternion may change sign between steps; make it continuous.
     q = sens[:, adr["q_imu"]]
@@ -323,9 +334,15 @@ def simulate_gimbal(profile: DriveProfile, tube: Tube, sample_rate: float, n_sam
     axis = col("m_axis")
     axis /= norms(axis)[:, None]
     return GimbalRun(
-        gyr=col("gyro"), acc=col("accel"), q=qs, p_imu=col("p_imu"), p_magnet=p_magnet, m_axis=axis,
+        gyr=col("gyro"),
+        acc=col("accel"),
+        q=qs,
+        p_imu=col("p_imu"),
+        p_magnet=p_magnet,
+        m_axis=axis,
         joints=np.stack([out[:, adr[k].start] for k in ("q_z", "q_y", "q_x")], axis=1),
-        slide=clamped, physics_steps=steps,
+        slide=clamped,
+        physics_steps=steps,
     )
 
 
@@ -349,7 +366,7 @@ def _centre_gyro(sens: np.ndarray, adr: dict, phys_rate: float) -> None:
     dv = vbar - vel
     gyro = sens[:, adr["gyro"]]
     for j, key in enumerate(("axis_z", "axis_y", "axis_x")):
-        gyro += sens[:, adr[key]] * dv[:, j: j + 1]
+        gyro += sens[:, adr[key]] * dv[:, j : j + 1]
     sens[:, adr["gyro"]] = gyro
 
 

@@ -62,12 +62,32 @@ def hand_path(
     sway_p = rng.uniform(0, 2 * np.pi, 2)
     tilt_f = rng.uniform(0.1, 0.5, 2)  # wobble of the disc's axis, ±10°
     tilt_p = rng.uniform(0, 2 * np.pi, 2)
-    return _path(np.ascontiguousarray(t, dtype=float), app, far, near, tremor_m, sway_m,
-                 trem_f, trem_p, sway_f, sway_p, tilt_f, tilt_p)
+    return _path(
+        np.ascontiguousarray(t, dtype=float),
+        app,
+        far,
+        near,
+        tremor_m,
+        sway_m,
+        trem_f,
+        trem_p,
+        sway_f,
+        sway_p,
+        tilt_f,
+        tilt_p,
+    )
 
 
-def tool_path(t: np.ndarray, approaches: list[Approach], far: float, near: float, azimuth: float,
-               rng: np.random.Generator, tremor_m: float = 0.003, sway_m: float = 0.02):
+def tool_path(
+    t: np.ndarray,
+    approaches: list[Approach],
+    far: float,
+    near: float,
+    azimuth: float,
+    rng: np.random.Generator,
+    tremor_m: float = 0.003,
+    sway_m: float = 0.02,
+):
     """A hand-held magnetised tool brought in sideways: offset from the sensor (N, 3) m and unit moment
     direction (N, 3), world (the two-link world's tool; ``t`` (N,) s).
 

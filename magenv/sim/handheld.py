@@ -102,8 +102,11 @@ class _Mode:
             self.swing = rng.uniform(d(25), d(40))
             self.swing0 = rng.uniform(d(-5), d(10))
             self.phase = rng.uniform(0, 2 * np.pi)
-            self.grip = _euler(rng.uniform(-d(20), d(20)), rng.uniform(-d(20), d(20)),
-                               rng.choice((-1.0, 1.0)) * d(90) + rng.uniform(-d(15), d(15)))
+            self.grip = _euler(
+                rng.uniform(-d(20), d(20)),
+                rng.uniform(-d(20), d(20)),
+                rng.choice((-1.0, 1.0)) * d(90) + rng.uniform(-d(15), d(15)),
+            )
             self.ang_wob = _Sines(rng, 3, 2, d(4.0), (0.3, 1.5))
         elif name == "phoning":
             self.p0 = np.array([rng.uniform(0.02, 0.1), rng.uniform(-0.2, -0.12), rng.uniform(1.5, 1.7)])
@@ -149,8 +152,18 @@ class Motion:
             torso keeps its gait oscillations at the point where the path starts, facing along it).
     """
 
-    def __init__(self, rng, modes, duration, segment_s=(20.0, 60.0), transition_s=1.5, speed=1.39, step_hz=1.8,
-                 path_m=(4.0, 2.0), travel=True):
+    def __init__(
+        self,
+        rng,
+        modes,
+        duration,
+        segment_s=(20.0, 60.0),
+        transition_s=1.5,
+        speed=1.39,
+        step_hz=1.8,
+        path_m=(4.0, 2.0),
+        travel=True,
+    ):
         for m in modes:
             if m not in MODES:
                 raise ValueError(f"unknown carrying mode {m!r}; known: {', '.join(MODES)}")
@@ -210,7 +223,11 @@ class Motion:
     def pose(self, t) -> tuple[np.ndarray, np.ndarray]:
         """Sensor position (N, 3) m (ENU) and orientation (N, 4) sensor → ENU at times t (N,) s."""
         t = np.asarray(t, float)
-        s = self.s0 + (self.speed if self.travel else 0.0) * t + self.surge[0] * np.sin(2 * np.pi * self.f_step * t + self.surge[1])
+        s = (
+            self.s0
+            + (self.speed if self.travel else 0.0) * t
+            + self.surge[0] * np.sin(2 * np.pi * self.f_step * t + self.surge[1])
+        )
         p_path, psi = self.path(s)
         stride = np.pi * self.f_step * t  # stride frequency = step/2
         psi = psi + self.yaw_osc[0] * np.sin(stride + self.yaw_osc[1])

@@ -12,8 +12,13 @@ import numpy as np
 from magenv.sim.magnet import dipole_field
 
 
-def random_sources(rng: np.random.Generator, n: int, distance_m: tuple[float, float],
-                   field_at_centre_ut: tuple[float, float], height_m: tuple[float, float] = (-1.0, 1.5)):
+def random_sources(
+    rng: np.random.Generator,
+    n: int,
+    distance_m: tuple[float, float],
+    field_at_centre_ut: tuple[float, float],
+    height_m: tuple[float, float] = (-1.0, 1.5),
+):
     """``n`` dipoles around the origin, fixed in the world.
 
     Each sits at a horizontal distance in ``distance_m`` from the origin (at a
@@ -74,6 +79,6 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     """(n, 3) roughly even unit vectors (Fibonacci sphere)."""
     k = np.arange(n) + 0.5
     z = 1.0 - 2.0 * k / n
-    phi = np.pi * (1.0 + 5 ** 0.5) * k
+    phi = np.pi * (1.0 + 5**0.5) * k
     r = np.sqrt(1.0 - z * z)
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)

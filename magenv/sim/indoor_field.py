@@ -110,8 +110,9 @@ class IndoorField:
         if pos.ndim != 2 or pos.shape[1] != 3 or not np.all(np.isfinite(pos)):
             raise ValueError(f"IndoorField: positions must be a finite (N, 3) array in m, got shape {pos.shape}")
         out = np.empty_like(pos)
-        field_kernel(pos, self.earth, self.dipole_pos, self.dipole_moment, self.wire_point, self.wire_dir,
-                     self.wire_current, out)
+        field_kernel(
+            pos, self.earth, self.dipole_pos, self.dipole_moment, self.wire_point, self.wire_dir, self.wire_current, out
+        )
         return out
 
     def min_source_distance(self, pos) -> float:
@@ -126,9 +127,17 @@ class IndoorField:
         return best
 
 
-def random_indoor_field(rng: np.random.Generator, earth, area_points, n_dipoles=(3, 6), strength_ut=(2.0, 12.0),
-                        distance_m=(1.0, 3.0), n_wires=(0, 2), wire_current_a=(1.0, 15.0),
-                        ceiling_m=2.7) -> IndoorField:
+def random_indoor_field(
+    rng: np.random.Generator,
+    earth,
+    area_points,
+    n_dipoles=(3, 6),
+    strength_ut=(2.0, 12.0),
+    distance_m=(1.0, 3.0),
+    n_wires=(0, 2),
+    wire_current_a=(1.0, 15.0),
+    ceiling_m=2.7,
+) -> IndoorField:
     """A random static indoor field around the positions ``area_points`` (M, 3) m the sensor will visit.
 
     Each dipole is placed at a drawn distance (``distance_m``) from a random
@@ -174,7 +183,10 @@ def random_indoor_field(rng: np.random.Generator, earth, area_points, n_dipoles=
     for k in range(nw):
         ang = rng.uniform(0, np.pi)
         w_dir[k] = (np.cos(ang), np.sin(ang), 0.0)
-        w_pt[k] = (centre[0] + rng.uniform(-0.5, 0.5) * span[0], centre[1] + rng.uniform(-0.5, 0.5) * span[1],
-                   ceiling_m)
+        w_pt[k] = (
+            centre[0] + rng.uniform(-0.5, 0.5) * span[0],
+            centre[1] + rng.uniform(-0.5, 0.5) * span[1],
+            ceiling_m,
+        )
         w_cur[k] = rng.uniform(*wire_current_a) * rng.choice((-1.0, 1.0))
     return IndoorField(np.asarray(earth, float), d_pos, d_mom, w_pt, w_dir, w_cur)

@@ -64,26 +64,35 @@ class SensorConfig:
     mag_hold_fraction: float = 0.29
 
     @classmethod
-    def papers(cls) -> "SensorConfig":
+    def papers(cls) -> SensorConfig:
         """The noise levels the papers quote (Ligorio & Sabatini 2016; Fan et al. 2017 §3), lag 4 samples."""
         return cls(gyr_noise_dps=0.5, gyr_bias_dps=0.1, acc_noise=0.02, mag_noise_ut=0.15, mag_lag_samples=4)
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v) or v < 0:
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float, np.integer, np.floating))
+                or not math.isfinite(v)
+                or v < 0
+            ):
                 raise ValueError(f"SensorConfig.{f.name} must be a finite number ≥ 0, got {v!r}")
         if int(self.mag_lag_samples) != self.mag_lag_samples:
-            raise ValueError(f"SensorConfig.mag_lag_samples must be a whole number of samples, got {self.mag_lag_samples!r}")
+            raise ValueError(
+                f"SensorConfig.mag_lag_samples must be a whole number of samples, got {self.mag_lag_samples!r}"
+            )
         if not self.mag_hold_fraction < 1.0:
             raise ValueError(f"SensorConfig.mag_hold_fraction must be < 1, got {self.mag_hold_fraction!r}")
         if self.mag_range_ut <= 0:
             raise ValueError(f"SensorConfig.mag_range_ut must be > 0 µT, got {self.mag_range_ut!r}")
 
-    def scaled(self, noise_scale: float) -> "SensorConfig":
+    def scaled(self, noise_scale: float) -> SensorConfig:
         """This config with all white-noise levels multiplied by ``noise_scale``."""
         return dataclasses.replace(
-            self, gyr_noise_dps=self.gyr_noise_dps * noise_scale, acc_noise=self.acc_noise * noise_scale,
+            self,
+            gyr_noise_dps=self.gyr_noise_dps * noise_scale,
+            acc_noise=self.acc_noise * noise_scale,
             mag_noise_ut=self.mag_noise_ut * noise_scale,
         )
 
@@ -110,10 +119,24 @@ def apply_sensor_model(
     hard = rng.normal(0.0, cfg.mag_hard_iron_ut, 3)
     phase = rng.uniform(0.0, 1.0)
     z = rng.standard_normal((4, n, 3))  # walk, gyro, accelerometer, magnetometer
-    sig = np.array([cfg.gyr_drift_dps * d2r * math.sqrt(1.0 / rate), cfg.gyr_noise_dps * d2r, cfg.acc_noise, cfg.mag_noise_ut])
-    return _measure(np.ascontiguousarray(gyr), np.ascontiguousarray(acc), np.ascontiguousarray(mag), z, sig,
-                    bias_g, bias_a, soft, hard, int(cfg.mag_lag_samples), 1.0 - cfg.mag_hold_fraction, phase,
-                    float(cfg.mag_range_ut))
+    sig = np.array(
+        [cfg.gyr_drift_dps * d2r * math.sqrt(1.0 / rate), cfg.gyr_noise_dps * d2r, cfg.acc_noise, cfg.mag_noise_ut]
+    )
+    return _measure(
+        np.ascontiguousarray(gyr),
+        np.ascontiguousarray(acc),
+        np.ascontiguousarray(mag),
+        z,
+        sig,
+        bias_g,
+        bias_a,
+        soft,
+        hard,
+        int(cfg.mag_lag_samples),
+        1.0 - cfg.mag_hold_fraction,
+        phase,
+        float(cfg.mag_range_ut),
+    )
 
 
 @njit(cache=True)

@@ -122,9 +122,14 @@ def _hinge_axes(angles: np.ndarray) -> np.ndarray:
     sy, cy = np.sin(angles[:, 1]), np.cos(angles[:, 1])
     sx, cx = np.sin(angles[:, 2]), np.cos(angles[:, 2])
     zero, one = np.zeros_like(sx), np.ones_like(sx)
-    return np.stack([np.stack([-sy, sx * cy, cx * cy], axis=1),
-                     np.stack([zero, cx, -sx], axis=1),
-                     np.stack([one, zero, zero], axis=1)], axis=1)
+    return np.stack(
+        [
+            np.stack([-sy, sx * cy, cx * cy], axis=1),
+            np.stack([zero, cx, -sx], axis=1),
+            np.stack([one, zero, zero], axis=1),
+        ],
+        axis=1,
+    )
 
 
 def _centre_gyro(sens: np.ndarray, adr: dict, phys_rate: float) -> None:
@@ -162,8 +167,16 @@ def envelope(t: np.ndarray, levels: list[tuple[float, float]], ramp: float = 1.0
     return env
 
 
-def smooth_motion(rng: np.random.Generator, duration: float, rate: float, env: np.ndarray, amp: np.ndarray,
-                  freq_hz: tuple[float, float], centre: np.ndarray | None = None, n_sines: int = 3) -> Command:
+def smooth_motion(
+    rng: np.random.Generator,
+    duration: float,
+    rate: float,
+    env: np.ndarray,
+    amp: np.ndarray,
+    freq_hz: tuple[float, float],
+    centre: np.ndarray | None = None,
+    n_sines: int = 3,
+) -> Command:
     """A commanded path: joint d moves as centre_d + env(t)·Σ_k a_dk sin(2π f_dk t + φ_dk).
 
     Args:
@@ -223,8 +236,9 @@ def simulate_twolink(command: Command, sample_rate: float, n_samples: int) -> Tw
     sens = sens[0]
     bad = [mujoco.mjtWarning(i).name for i, w in enumerate(data.warning) if w.number > 0]
     if bad or not np.all(np.isfinite(sens)):
-        raise SimulationError(f"MuJoCo instability in the two-link model: warnings {bad or 'none'}, "
-                              f"finite={np.all(np.isfinite(sens))}")
+        raise SimulationError(
+            f"MuJoCo instability in the two-link model: warnings {bad or 'none'}, finite={np.all(np.isfinite(sens))}"
+        )
     for key in ("q_i", "q_j"):  # continuous sign before interpolation
         q = sens[:, adr[key]]
         flip = np.cumprod(np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0))
@@ -237,7 +251,14 @@ def simulate_twolink(command: Command, sample_rate: float, n_samples: int) -> Tw
         qs *= np.where(qs[:, :1] < 0, -1.0, 1.0)
     g = lambda k: np.ascontiguousarray(out[:, adr[k]])
     return TwoLinkRun(
-        gyr_i=g("gyro_i"), acc_i=g("accel_i"), q_i=g("q_i"), p_i=g("p_i"),
-        gyr_j=g("gyro_j"), acc_j=g("accel_j"), q_j=g("q_j"), p_j=g("p_j"), p_c=g("p_c"),
+        gyr_i=g("gyro_i"),
+        acc_i=g("accel_i"),
+        q_i=g("q_i"),
+        p_i=g("p_i"),
+        gyr_j=g("gyro_j"),
+        acc_j=g("accel_j"),
+        q_j=g("q_j"),
+        p_j=g("p_j"),
+        p_c=g("p_c"),
         physics_steps=settle + command.n,
     )
