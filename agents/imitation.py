@@ -61,7 +61,8 @@ def demonstrations(
     (``teacher`` checked by :func:`check_teacher`)."""
     low, high = (np.asarray(b, np.float64) for b in bounds)
     env = gym.make(env_id, disable_env_checker=True, **env_kwargs)
-    obs_list, act_list = [], []
+    obs_list: list[np.ndarray] = []
+    act_list: list[np.ndarray] = []
     obs, _ = env.reset(seed=seed)
     teacher.reset()
     while len(obs_list) < steps:

@@ -32,6 +32,7 @@ from magenv.agents.weights import RunError, load_policy
 
 RUN_FILE = "run.yaml"
 WEIGHTS = {"best": "best.safetensors", "last": "last.safetensors"}
+NO_ENV = "a loaded agent acts on observations; it has no env of its own to step"
 SB3_EXPORTS = {"best": "best_model.zip", "last": "last_model.zip"}
 
 __all__ = ["RUN_FILE", "AgentPolicy", "RunError", "build_model", "load_agent", "read_run"]
@@ -134,9 +135,10 @@ def _spaces_env(env_id: str, env_kwargs: dict, n_envs: int):
         observation_space, action_space = spaces
 
         def reset(self, *, seed=None, options=None):
-            raise RuntimeError("a loaded agent acts on observations; it has no env of its own to step")
+            raise RuntimeError(NO_ENV)
 
-        step = reset
+        def step(self, action):
+            raise RuntimeError(NO_ENV)
 
     return DummyVecEnv([Spaces] * n_envs)
 

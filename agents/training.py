@@ -20,7 +20,7 @@ import json
 import math
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +73,7 @@ class HeldOutEvaluation(BaseCallback):
         self.run_dir, self.trials, self.env_id, self.env_kwargs = run_dir, trials, env_id, env_kwargs
         self.every, self.state = every, state
         self._next = state["timesteps"] + every
-        self.last_evaluated = None  # timesteps of the latest evaluation in this process
+        self.last_evaluated: int | None = None  # timesteps of the latest evaluation in this process
 
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next:
@@ -178,6 +178,7 @@ def _differences(run: dict, requested: dict) -> list[str]:
     for key, new in requested.items():
         old = run.get(key)
         if key == "hyperparams":
+            old = old or {}
             out += [
                 f"{k} {show(old, k)} → {show(new, k)}"
                 for k in dict.fromkeys([*old, *new])
@@ -206,7 +207,7 @@ def _legacy_model(out: Path, cls, vec_env, section: dict):
     try:
         if section.get("normalize_reward"):
             vec_env = (
-                VecNormalize.load(stats, vec_env)
+                VecNormalize.load(str(stats), vec_env)
                 if stats.is_file()
                 else VecNormalize(vec_env, norm_obs=False, norm_reward=True, gamma=section.get("gamma", 0.99))
             )
@@ -226,8 +227,8 @@ def train(
     config: str | None = None,
     seed: int | None = None,
     eval_every: int = DEFAULT_EVAL_EVERY,
-    eval_scenarios: tuple[str, ...] | None = None,
-    eval_seeds: tuple[int, ...] | None = None,
+    eval_scenarios: Sequence[str] | None = None,
+    eval_seeds: Sequence[int] | None = None,
     n_envs: int | None = None,
     progress_bar: bool = True,
     make_method: Callable[[str], Any] | None = None,

@@ -14,7 +14,10 @@ def normalized_actions(env: gym.Env) -> gym.Env:
     it starts in the middle (λ = 0.5). Stable-Baselines3 recommends this
     normalisation for every algorithm. ``AgentPolicy`` maps actions back.
     """
-    shape = env.action_space.shape
+    space = env.action_space
+    if not isinstance(space, gym.spaces.Box):
+        raise TypeError(f"normalized_actions needs a Box action space, got {space}")
+    shape = space.shape
     return gym.wrappers.RescaleAction(
         env, min_action=np.full(shape, -1.0, np.float32), max_action=np.full(shape, 1.0, np.float32)
     )
@@ -25,4 +28,6 @@ def action_bounds(env_id: str, env_kwargs: dict) -> list[list[float]]:
     env = gym.make(env_id, **env_kwargs)
     space = env.action_space
     env.close()
+    if not isinstance(space, gym.spaces.Box):
+        raise TypeError(f"{env_id}: needs a Box action space, got {space}")
     return [np.asarray(space.low).tolist(), np.asarray(space.high).tolist()]

@@ -29,6 +29,7 @@ Paper check (Table 2): ``magenv paper constraint --seeds 0:5``.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -165,7 +166,7 @@ class ConstraintWeightRule(Tunable):
                 f"the env's features are {list(self.features)}"
             )
         self._ix = {f: self.features.index(f) for f in need}
-        self.env_kwargs = {} if features is None else {"features": list(self.features)}
+        self.env_kwargs: dict[str, Any] = {} if features is None else {"features": list(self.features)}
         if control_gain:
             self.env_kwargs.update(control_gain=True, gain_max=self.gain_max)
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -115,7 +116,7 @@ class DetectorPolicy:
             if f not in names:
                 raise ValueError(f"DetectorPolicy needs the observation feature {f!r}")
         self._i = {f: names.index(f) for f in ("det_start", "det_keep", "active")}
-        self.env_kwargs = {} if features is None else {"features": list(names)}
+        self.env_kwargs: dict[str, Any] = {} if features is None else {"features": list(names)}
         if detector is not None:
             det = detector if isinstance(detector, qsf.QSFDetector) else qsf.QSFDetector(**detector)  # checked here
             self.env_kwargs["detector"] = dataclasses.asdict(det)

@@ -26,6 +26,7 @@ env applies.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -53,7 +54,7 @@ class RulePolicy(Tunable):
         self._ix = {f: self.features.index(f) for f in self.NEEDS}
         # env options this policy runs with: non-default features; the stationary
         # hold if set (None = the env's default, on)
-        self.env_kwargs = {} if features is None else {"features": list(self.features)}
+        self.env_kwargs: dict[str, Any] = {} if features is None else {"features": list(self.features)}
         if stationary_hold is not None:
             self.env_kwargs["stationary_hold"] = bool(stationary_hold)
 

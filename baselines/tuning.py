@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from magenv import evaluation
+from magenv.protocols import Tunable
 
 
 def _to_params(x: np.ndarray, bounds: dict[str, tuple[float, float]]) -> dict[str, float]:
@@ -34,7 +35,13 @@ def _to_unit(params: dict[str, float], bounds: dict[str, tuple[float, float]]) -
 
 
 def tune_rule(
-    rule: str, cls: type, trials: list, iterations: int = 30, popsize: int = 8, seed: int = 0, progress: bool = True
+    rule: str,
+    cls: type[Tunable],
+    trials: list,
+    iterations: int = 30,
+    popsize: int = 8,
+    seed: int = 0,
+    progress: bool = True,
 ) -> dict:
     """CMA-ES over the parameters of ``cls`` (the tunable rule named ``rule``; a bounded scalar search for
     one parameter); returns the record ``magenv tune`` saves as ``RULE.json``."""
@@ -47,7 +54,7 @@ def tune_rule(
     def objective(params: dict) -> float:
         method = cls(**params)  # a policy (run in its env) or an estimator (run on the trial)
         runner = evaluation.PolicyRunner()
-        return float(np.mean([evaluation.run_method(rule, method, t, runner).score.total for t in trials]))
+        return float(np.mean([evaluation.run_method(rule, method, t, runner).scored.total for t in trials]))
 
     x0 = _to_unit(published.params, bounds)
     if len(bounds) == 1:  # CMA-ES needs two dimensions or more: bounded scalar search instead

@@ -69,6 +69,13 @@ class Run:
     score: metrics.Score | None
     error: str | None = None
 
+    @property
+    def scored(self) -> metrics.Score:
+        """The score of a run that ran; a RuntimeError naming the method and its error otherwise."""
+        if self.score is None:
+            raise RuntimeError(f"{self.method} did not run on {self.label}: {self.error}")
+        return self.score
+
 
 def trial_label(trial: Trial) -> str:
     """Default table group of a trial: its scenario name, else its own name."""
@@ -132,7 +139,7 @@ def run_policy_on_trials(
 ) -> list[metrics.Score]:
     """Scores of ``policy`` on each trial (env ``env_id`` or the policy's own, with ``env_kwargs``)."""
     runner = PolicyRunner(env_id, env_kwargs)
-    return [run_method(getattr(policy, "name", "policy"), policy, t, runner).score for t in trials]
+    return [run_method(getattr(policy, "name", "policy"), policy, t, runner).scored for t in trials]
 
 
 def named(methods) -> dict[str, Any]:
@@ -206,7 +213,7 @@ def summarize(runs: Sequence[Run]) -> list[dict]:
                 }
             )
             continue
-        scores = [r.score for r in group]
+        scores = [r.scored for r in group]
         tot = np.array([s.total for s in scores])
         rows.append(
             {
@@ -261,7 +268,7 @@ def plot_runs(runs: Sequence[Run], path: str | Path, title: str | None = None) -
     for r in runs:
         t = r.trial.t
         err = metrics.total_error(metrics.error_quaternion(r.q, r.trial.q_true))
-        ax1.plot(t, err, lw=0.8, label=f"{r.method} ({r.score.total:.2f}°)")
+        ax1.plot(t, err, lw=0.8, label=f"{r.method} ({r.scored.total:.2f}°)")
         if r.lam is not None:
             ax2.plot(t, r.lam, lw=0.8, label=r.method)
         elif r.trust is not None:

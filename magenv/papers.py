@@ -18,6 +18,7 @@ Methods are given as ``magenv compare`` names (policies, ``RULE_tuned`` and
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -64,18 +65,18 @@ def table2(seeds: Sequence[int], methods_: Sequence[str] = TABLE2_METHODS) -> li
     for test in PAPER_TABLE2:
         trials = [make_trial(test, s) for s in seeds]
         for name in methods_:
-            rms = []
+            per_trial: list[list[float]] = []
             for tr in trials:
                 q = evaluation.run_method(name, registry.make(name), tr, runner).q
                 e = metrics.euler_error(q, tr.q_true)  # [yaw, pitch, roll]
-                rms.append(
+                per_trial.append(
                     [
                         metrics.rmse(e[:, 2], tr.score_mask),
                         metrics.rmse(e[:, 1], tr.score_mask),
                         metrics.rmse(e[:, 0], tr.score_mask),
                     ]
                 )
-            rms = np.array(rms)
+            rms = np.array(per_trial)
             rows.append(
                 {
                     "test": test,
@@ -123,7 +124,8 @@ def qsf_table(seeds=(0, 1, 2, 3), free_seeds=(0,), **params) -> str:
         "handheld_corridor": seeds,
     }  # the last is not in the paper: walking *through* the field
     ests = {"aekf": bq.aekf, "magyq": bq.magyq, "delay_magyq": bq.delay_magyq}
-    lines, pooled = [], {m: [] for m in ests}
+    lines: list[str] = []
+    pooled: dict[str, list] = {m: [] for m in ests}
     for name, sd in groups.items():
         trials = [make_trial(name, s) for s in sd]
         lines += [
@@ -193,7 +195,7 @@ def qsf_recordings(folder=None) -> str:
         # detector thresholds from the magnetometer noise over the first 2 s (the initial rest, truth-free)
         noise = float(np.median(tr.mag[: int(2 * tr.rate)].std(axis=0)))
         det = QSFDetector.for_noise(noise)
-        ms = {**{m: f(detector=det) for m, f in ests.items()}, "vqf": reference.VQFEstimator()}
+        ms: dict[str, Any] = {**{m: f(detector=det) for m, f in ests.items()}, "vqf": reference.VQFEstimator()}
         cells = []
         for est in ms.values():
             s = metrics.score(est.run(tr).q, tr.q_true, tr.score_mask)

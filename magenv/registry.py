@@ -20,6 +20,7 @@ a fresh one. ``names()`` lists them all:
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -29,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from magenv.baselines import constraint, kalman, kalman_policies, qsf, reference, rules
+from magenv.protocols import Tunable
 
 AGENT_PREFIX = "agent:"
 TUNED_SUFFIX = "_tuned"
@@ -72,7 +74,7 @@ def register(name: str, factory: Callable[[], Any], description: str = "", overw
     _REGISTERED[name] = (factory, description)
 
 
-def tunable_rules() -> dict[str, type]:
+def tunable_rules() -> dict[str, type[Tunable]]:
     """Every method with tunable parameters (``PARAM_BOUNDS``, ``params``, ``from_params``), by name:
     the λ rules, the Kalman-trust rules (policies), the constraint filter and Delay MAGYQ's QSF detector
     (estimators)."""
@@ -84,7 +86,7 @@ def tunable_rules() -> dict[str, type]:
     }
 
 
-def rule_class(name: str) -> type:
+def rule_class(name: str) -> type[Tunable]:
     """The class of a tunable rule name (``fan_lambda``, ``threshold``, ``kf_gate``, …)."""
     table = tunable_rules()
     try:
@@ -130,16 +132,23 @@ def tuned_params(rule: str) -> dict[str, float]:
     return {k: float(v) for k, v in params.items()}
 
 
+def _build_tuned(rule: str, build: Callable[[dict], Any], name: str) -> Any:
+    """``build`` given the tuned parameters of ``rule``, named ``name``."""
+    return _named(build(tuned_params(rule)), name)
+
+
 def _tuned() -> dict[str, tuple[Callable[[], Any], str]]:
     """``RULE_tuned`` for every tunable rule with a tuned file, and the ``TUNED_VARIANTS``."""
-    builds = {rule + TUNED_SUFFIX: (rule, cls.from_params) for rule, cls in tunable_rules().items()}
+    builds: dict[str, tuple[str, Callable[[dict], Any]]] = {
+        rule + TUNED_SUFFIX: (rule, cls.from_params) for rule, cls in tunable_rules().items()
+    }
     builds.update(TUNED_VARIANTS)
-    out = {}
+    out: dict[str, tuple[Callable[[], Any], str]] = {}
     for name, (rule, build) in builds.items():
         path = tuned_file(rule)
         if path is not None:
             out[name] = (
-                lambda rule=rule, build=build, name=name: _named(build(tuned_params(rule)), name),
+                functools.partial(_build_tuned, rule, build, name),
                 f"{rule} with the parameters tuned by magenv tune ({path})",
             )
     return out

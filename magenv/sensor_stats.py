@@ -36,6 +36,7 @@ only ``truth_lag`` uses the true orientation.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -52,7 +53,7 @@ def _moving_average(x: np.ndarray, win: int) -> np.ndarray:
     return np.stack([np.convolve(x[:, i], kernel, mode="same") for i in range(x.shape[1])], 1)
 
 
-def rest_noise(trial: Trial, min_seconds: float = 1.0) -> dict[str, np.ndarray]:
+def rest_noise(trial: Trial, min_seconds: float = 1.0) -> dict[str, Any]:
     """Per-axis std during the initial rest (``magenv.recordings.initial_rest``):
     ``{"gyr": °/s (3,), "acc": m/s² (3,), "mag": µT (3,), "rest_s": s,
     "gyr_bias": mean gyro °/s (3,)}``; NaN arrays if the rest is shorter than
@@ -220,6 +221,11 @@ class SensorStats:
         return asdict(self)
 
 
+def _axes(values) -> tuple[float, ...]:
+    """Per-axis figures rounded to 4 decimals, as a tuple of floats."""
+    return tuple(float(v) for v in np.round(np.asarray(values, float), 4))
+
+
 def sensor_stats(trial: Trial) -> SensorStats:
     """All statistics of ``trial`` (see the module docstring)."""
     noise = rest_noise(trial)
@@ -232,10 +238,10 @@ def sensor_stats(trial: Trial) -> SensorStats:
         gyr_noise_dps=float(np.mean(noise["gyr"])),
         acc_noise_ms2=float(np.mean(noise["acc"])),
         mag_noise_ut=float(np.mean(noise["mag"])),
-        gyr_noise_axes_dps=tuple(float(v) for v in np.round(noise["gyr"], 4)),
-        acc_noise_axes_ms2=tuple(float(v) for v in np.round(noise["acc"], 4)),
-        mag_noise_axes_ut=tuple(float(v) for v in np.round(noise["mag"], 4)),
-        gyr_bias_axes_dps=tuple(float(v) for v in np.round(noise["gyr_bias"], 4)),
+        gyr_noise_axes_dps=_axes(noise["gyr"]),
+        acc_noise_axes_ms2=_axes(noise["acc"]),
+        mag_noise_axes_ut=_axes(noise["mag"]),
+        gyr_bias_axes_dps=_axes(noise["gyr_bias"]),
         gyr_autocorr1=rest_autocorr(trial, "gyr"),
         acc_autocorr1=rest_autocorr(trial, "acc"),
         mag_autocorr1=rest_autocorr(trial, "mag"),

@@ -13,6 +13,7 @@ import dataclasses
 import json
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -201,7 +202,7 @@ class Trial:
             acc=self.acc[start:stop],
             mag=self.mag[start:stop],
             q_true=self.q_true[start:stop],
-            score_mask=self.score_mask[start:stop],
+            score_mask=None if self.score_mask is None else self.score_mask[start:stop],
             truth=cut(self.truth),
             extra=cut(self.extra),
             meta=dict(self.meta),
@@ -246,7 +247,7 @@ class Trial:
             missing += [f"attribute {k}" for k in ("name", "rate", "field_norm", "field_dip") if k not in f.attrs]
             if missing:
                 raise TrialError(f"{path}: missing {', '.join(missing)}")
-            numbers = {}
+            numbers: dict[str, float] = {}
             for key in ("field_norm", "field_dip"):
                 try:
                     numbers[key] = float(np.asarray(f.attrs[key], dtype=float).reshape(()))
@@ -260,7 +261,7 @@ class Trial:
             if not isinstance(meta, dict):
                 raise TrialError(f"{path}: attribute meta must be a JSON object, got {type(meta).__name__}")
             data = read_datasets(f, path, DATASETS)
-            groups = {}
+            groups: dict[str, dict[str, np.ndarray]] = {}
             for group in ("truth", "extra"):
                 g = f.get(group, {})
                 if not hasattr(g, "keys"):
@@ -268,7 +269,8 @@ class Trial:
                 groups[group] = read_datasets(g, path, list(g.keys()))
             name = as_text(f.attrs["name"])
         try:
-            trial = cls(name=name, rate=rate, **data, **numbers, **groups, meta=meta)
+            fields: dict[str, Any] = {**data, **numbers, **groups}
+            trial = cls(name=name, rate=rate, **fields, meta=meta)
         except TrialError as exc:
             raise TrialError(f"{path}: {exc}") from None
         if trial.n_scored == 0:

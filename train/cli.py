@@ -41,6 +41,7 @@ def rule_arg(rule):
     argparse names the flag in the error, e.g. ``argument --steps: must be an integer ≥ 1, got '0'``."""
 
     def parse(text: str):
+        value: int | float | str
         try:
             value = int(text)
         except ValueError:

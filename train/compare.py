@@ -157,16 +157,10 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
 
     console = console or Console(width=None if sys.stdout.isatty() else 120)  # no squeezed columns in logs
     table = Table(title=title)
-    for col, justify in (
-        ("method", "left"),
-        ("scenario", "left"),
-        ("n", "right"),
-        ("total", "right"),
-        ("± std", "right"),
-        ("heading", "right"),
-        ("inclination", "right"),
-    ):
-        table.add_column(col, justify=justify, no_wrap=True)
+    for col in ("method", "scenario"):
+        table.add_column(col, justify="left", no_wrap=True)
+    for col in ("n", "total", "± std", "heading", "inclination"):
+        table.add_column(col, justify="right", no_wrap=True)
     for r in table_order(rows):
         cells = (
             ["n/a"] * 4

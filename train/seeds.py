@@ -13,7 +13,7 @@ def parse_seeds(text: str) -> list[int]:
     try:
         if ":" in text:
             start, stop = (int(x) for x in text.split(":"))
-            seeds = range(start, stop)
+            seeds: list[int] | range = range(start, stop)
         else:
             seeds = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:

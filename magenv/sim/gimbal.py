@@ -209,7 +209,7 @@ def _configure(model: mujoco.MjModel, ids: dict, tube: Tube, physics_rate: float
 def _segments(still: np.ndarray, min_len: int) -> list[tuple[int, int, bool]]:
     """Split step indices into (start, stop, skippable) runs; a run is skippable
     when all commanded rates are zero over at least ``min_len`` steps."""
-    segs = []
+    segs: list[tuple[int, int, bool]] = []
     n = len(still)
     edges = np.flatnonzero(np.diff(still.astype(np.int8))) + 1
     bounds = np.concatenate([[0], edges, [n]])

@@ -201,7 +201,7 @@ def smooth_motion(
         wts = rng.dirichlet(np.ones(n_sines))
         s = (wts[None] * np.sin(2.0 * np.pi * f[None] * t[:, None] + ph[None])).sum(1)
         pos[:, d] += amp[d] * env * s
-    vel = np.gradient(pos, 1.0 / rate, axis=0)
+    vel = np.asarray(np.gradient(pos, 1.0 / rate, axis=0))
     return Command(rate=float(rate), pos=pos, vel=vel)
 
 
