@@ -25,15 +25,6 @@ SPECS = [scale.TrialSpec("dynamic_clean", 0), scale.TrialSpec("dynamic_magnet", 
 
 
 @pytest.fixture(scope="module")
-def ray_2cpu():
-    """One local Ray of 2 CPUs for this module."""
-    ray = pytest.importorskip("ray", reason="Ray is the extra magenv[scale]: pip install 'magenv[scale]'")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
-    yield ray
-    ray.shutdown()
-
-
-@pytest.fixture(scope="module")
 def agent_dir(tmp_path_factory):
     """A trained agent (128 PPO steps): its run folder is rebuilt by name (``agent:RUN_DIR``) on the workers."""
     import yaml

@@ -205,15 +205,6 @@ def test_the_table_pairs_each_configurations_seeds():
 # ----------------------------------------------------------------- end to end on Ray
 
 
-@pytest.fixture(scope="module")
-def ray_2cpu():
-    """One local Ray of 2 CPUs for this module."""
-    ray = pytest.importorskip("ray", reason="Ray is the extra magenv[scale]: pip install 'magenv[scale]'")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
-    yield ray
-    ray.shutdown()
-
-
 def test_a_sweep_on_two_workers_ends_with_the_table_and_a_rerun_runs_nothing(ray_2cpu, tmp_path, capsys):
     """Two configurations × two seeds of 128 steps on the module's Ray (2 CPUs)."""
     path, out = sweep_file(tmp_path), tmp_path / "out"
@@ -239,6 +230,27 @@ def test_a_sweep_on_two_workers_ends_with_the_table_and_a_rerun_runs_nothing(ray
     changed = sweep_file(tmp_path, {"steps": 256}, name="changed.yaml")
     assert cli(["sweep", str(changed), "--out", str(out)]) == 2
     assert "had other settings; use another --out" in capsys.readouterr().err
+
+
+def test_a_run_whose_worker_dies_is_retried_and_one_that_keeps_dying_is_named(ray_2cpu, tmp_path):
+    """A lost worker: the run's process exits in the middle (``os._exit``); Tune starts the run again on a
+    fresh worker (``retries`` times), where ``run_one`` picks up from its own files."""
+    from magenv import scale
+
+    def run_one(name: str) -> dict:  # a closure, so Ray ships it by value to the workers
+        marker = tmp_path / f"{name}.started"
+        if name == "always" or not marker.exists():
+            marker.touch()
+            os._exit(1)
+        return {"value": 1.0, "name": name}
+
+    ended = []
+    results = scale.tune_runs(
+        ["once", "always"], run_one, tmp_path / "out", workers=2, retries=1, on_done=lambda *a: ended.append(a)
+    )
+    assert results["once"]["value"] == 1.0
+    assert isinstance(results["always"], str) and "always" not in {a[0] for a in ended if a[2] is None}
+    assert sorted(a[0] for a in ended) == ["always", "once"]
 
 
 @pytest.mark.slow
