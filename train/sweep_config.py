@@ -54,6 +54,7 @@ from magenv.agents.hyperparams import (
     algorithm_class,
     check_section,
     check_value,
+    read_yaml,
 )
 from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID
 from magenv.seeding import VALIDATION_START
@@ -226,12 +227,7 @@ def load_sweep(path: str | Path) -> list[SweepRun]:
     from magenv.scenarios import scenario_names
 
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such sweep file")
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+    doc = read_yaml(path, "sweep file")
     if not isinstance(doc, dict) or not isinstance(doc.get(SEARCH), dict):
         raise ConfigError(f"{path}: a sweep file needs a `{SEARCH}:` section (a mapping; see magenv sweep --help)")
     search = doc[SEARCH]
