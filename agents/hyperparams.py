@@ -351,16 +351,21 @@ def check_section(algo: str, section, where: str) -> dict:
     return out
 
 
+def read_yaml(path: Path, kind: str = "config file"):
+    """The YAML document in ``path``; ConfigError naming ``path`` if it is missing (``no such KIND``) or not YAML."""
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such {kind}")
+    try:
+        return yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+
+
 def load_hyperparams(algo: str, env_id: str, config_file: str | Path | None = None) -> dict:
     """The validated config section for ``env_id`` from ``config_file`` (default: the shipped file of ``algo``)."""
     algorithm_class(algo)
     path = Path(config_file) if config_file else CONFIG_DIR / f"{algo}.yaml"
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such config file")
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+    doc = read_yaml(path)
     if not isinstance(doc, dict) or env_id not in doc:
         known = ", ".join(map(str, doc)) if isinstance(doc, dict) else "none"
         raise ConfigError(f"{path}: no section for env {env_id!r} (sections: {known})")

@@ -7,6 +7,9 @@ Filter tests use it where the physics of the gimbal does not matter.
 
 Env test helpers: ``short_trials`` (fixture), ``run_episode``,
 ``check_seeded_replay``, ``check_scalar_action``, ``check_with_checkers``.
+
+``ray_2cpu`` (fixture): one local Ray of 2 CPUs per test module; skips,
+naming the extra, where Ray is not installed.
 """
 
 from __future__ import annotations
@@ -36,6 +39,15 @@ def _own_user_data_dir(tmp_path_factory):
         os.environ.pop(registry.DATA_DIR_ENV, None)
     else:
         os.environ[registry.DATA_DIR_ENV] = old
+
+
+@pytest.fixture(scope="module")
+def ray_2cpu():
+    """One local Ray of 2 CPUs for this module."""
+    ray = pytest.importorskip("ray", reason="Ray is the extra magenv[scale]: pip install 'magenv[scale]'")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    yield ray
+    ray.shutdown()
 
 
 def kinematic_trial(

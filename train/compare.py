@@ -2,6 +2,7 @@
 
     magenv compare --scenario dynamic_magnet --seeds 0:10 [--methods mimu,imu,fan_lambda,threshold]
                    [--recordings FILE ...] [--every K] [--csv FILE] [--plot FILE] [--trust-pickle]
+                   [--workers N] [--address ADDR]
 
 Trials are ``magenv.scenarios.make_trial(scenario, seed)`` for every scenario
 (comma list) and seed, plus each recording (``magenv.recordings.load_recording``;
@@ -13,13 +14,21 @@ header is ``magenv.evaluation.CSV_COLUMNS``. ``--plot`` draws total error and
 A method that cannot run a trial (say a two-link estimator on a one-sensor
 trial) does not stop the others: its cell is ``n/a`` (NaN in the CSV), the
 reason is printed under the table, and the exit status is 1.
+
+``--workers N`` (or ``--address ADDR``) spreads the (method × trial) cells
+over N Ray workers (``magenv.scale.evaluate``; the extra ``magenv[scale]``):
+each worker rebuilds the methods from their names and the trials from
+(scenario, seed) or the recording's path, so the table is the serial one,
+number for number.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
+from pathlib import Path
 
 from magenv.agents.hyperparams import POSITIVE_INT
 from magenv.envs import BLEND_ID
@@ -61,14 +70,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", default=None, metavar="FILE", help="PNG of error and λ over time, first trial")
     p.add_argument("--trust-pickle", action="store_true", help=TRUST_PICKLE_HELP)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--workers",
+        type=rule_arg(POSITIVE_INT),
+        default=None,
+        help="spread the (method × trial) cells over N Ray workers (magenv[scale]; default: one process, no Ray)",
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        help="run the workers on the Ray cluster at ADDR (auto, HOST:PORT); default with --workers: a local Ray",
+    )
 
 
-def make_trials(scenarios: str | None, seeds: list[int], recordings: list[str]) -> tuple[list, list[str]]:
-    """Trials and their table labels: every scenario (comma list) × seed, then each recording."""
-    trials, labels = [], []
+def plan_trials(scenarios: str | None, seeds: list[int], recordings: list[str]) -> tuple[list, list[str], dict]:
+    """The trials by name (``magenv.scale.TrialSpec``: every scenario (comma list) × seed, then each recording,
+    its path made absolute), their table labels, and the recordings loaded on the way (index → Trial; a
+    recording is loaded here to check it and to label it)."""
+    from magenv.scale import TrialSpec
+
+    specs, labels, loaded = [], [], {}
     names = [s.strip() for s in (scenarios or "").split(",") if s.strip()]
     if names:
-        from magenv.scenarios import make_trial, scenario_names
+        from magenv.scenarios import scenario_names
 
         known = list(scenario_names())
         bad = [n for n in names if n not in known]
@@ -76,7 +100,7 @@ def make_trials(scenarios: str | None, seeds: list[int], recordings: list[str]) 
             raise CommandError(f"unknown scenario(s) {', '.join(bad)}; known: {', '.join(known)}")
         for name in names:
             for seed in seeds:
-                trials.append(make_trial(name, seed))
+                specs.append(TrialSpec(scenario=name, seed=seed))
                 labels.append(name)
     for path in recordings:
         from magenv.recordings import load_recording
@@ -85,11 +109,18 @@ def make_trials(scenarios: str | None, seeds: list[int], recordings: list[str]) 
             trial = load_recording(path)
         except (OSError, ValueError) as exc:
             raise CommandError(f"cannot load recording {path}: {exc}") from None
-        trials.append(trial)
+        loaded[len(specs)] = trial
+        specs.append(TrialSpec(recording=str(Path(path).resolve())))
         labels.append(trial.name)
-    if not trials:
+    if not specs:
         raise CommandError("no trials: give --scenario and/or --recordings")
-    return trials, labels
+    return specs, labels, loaded
+
+
+def make_trials(scenarios: str | None, seeds: list[int], recordings: list[str]) -> tuple[list, list[str]]:
+    """Trials and their table labels: every scenario (comma list) × seed, then each recording."""
+    specs, labels, loaded = plan_trials(scenarios, seeds, recordings)
+    return [loaded[i] if i in loaded else spec.make() for i, spec in enumerate(specs)], labels
 
 
 def select_methods(names: list[str], trust_pickle: bool = False) -> dict:
@@ -124,14 +155,10 @@ def failure_notes(rows: list[dict]) -> list[str]:
     return [f"n/a: {r['method']} on {r['scenario']}: {r['error']}" for r in rows if "error" in r]
 
 
-def run_comparison(
-    methods: dict, trials: list, labels: list[str], env_kwargs: dict | None = None, progress: bool = True, console=None
-) -> list:
-    """Every method on every trial with a progress bar, going on past a method that fails on a trial
-    (``magenv.evaluation.evaluate(keep_going=True)``); returns ``magenv.evaluation.Run`` objects."""
+@contextlib.contextmanager
+def _progress_bar(total: int, progress: bool = True, console=None):
+    """A transient progress bar over ``total`` runs; yields ``advance(n, description)``."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from magenv import evaluation
 
     with Progress(
         TextColumn("{task.description}"),
@@ -142,12 +169,63 @@ def run_comparison(
         disable=not progress,
         transient=True,
     ) as bar:
-        task = bar.add_task("running methods", total=len(trials) * len(methods))
+        task = bar.add_task("running methods", total=total)
+        yield lambda n, description: bar.update(task, advance=n, description=description)
 
-        def tick(method, trial):
-            bar.update(task, advance=1, description=f"{method} on {trial.name}")
 
-        return evaluation.evaluate(methods, trials, env_kwargs, labels, tick, keep_going=True)
+def run_comparison(
+    methods: dict, trials: list, labels: list[str], env_kwargs: dict | None = None, progress: bool = True, console=None
+) -> list:
+    """Every method on every trial with a progress bar, going on past a method that fails on a trial
+    (``magenv.evaluation.evaluate(keep_going=True)``); returns ``magenv.evaluation.Run`` objects."""
+    from magenv import evaluation
+
+    with _progress_bar(len(trials) * len(methods), progress, console) as advance:
+        return evaluation.evaluate(
+            methods, trials, env_kwargs, labels, lambda m, t: advance(1, f"{m} on {t.name}"), True
+        )
+
+
+def run_distributed(
+    names: list[str],
+    specs: list,
+    labels: list[str],
+    env_kwargs: dict | None,
+    overrides: dict | None,
+    workers: int | None,
+    address: str | None,
+    trust_pickle: bool = False,
+    progress: bool = True,
+) -> list:
+    """``run_comparison`` over Ray workers (``magenv.scale.evaluate``, keep_going): the same Runs, the first
+    trial's with their arrays (for ``--plot``), the others with scores only."""
+    from magenv import registry, scale
+
+    builds = {
+        n: registry.AGENT_PREFIX + str(Path(n[len(registry.AGENT_PREFIX) :]).resolve())
+        if n.startswith(registry.AGENT_PREFIX)
+        else n
+        for n in names
+    }
+    try:
+        started = scale.start(address, workers, "magenv compare --workers/--address")
+    except scale.RayMissing as exc:
+        raise CommandError(str(exc)) from None
+    try:
+        with _progress_bar(len(specs) * len(names), progress) as advance:
+            return scale.evaluate(
+                builds,
+                specs,
+                labels,
+                env_kwargs,
+                overrides,
+                workers,
+                keep_going=True,
+                trust_pickle=trust_pickle,
+                progress=lambda runs: advance(len(runs), f"{runs[-1].method} on {runs[-1].label}"),
+            )
+    finally:
+        scale.stop(started)
 
 
 def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (°), mean over trials") -> None:
@@ -188,7 +266,7 @@ def finish(rows: list[dict], title: str, csv_path: str | None) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from magenv import evaluation, registry
+    from magenv import evaluation, registry, scale
 
     methods = select_methods(
         args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent], args.trust_pickle
@@ -196,15 +274,26 @@ def run(args: argparse.Namespace) -> int:
     env_kwargs = {}
     if args.every is not None:
         env_kwargs["decision_every"] = args.every
-    if args.no_hold:  # an option of the blend env only
-        for method in methods.values():
-            if getattr(method, "env_id", None) == BLEND_ID:
-                method.env_kwargs = {**method.env_kwargs, "stationary_hold": False}
+    overrides = {BLEND_ID: {"stationary_hold": False}} if args.no_hold else None  # a blend env option only
+    scale.override_env_kwargs(methods, overrides)
     scenarios = args.scenario if args.scenario is not None else ("" if args.recordings else "dynamic_magnet")
-    trials, labels = make_trials(scenarios, args.seeds, args.recordings)
-    runs = run_comparison(methods, trials, labels, env_kwargs, progress=not args.no_progress)
+    if args.workers or args.address:
+        specs, labels, _ = plan_trials(scenarios, args.seeds, args.recordings)
+        runs = run_distributed(
+            list(methods),
+            specs,
+            labels,
+            env_kwargs,
+            overrides,
+            args.workers,
+            args.address,
+            args.trust_pickle,
+            not args.no_progress,
+        )
+    else:
+        trials, labels = make_trials(scenarios, args.seeds, args.recordings)
+        runs = run_comparison(methods, trials, labels, env_kwargs, progress=not args.no_progress)
     status = finish(evaluation.summarize(runs), "orientation RMSE (°), mean over trials", args.csv)
-    if args.plot:
-        first = [r for r in runs if r.trial is trials[0]]
-        print(f"wrote {evaluation.plot_runs(first, args.plot)}")
+    if args.plot:  # runs are trial by trial, every method once per trial
+        print(f"wrote {evaluation.plot_runs(runs[: len(methods)], args.plot)}")
     return status
