@@ -26,7 +26,6 @@ from typing import Any
 
 import yaml
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
-from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 import magenv
@@ -47,7 +46,8 @@ from magenv.agents.hyperparams import (
 )
 from magenv.agents.imitation import check_teacher, clone, demonstrations
 from magenv.agents.loading import RUN_FILE, SB3_EXPORTS, WEIGHTS, AgentPolicy, RunError, build_model, read_run
-from magenv.agents.wrappers import action_bounds, normalized_actions
+from magenv.agents.vec_env import make_train_env
+from magenv.agents.wrappers import action_bounds
 from magenv.evaluation import run_policy_on_trials
 from magenv.scenarios import make_trial, scenario_names
 
@@ -338,13 +338,7 @@ def train(
         return out
     (out / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
 
-    vec_env = make_vec_env(
-        env_id,
-        n_envs=section["n_envs"],
-        seed=seed + done,
-        env_kwargs=section["env_kwargs"],
-        wrapper_class=normalized_actions,
-    )
+    vec_env = make_train_env(env_id, section["n_envs"], seed + done, section["env_kwargs"])
     if resuming and legacy:
         model, vec_env = _legacy_model(out, cls, vec_env, section)
     else:
