@@ -103,6 +103,8 @@ def test_bad_actions_and_order():
     assert info["error_total"].shape == (2,) and info["_error_total"].all()
     with pytest.raises(ValueError, match="num_envs"):
         gym.make_vec(BLEND_ID, num_envs=0, vectorization_mode="vector_entry_point")
+    with pytest.raises(TypeError, match="parallel must be True or False"):
+        gym.make_vec(BLEND_ID, num_envs=2, vectorization_mode="vector_entry_point", parallel="yes")
 
 
 def test_a_trial_pool_is_seeded_by_its_option_and_drawn_from_the_env():

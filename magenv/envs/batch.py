@@ -23,16 +23,12 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
-import numba
 import numpy as np
 from gymnasium.utils import seeding
 
 from magenv.envs.common import TrialRunner, TrustEnv, cut_trial
 from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR
 from magenv.trial import Trial
-
-#: Numba threads are used (``prange`` over the envs) from this many envs up, when ``parallel`` is None.
-PARALLEL_MIN_ENVS = 64
 
 
 class TrialStore:
@@ -146,8 +142,9 @@ class BatchVectorEnv(gym.vector.VectorEnv):
 
     Args:
         num_envs: N.
-        parallel: numba threads over the envs (``prange``); None = from ``PARALLEL_MIN_ENVS`` envs up when numba
-            has more than one thread.
+        parallel: numba threads over the envs (``prange``). Off by default: on the shared 2-core machine the
+            threaded kernel made 256 envs 1.5–10× slower than the serial one (``benchmarks/bench_vector.py
+            --parallel``); it may pay where cores are free.
         kwargs: the single env's arguments (checked by constructing one, whose spaces and options the vector
             env uses).
 
@@ -175,7 +172,7 @@ class BatchVectorEnv(gym.vector.VectorEnv):
     kernels: tuple  # (serial, threaded) numba kernels taking the _batch() tuple
     first = 0
 
-    def __init__(self, num_envs: int = 1, parallel: bool | None = None, **kwargs):
+    def __init__(self, num_envs: int = 1, parallel: bool = False, **kwargs):
         if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         self.num_envs = n = int(num_envs)
@@ -190,7 +187,9 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, n)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, n)
         self.render_mode = None
-        self.parallel = (n >= PARALLEL_MIN_ENVS and numba.get_num_threads() > 1) if parallel is None else parallel
+        if not isinstance(parallel, (bool, np.bool_)):
+            raise TypeError(f"parallel must be True or False, got {parallel!r}")
+        self.parallel = bool(parallel)
         self.store = TrialStore(self.channels)
         self._rngs: list[np.random.Generator | None] = [None] * n
         self._episode = np.zeros(n, np.int64)  # episodes since the sub-env's last seeded reset
