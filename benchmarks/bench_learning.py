@@ -89,22 +89,6 @@ def main() -> None:
     history = [(int(r[0]), float(r[1]), float(r[2])) for r in csv.reader(open(out / "evaluations.csv"))]
     matched = next(((steps, secs) for steps, score, secs in history if score <= ref), None)
 
-    methods = select_methods(RULES + [registry.AGENT_PREFIX + str(out)])
-    trials, labels = make_trials(",".join(scenarios), args.seeds, [])
-    rows = evaluation.compare(methods, trials, labels=labels)
-    print_table(rows, title=f"held-out seeds {args.seeds}: orientation RMSE (°)")
-    agent = registry.AGENT_PREFIX + str(out)
-    get = lambda m, s: next(r["total_rmse_mean"] for r in rows if r["method"] == m and r["scenario"] == s)
-    a_mag, t_mag = get(agent, "dynamic_magnet"), get("fan_lambda_tuned", "dynamic_magnet")
-    best_clean = min((get(m, "dynamic_clean"), m) for m in RULES)
-    a_clean = get(agent, "dynamic_clean")
-    print(
-        f"dynamic_magnet: agent {a_mag:.3f}° vs fan_lambda_tuned {t_mag:.3f}° (ratio {a_mag / t_mag:.3f}; target < 1)"
-    )
-    print(
-        f"dynamic_clean:  agent {a_clean:.3f}° vs best rule {best_clean[1]} {best_clean[0]:.3f}° "
-        f"(ratio {a_clean / best_clean[0]:.3f}; target <= 1.05)"
-    )
     if matched:
         before = sum(secs for steps, secs in evaluations if steps <= matched[0])
         print(
@@ -119,6 +103,23 @@ def main() -> None:
     print(
         f"this run's training wall-clock: {wall:.0f} s, of which {spent:.0f} s in {len(evaluations)} evaluations; "
         f"{steps / (wall - spent):.0f} env-steps/s without them (target >= 10000)"
+    )
+
+    methods = select_methods(RULES + [registry.AGENT_PREFIX + str(out)])
+    trials, labels = make_trials(",".join(scenarios), list(parse_seeds(args.seeds)), [])
+    rows = evaluation.compare(methods, trials, labels=labels)
+    print_table(rows, title=f"held-out seeds {args.seeds}: orientation RMSE (°)")
+    agent = registry.AGENT_PREFIX + str(out)
+    get = lambda m, s: next(r["total_rmse_mean"] for r in rows if r["method"] == m and r["scenario"] == s)
+    a_mag, t_mag = get(agent, "dynamic_magnet"), get("fan_lambda_tuned", "dynamic_magnet")
+    best_clean = min((get(m, "dynamic_clean"), m) for m in RULES)
+    a_clean = get(agent, "dynamic_clean")
+    print(
+        f"dynamic_magnet: agent {a_mag:.3f}° vs fan_lambda_tuned {t_mag:.3f}° (ratio {a_mag / t_mag:.3f}; target < 1)"
+    )
+    print(
+        f"dynamic_clean:  agent {a_clean:.3f}° vs best rule {best_clean[1]} {best_clean[0]:.3f}° "
+        f"(ratio {a_clean / best_clean[0]:.3f}; target <= 1.05)"
     )
 
 
