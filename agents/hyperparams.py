@@ -37,7 +37,7 @@ from magenv.seeding import SEED_LIMIT, VALIDATION_START
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 ACTIVATIONS = ("tanh", "relu", "elu", "leaky_relu")
-N_ENVS_RANGE = (1, 256)  # parallel environments of one run
+N_ENVS_RANGE = (1, 1024)  # environments of one run (a batched vector env steps them in one kernel call)
 SEED_RANGE = (0, SEED_LIMIT)  # training seeds (numpy, torch and the envs take them)
 # What a new run gets when magenv train / train() is not told otherwise.
 DEFAULT_SEED = 0

@@ -311,7 +311,7 @@ def test_prefetch_gives_the_same_episodes_bit_for_bit():
     ahead = gym.make(ENV_ID, scenario="dynamic_clean,dynamic_magnet", prefetch=True)
     try:
         assert episodes(ahead, seeds) == episodes(plain, seeds)
-        assert ahead.unwrapped.trials._pending is not None  # the next trial is being made
+        assert ahead.unwrapped.trials._pending  # the next trial is being made
     finally:
         ahead.close()
     assert ahead.unwrapped.trials._pool is None

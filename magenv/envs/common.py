@@ -13,8 +13,9 @@
   and the base of each env's runner (one trial stepped k samples at a time).
 * :class:`TrustEnv` — base single env: arguments, reset (trial draw and
   cut), step checks, reward and info from the runner's error sums.
-* :class:`LoopVectorEnv` — ``num_envs`` copies of a single env in one process
-  (next-step autoreset), the ``vector_entry_point`` of an env.
+* :class:`TrialPool` — the ``trial_pool`` option: reset trials from a seeded pool.
+
+The batched vector env every env module builds its ``vector_entry_point`` on is ``magenv.envs.batch``.
 """
 
 from __future__ import annotations
@@ -74,8 +75,47 @@ def trial_source(scenario, world: str | None = None, require: Callable[[Trial], 
     return "scenario", names
 
 
+class TrialPool(NamedTuple):
+    """The ``trial_pool`` option: reset trials drawn from a seeded pool of simulated trials, reused across resets.
+
+    Generation g is ``size`` trial keys (scenario of the mixture and training seed, as a reset without a pool
+    draws them) drawn from ``numpy.random.default_rng([seed, g])``; an env's e-th episode since its last
+    seeded reset (e = 0, 1, …) draws from generation ⌊e / reuse⌋ the slot ``np_random.integers(size)``. The
+    pool therefore depends on the option alone and the draw on the env's ``np_random`` alone: same seed, same
+    episodes, whether the trial was simulated for this reset, made ahead by the worker, or already made for
+    another env of a vector env. ``reuse`` episodes per generation keep the simulation cost per episode at
+    most ``size / (reuse · num_envs)`` trials in a vector env of ``num_envs`` envs.
+    """
+
+    size: int  # trials per generation
+    reuse: int = 1  # episodes an env draws from one generation before the next
+    seed: int = 0  # seed of the pool's trial keys
+
+    @classmethod
+    def of(cls, value) -> TrialPool | None:
+        """The option as given: None (no pool), a size, a mapping of the fields, or a TrialPool."""
+        if value is None or isinstance(value, TrialPool):
+            return value
+        if isinstance(value, dict):
+            unknown = sorted(set(value) - set(cls._fields))
+            if unknown:
+                raise ValueError(f"trial_pool: unknown key(s) {unknown}; known: {', '.join(cls._fields)}")
+            value = cls(**value)
+        elif isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+            value = cls(int(value))
+        elif not isinstance(value, tuple):
+            raise TypeError(f"trial_pool must be None, a size, or a mapping {{size, reuse, seed}}, got {value!r}")
+        else:
+            value = cls(*value)
+        for name, lo in (("size", 1), ("reuse", 1), ("seed", 0)):
+            v = getattr(value, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                raise ValueError(f"trial_pool {name} must be an integer ≥ {lo}, got {v!r}")
+        return cls(int(value.size), int(value.reuse), int(value.seed))
+
+
 class TrialSource:
-    """Where an env's trials come from; ``draw(rng)`` gives the trial of one reset.
+    """Where an env's trials come from; ``draw(rng, episode)`` gives the trial of one reset.
 
     Args:
         scenario: see :func:`trial_source`.
@@ -83,11 +123,16 @@ class TrialSource:
         prefetch: make the next reset's trial ahead (below).
         world, require: restrict the source to one world's scenarios and check given Trials
             (see :func:`trial_source`).
+        trial_pool: scenario trials from a seeded pool (:class:`TrialPool`); None: a new trial every reset.
 
     Draws (all from ``rng``, so ``reset(seed=s)`` fixes the trial): one of the
     given Trials; or, for scenarios, the scenario of a mixture and then a trial
     seed at or above ``magenv.seeding.HELD_OUT_BELOW`` (never an evaluation
-    seed). A recording is loaded once and returned every time.
+    seed), or with a pool a slot of the episode's generation. A recording is
+    loaded once and returned every time. A draw is split in two: :meth:`pick`,
+    the key of the trial (``("trials", i)``, ``("recording", path)`` or
+    ``("scenario", name, seed)``), and :meth:`trial`, the trial of a key
+    (a batched vector env keeps trials by key and shares them between its envs).
 
     With ``prefetch`` (scenarios only), the trial the *next* reset will draw
     (read off a copy of ``rng``) is simulated meanwhile in a worker process,
@@ -103,38 +148,77 @@ class TrialSource:
         prefetch: bool = False,
         world: str | None = None,
         require: Callable[[Trial], None] | None = None,
+        trial_pool=None,
     ):
         self.kind, self.source = trial_source(scenario, world, require)
         self.label = scenario if isinstance(scenario, str) else "trials"
         self.scenario_kwargs = dict(scenario_kwargs or {})
+        self.pool = TrialPool.of(trial_pool)
         self._recording: Trial | None = None
         self.prefetch = bool(prefetch) and self.kind == "scenario"
-        self._pending = None  # ((name, seed), Future) of the trial made ahead
+        self._pending: dict = {}  # key → Future of the trials being made ahead, oldest first
+        self.max_pending = 1  # guesses kept; a vector env raises it to its number of envs
         self._pool = None
+        self._generations: dict[int, list] = {}  # the pool's generations drawn so far (the latest few)
+        self._cache: dict = {}  # key → pool trial, most recently used last
+        self.cache_size = 0 if self.pool is None else self.pool.size  # pool trials kept (0: none)
 
-    def _pick(self, rng: np.random.Generator) -> tuple[str, int]:
+    def _pick(self, rng: np.random.Generator) -> tuple[str, str, int]:
         names = self.source
         name = names[0] if len(names) == 1 else names[int(rng.integers(len(names)))]
-        return name, draw_training_seed(rng)  # never a held-out evaluation seed
+        return "scenario", name, draw_training_seed(rng)  # never a held-out evaluation seed
 
-    def _ahead(self, key: tuple[str, int]):
+    def generation(self, g: int) -> list:
+        """The keys of the pool's generation ``g`` (:class:`TrialPool`)."""
+        keys = self._generations.get(g)
+        if keys is None:
+            rng = np.random.default_rng([self.pool.seed, g])
+            keys = self._generations[g] = [self._pick(rng) for _ in range(self.pool.size)]
+            while len(self._generations) > 8:
+                del self._generations[min(self._generations)]
+        return keys
+
+    def pick(self, rng: np.random.Generator, episode: int = 0) -> tuple:
+        """The key of the trial of an env's reset: ``episode`` counts its episodes since its last seeded reset
+        (it matters with a pool only)."""
+        if self.kind == "trials":
+            return "trials", int(rng.integers(len(self.source)))
+        if self.kind == "recording":
+            return "recording", self.source
+        if self.pool is None:
+            return self._pick(rng)
+        keys = self.generation(episode // self.pool.reuse)
+        return keys[int(rng.integers(len(keys)))]
+
+    def _ahead(self, key: tuple):
         if self._pool is None:
             import concurrent.futures
             import multiprocessing
 
             self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-        return self._pool.submit(_make_scenario_trial, key[0], key[1], self.scenario_kwargs)
+        return self._pool.submit(_make_scenario_trial, key[1], key[2], self.scenario_kwargs)
+
+    def prepare(self, key: tuple) -> None:
+        """With ``prefetch``: start making the trial of scenario ``key`` in the worker (the oldest guess beyond
+        ``max_pending`` is dropped)."""
+        if not self.prefetch or key[0] != "scenario" or key in self._pending or key in self._cache:
+            return
+        self._pending[key] = self._ahead(key)
+        while len(self._pending) > self.max_pending:
+            self._pending.pop(next(iter(self._pending))).cancel()
 
     def close(self) -> None:
         """Stop the prefetch worker, if any."""
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool, self._pending = None, None
+            self._pool, self._pending = None, {}
 
-    def draw(self, rng: np.random.Generator) -> Trial:
-        if self.kind == "trials":
-            return self.source[int(rng.integers(len(self.source)))]
-        if self.kind == "recording":
+    def trial(self, key: tuple) -> Trial:
+        """The trial of ``key`` (:meth:`pick`): a given Trial, the recording, or the scenario trial — from the
+        pool's cache, from the worker, or made now."""
+        if key[0] == "trials":
+            return self.source[key[1]]
+        if key[0] == "recording":
             if self._recording is None:
                 try:
                     from magenv.recordings import load_recording
@@ -142,18 +226,24 @@ class TrialSource:
                     raise RuntimeError(f"'recording:' needs magenv.recordings ({exc})") from None
                 self._recording = load_recording(self.source)
             return self._recording
-        key = self._pick(rng)
-        pending, self._pending = self._pending, None
-        trial = pending[1].result() if pending is not None and pending[0] == key else None
+        trial = self._cache.pop(key, None)
         if trial is None:
-            if pending is not None:
-                pending[1].cancel()
-            trial = self.make_trial(*key)
+            pending = self._pending.pop(key, None)
+            trial = pending.result() if pending is not None else self.make_trial(key[1], key[2])
+        if self.cache_size > 0:
+            self._cache[key] = trial  # most recently used last
+            while len(self._cache) > self.cache_size:
+                del self._cache[next(iter(self._cache))]
+        return trial
+
+    def draw(self, rng: np.random.Generator, episode: int = 0) -> Trial:
+        """The trial of a reset (:meth:`pick` then :meth:`trial`); with ``prefetch``, the next reset's trial is
+        started in the worker."""
+        trial = self.trial(self.pick(rng, episode))
         if self.prefetch:
             import copy
 
-            nxt = self._pick(copy.deepcopy(rng))  # what the next reset draws unless the env is reseeded
-            self._pending = (nxt, self._ahead(nxt))
+            self.prepare(self.pick(copy.deepcopy(rng), episode + 1))  # unless the env is reseeded
         return trial
 
     def make_trial(self, name: str, seed: int) -> Trial:
@@ -339,11 +429,15 @@ class TrustEnv(gym.Env):
         prefetch: bool = False,
         world: str | None = None,
         require: Callable[[Trial], None] | None = None,
+        trial_pool=None,
     ) -> None:
         """Check the common arguments; set ``k_steps``, ``trials`` (a :class:`TrialSource`), ``scenario``,
         ``features``, the spaces."""
         self.k_steps = check_env_args(self.env_name, decision_every, episode_seconds, render_mode)
-        self.trials = TrialSource(scenario, scenario_kwargs, prefetch=prefetch, world=world, require=require)
+        self.trials = TrialSource(
+            scenario, scenario_kwargs, prefetch=prefetch, world=world, require=require, trial_pool=trial_pool
+        )
+        self.episode = 0  # episodes since the last seeded reset (a trial pool's generation counts them)
         self.scenario = self.trials.label
         self.episode_seconds = episode_seconds
         self.features, self._idx, self._all, self.observation_space = select_features(features, names, low, high)
@@ -361,10 +455,11 @@ class TrustEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
+        self.episode = 0 if seed is not None else self.episode + (self._runner is not None)
         options = options or {}
         trial = options.get("trial")
         if trial is None:
-            trial = self.trials.draw(self.np_random)
+            trial = self.trials.draw(self.np_random, self.episode)
         elif not isinstance(trial, Trial):
             raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
         self.trial = cut_trial(trial, self.episode_seconds)
@@ -430,64 +525,3 @@ class TrustEnv(gym.Env):
     def estimate(self) -> np.ndarray:
         """(N, 4) per-sample estimate sensor → ENU of the current episode (NaN rows not fused yet)."""
         return self._need_reset().est
-
-
-class LoopVectorEnv(gym.vector.VectorEnv):
-    """``num_envs`` copies of ``env_class`` in one process, batched arrays in and out.
-
-    Subclasses set ``env_class`` (a single env with a `(d,)` Box action whose
-    step ``info`` has ``error_total``; ``actions`` (N, d), or (N,) when d = 1). Each sub-env keeps its own
-    ``np_random`` (``reset(seed=s)`` seeds sub-env i with s + i), so sub-env i
-    replays exactly the single env seeded s + i. Autoreset: next-step (the
-    step after a truncation resets that sub-env, ignoring its action, and
-    returns its first observation with reward 0). ``infos`` carries
-    ``error_total`` (N,) (NaN on autoreset steps).
-    """
-
-    metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP, "render_modes": []}
-    env_class: type[gym.Env]
-
-    def __init__(self, num_envs: int = 1, **kwargs):
-        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        self.num_envs = int(num_envs)
-        self.envs = [self.env_class(**kwargs) for _ in range(self.num_envs)]
-        self.single_observation_space = self.envs[0].observation_space
-        self.single_action_space = self.envs[0].action_space
-        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
-        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
-        self.render_mode = None
-        self._needs_reset = np.zeros(self.num_envs, bool)
-
-    def reset(self, *, seed=None, options=None):
-        if seed is None or isinstance(seed, (int, np.integer)):
-            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != self.num_envs:
-                raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} envs")
-        obs = np.stack([env.reset(seed=s, options=options)[0] for env, s in zip(self.envs, seeds)])
-        self._needs_reset[:] = False
-        return obs, {}
-
-    def step(self, actions):
-        dim = self.single_action_space.shape[0]
-        actions = np.asarray(actions, dtype=np.float32)
-        if actions.shape not in ((self.num_envs, dim),) + (((self.num_envs,),) if dim == 1 else ()):
-            raise ValueError(f"actions must have shape ({self.num_envs}, {dim}), got {actions.shape}")
-        actions = actions.reshape(self.num_envs, dim)
-        n, f = self.num_envs, self.single_observation_space.shape[0]
-        obs = np.empty((n, f), np.float32)
-        rewards = np.zeros(n)
-        terminated = np.zeros(n, bool)
-        truncated = np.zeros(n, bool)
-        error = np.full(n, np.nan)
-        for i, env in enumerate(self.envs):
-            if self._needs_reset[i]:
-                obs[i] = env.reset()[0]
-                self._needs_reset[i] = False
-                continue
-            obs[i], rewards[i], terminated[i], truncated[i], info = env.step(actions[i])
-            error[i] = info["error_total"]
-            self._needs_reset[i] = terminated[i] or truncated[i]
-        return obs, rewards, terminated, truncated, {"error_total": error}

@@ -13,12 +13,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from magenv.envs import CONSTRAINT_ID
-from magenv.envs.common import LoopVectorEnv, TrialRunner, TrustEnv
+from magenv.envs.batch import BatchVectorEnv, check_box_actions
+from magenv.envs.common import TrialRunner, TrustEnv, Truth
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import constraint as cf
 from magenv.metrics import N_ERR, error_sums
@@ -250,6 +252,7 @@ class MagConstraintEnv(TrustEnv):
         k_max: float = cf.K_MAX,
         features: Sequence[str] | None = None,
         scenario_kwargs: dict | None = None,
+        trial_pool=None,
         render_mode: str | None = None,
     ):
         if not (math.isfinite(gain_max) and gain_max > 0):
@@ -267,6 +270,7 @@ class MagConstraintEnv(TrustEnv):
             2 if control_gain else 1,
             world="twolink",
             require=cf.require_two_link,
+            trial_pool=trial_pool,
         )
         self.control_gain = bool(control_gain)
         self.gain_max = float(gain_max)
@@ -317,10 +321,131 @@ class MagConstraintEnv(TrustEnv):
         return self.weights
 
 
-class MagConstraintVectorEnv(LoopVectorEnv):
-    """``num_envs`` copies of ``MagConstraintEnv`` in one process (see ``magenv.envs.common.LoopVectorEnv``).
+class Batch(NamedTuple):
+    """The arrays of :class:`MagConstraintVectorEnv`'s kernel: N envs (leading axis N) on the store's rows."""
 
-    The ``vector_entry_point`` of ``magenv/MagConstraint-v0``; ``actions`` (N, 1), or (N, 2) with ``control_gain``.
+    th1: float  # eqs. 16 and 18 (constraint.Params), the same for every env
+    th2: float
+    th3: float
+    k_min: float
+    k_max: float
+    use_constraint: bool
+    gain_by_rule: bool  # k by eq. 18 (else the action's)
+    dt: np.ndarray  # (N,) per env: sample interval, s …
+    m0: np.ndarray  # (N,) … field norm, µT …
+    field_dir: np.ndarray  # (N, 3) … unit Earth field, ENU
+    q: np.ndarray  # (N, 4) link i's estimates (the filter's state)
+    gyr: np.ndarray  # (M, 3) the store's rows: constraint.Inputs …
+    acc: np.ndarray
+    mag: np.ndarray
+    joint_i: np.ndarray
+    joint_j: np.ndarray
+    q_true: np.ndarray  # (M, 4) … and truth
+    dist: np.ndarray  # (M,)
+    off: np.ndarray  # (N,) each env's first row in the store
+    n: np.ndarray  # (N,) samples of each env's episode
+    pos: np.ndarray  # (N,) next sample to fuse
+    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
+    w: np.ndarray  # (N,) the step's constraint weight
+    k: np.ndarray  # (N,) the step's gain (when not by eq. 18)
+    est: np.ndarray  # (N, k + 2, 4) scratch Trace of the step's window
+    weight: np.ndarray  # (N, k + 2)
+    gain: np.ndarray  # (N, k + 2)
+    mag_dev: np.ndarray  # (N, k + 2)
+    err: np.ndarray  # (N, N_ERR)
+    feat: np.ndarray  # (N, len(FEATURES))
+
+
+@njit(cache=True)
+def _advance_env(b, i):
+    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` on the window of its step (from the sample
+    before the step to the one after)."""
+    o, start = b.off[i], b.pos[i]
+    stop = min(start + b.todo[i], b.n[i])
+    base, end = max(start - 1, 0), min(stop + 1, b.n[i])
+    fd = b.field_dir[i]
+    p = cf.Params(b.dt[i], b.m0[i], (fd[0], fd[1], fd[2]), b.th1, b.th2, b.th3, b.k_min, b.k_max, b.use_constraint)
+    r0, r1 = o + base, o + end
+    inputs = cf.Inputs(b.gyr[r0:r1], b.acc[r0:r1], b.mag[r0:r1], b.joint_i[r0:r1], b.joint_j[r0:r1])
+    control = cf.Control(b.w[i], b.k[i], False, b.gain_by_rule)
+    trace = cf.Trace(b.est[i], b.weight[i], b.gain[i], b.mag_dev[i])
+    q_true, dist = b.q_true[r0:r1], b.dist[r0:r1]
+    advance(p, b.q[i], inputs, control, start - base, stop - base, trace, q_true, dist, b.err[i], b.feat[i])
+    b.pos[i] = stop
+
+
+@njit(cache=True)
+def advance_batch(b):
+    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
+    for i in range(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            _advance_env(b, i)
+
+
+@njit(cache=True, parallel=True)
+def advance_batch_threads(b):
+    """:func:`advance_batch` with the envs spread over numba's threads."""
+    for i in prange(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            _advance_env(b, i)
+
+
+class MagConstraintVectorEnv(BatchVectorEnv):
+    """``num_envs`` MagConstraint envs advanced together: one numba call per ``step`` fuses every env's samples.
+
+    The ``vector_entry_point`` of ``magenv/MagConstraint-v0``; ``actions`` (N, 1), or (N, 2) with
+    ``control_gain``. Sub-env i is the single env seeded s + i bit for bit; seeding, autoreset and ``infos``
+    (with ``w``; the step's mean k is a single-env info only): see ``magenv.envs.batch.BatchVectorEnv``.
     """
 
     env_class = MagConstraintEnv
+    features = FEATURES
+    channels = {name: ((3,), float) for name in cf.Inputs._fields} | {"q_true": ((4,), float), "dist": ((), float)}
+    kernels = (advance_batch, advance_batch_threads)
+
+    def _alloc(self, n: int) -> None:
+        env = self.template
+        kw = env.filter_kwargs
+        self.constants = (cf.TH1, kw["th2"], kw["th3"], kw["k_min"], kw["k_max"], True, not env.control_gain)
+        rows = self.k_steps + 2
+        self.dt, self.m0, self.field_dir = np.ones(n), np.ones(n), np.zeros((n, 3))
+        self.q = np.zeros((n, 4))
+        self.w, self.k = np.zeros(n), np.zeros(n)
+        self.trace = cf.Trace(np.zeros((n, rows, 4)), np.zeros((n, rows)), np.zeros((n, rows)), np.zeros((n, rows)))
+
+    def _prepare(self, trial: Trial):
+        filt = cf.ConstraintFilter(trial, **self.template.filter_kwargs)  # checks link j's channels
+        truth = Truth.of(trial)
+        rows = {**filt.inputs._asdict(), "q_true": truth.q_true, "dist": truth.dist}
+        return rows, (filt.params, filt.q0)
+
+    def _start(self, i: int, description) -> None:
+        params, q0 = description
+        self.dt[i], self.m0[i], self.field_dir[i] = params.dt, params.field_norm, params.field_dir
+        self.q[i] = q0
+
+    def _check_actions(self, actions):
+        env = self.template
+        space = self.single_action_space
+        low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+        values, clipped = check_box_actions(actions, self.num_envs, low, high)
+        if env.control_gain:
+            values = values * np.array([1.0, env.gain_max])
+        return values, clipped
+
+    def _set_actions(self, values, stepping) -> dict:
+        if values is None:
+            self.w[:], self.k[:] = 0.0, 0.0
+            return {}
+        np.copyto(self.w, np.where(stepping, values[:, 0], 0.0))
+        if self.template.control_gain:
+            np.copyto(self.k, np.where(stepping, values[:, 1], 0.0))
+        return {"w": self.w.copy()}
+
+    def _batch(self) -> Batch:
+        t, a = self.trace, self.store.arrays
+        return Batch(
+            *self.constants, self.dt, self.m0, self.field_dir, self.q, a["gyr"], a["acc"], a["mag"], a["joint_i"],
+            a["joint_j"], a["q_true"], a["dist"], self.off, self.n, self.pos, self.todo, self.w, self.k, t.est,
+            t.weight, t.gain, t.mag_dev, self.err, self.feat,
+        )  # fmt: skip

@@ -26,15 +26,17 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from magenv.envs import KALMAN_ID
-from magenv.envs.common import LoopVectorEnv, TrialRunner, TrustEnv, scalar_action
+from magenv.envs.batch import BatchVectorEnv
+from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, vec_init, vec_step1
 from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
 from magenv.filters.kalman_trust import SIG
+from magenv.filters.sensors import Sensors
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY
 from magenv.trial import Trial
@@ -240,6 +242,25 @@ def _features(params, sensors, mdist, out, start, stop, j):
     feat[F.field_ref] = _clip(m0 / FIELD_SCALE_UT, F.field_ref)
 
 
+def trial_disturbance(trial: Trial, params: kt.Params, model_c_a: float, model_c_b: float, model_p0: float = 1.0):
+    """(N,) ‖d̂‖ of ``trial`` (:func:`model_disturbance`) with the Gauss–Markov parameters of the ``model_dist``
+    feature and the filter's noise model ``params``; FilterError if the split fails."""
+    model = VecParams(
+        params.dt,
+        params.sigma_gyr,
+        params.sigma_mag,
+        float(model_c_a),
+        float(model_c_b),
+        float(model_p0),
+        params.cov_floor,
+    )
+    mdist = np.empty(trial.n)
+    st = model_disturbance(model, Sensors.of(trial), mdist)
+    if st != OK:
+        raise kt.FilterError(f"model-based disturbance split failed at sample {st} of trial {trial.name!r}")
+    return mdist
+
+
 class KalmanRunner(TrialRunner):
     """One trial under the trust KF, stepped k samples at a time (``advance(k, γ)``).
 
@@ -267,19 +288,7 @@ class KalmanRunner(TrialRunner):
         self.params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt) if params is None else params
         if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
             raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a}, {model_c_b}")
-        model = VecParams(
-            self.params.dt,
-            self.params.sigma_gyr,
-            self.params.sigma_mag,
-            float(model_c_a),
-            float(model_c_b),
-            float(model_p0),
-            self.params.cov_floor,
-        )
-        self.mdist = np.empty(trial.n)
-        st = model_disturbance(model, self.sensors, self.mdist)
-        if st != OK:
-            raise kt.FilterError(f"model-based disturbance split failed at sample {st} of trial {trial.name!r}")
+        self.mdist = trial_disturbance(trial, self.params, model_c_a, model_c_b, model_p0)
         self.state = kt.init(self.params, trial.acc[0], trial.mag[0])
         self.out = Outputs.empty(trial.n)
         self.est, self.sig, self.trust = self.out.est, self.out.sig, self.out.trust
@@ -428,6 +437,7 @@ class MagKalmanEnv(TrustEnv):
         model_c_b: float = C_B,
         scenario_kwargs: dict | None = None,
         prefetch: bool = False,
+        trial_pool=None,
         render_mode: str | None = None,
     ):
         self._setup(
@@ -441,6 +451,7 @@ class MagKalmanEnv(TrustEnv):
             FEATURES.low,
             FEATURES.high,
             prefetch=prefetch,
+            trial_pool=trial_pool,
         )
         if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
             raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a!r}, {model_c_b!r}")
@@ -489,10 +500,155 @@ class MagKalmanEnv(TrustEnv):
         return self._need_reset().mdist
 
 
-class MagKalmanVectorEnv(LoopVectorEnv):
-    """``num_envs`` copies of ``MagKalmanEnv`` in one process (see ``magenv.envs.common.LoopVectorEnv``).
+class Batch(NamedTuple):
+    """The arrays of :class:`MagKalmanVectorEnv`'s kernel: N envs (leading axis N) on the store's rows."""
 
-    Registered as the ``vector_entry_point`` of ``magenv/MagKalman-v0``.
+    sigma_gyr: float  # the noise model (kalman_trust.Params), the same for every env
+    sigma_acc: float
+    sigma_mag: float
+    th_acc: float
+    heading_only: bool
+    g_ref: np.ndarray  # (3,)
+    cov_floor: float
+    p0: float
+    dt: np.ndarray  # (N,) per env: sample interval, s …
+    h_ref: np.ndarray  # (N, 3) … Earth field, µT …
+    m0: np.ndarray  # (N,) … field norm, µT …
+    dip0: np.ndarray  # (N,) … dip, rad
+    q: np.ndarray  # (N, 4) estimates (kalman_trust.State)
+    p: np.ndarray  # (N, 3, 3) covariances
+    gyr: np.ndarray  # (M, 3) the store's rows: sensors …
+    acc: np.ndarray
+    mag: np.ndarray
+    q_true: np.ndarray  # (M, 4) … truth …
+    dist: np.ndarray  # (M,)
+    mdist: np.ndarray  # (M,) … and ‖d̂‖, µT (model_disturbance)
+    off: np.ndarray  # (N,) each env's first row in the store
+    n: np.ndarray  # (N,) samples of each env's episode
+    pos: np.ndarray  # (N,) next sample to fuse
+    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
+    gamma: np.ndarray  # (N,) γ of the step
+    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window
+    sig: np.ndarray  # (N, k + 2, NSIG)
+    trust: np.ndarray  # (N, k + 2)
+    err: np.ndarray  # (N, N_ERR)
+    feat: np.ndarray  # (N, len(FEATURES))
+    peek: np.ndarray  # (N, NSIG)
+    status: np.ndarray  # (N,) OK, or the sample where the env's filter failed
+    repairs: np.ndarray  # (N,) covariance repairs of each episode so far
+
+
+@njit(cache=True)
+def _advance_env(b, i):
+    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` on the window of its step (from the sample
+    before the step to the one after)."""
+    o, start = b.off[i], b.pos[i]
+    stop = min(start + b.todo[i], b.n[i])
+    base, end = start - 1, min(stop + 1, b.n[i])
+    params = kt.Params(
+        b.dt[i], b.sigma_gyr, b.sigma_acc, b.sigma_mag, b.th_acc, b.heading_only, b.g_ref, b.h_ref[i], b.m0[i],
+        b.dip0[i], b.cov_floor, b.p0,
+    )  # fmt: skip
+    sensors = Sensors(b.gyr[o + base : o + end], b.acc[o + base : o + end], b.mag[o + base : o + end])
+    truth = Truth(b.q_true[o + base : o + end], b.dist[o + base : o + end])
+    out = Outputs(b.est[i], b.sig[i], b.trust[i], b.err[i], b.feat[i], b.peek[i])
+    status, repairs = advance(
+        params, kt.State(b.q[i], b.p[i]), sensors, truth, b.mdist[o + base : o + end], out, b.gamma[i],
+        start - base, stop - base,
+    )  # fmt: skip
+    if status != OK:
+        b.status[i] = status + base
+        return
+    b.repairs[i] += repairs
+    b.pos[i] = stop
+
+
+@njit(cache=True)
+def advance_batch(b):
+    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
+    for i in range(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            _advance_env(b, i)
+
+
+@njit(cache=True, parallel=True)
+def advance_batch_threads(b):
+    """:func:`advance_batch` with the envs spread over numba's threads."""
+    for i in prange(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            _advance_env(b, i)
+
+
+class MagKalmanVectorEnv(BatchVectorEnv):
+    """``num_envs`` MagKalman envs advanced together: one numba call per ``step`` fuses every env's k samples.
+
+    Registered as the ``vector_entry_point`` of ``magenv/MagKalman-v0`` (``gymnasium.make_vec(…,
+    vectorization_mode="vector_entry_point")`` with the single env's arguments). Sub-env i is the single env
+    seeded s + i bit for bit; seeding, autoreset and ``infos`` (with ``trust``, ``repairs``): see
+    ``magenv.envs.batch.BatchVectorEnv``. A filter failure raises ``FilterError`` naming the env.
     """
 
     env_class = MagKalmanEnv
+    features = FEATURES
+    channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
+                "dist": ((), float), "mdist": ((), float)}  # fmt: skip
+    kernels = (advance_batch, advance_batch_threads)
+    first = 1
+
+    def _alloc(self, n: int) -> None:
+        self.params = kt.make_params(46.0, 49.6, 1.0, **self.template.filter_kwargs)  # the env-wide constants
+        rows = self.k_steps + 2
+        self.dt, self.h_ref, self.m0, self.dip0 = np.ones(n), np.zeros((n, 3)), np.ones(n), np.zeros(n)
+        self.q, self.p = np.zeros((n, 4)), np.zeros((n, 3, 3))
+        self.gamma = np.ones(n)
+        self.scratch = Outputs(
+            np.zeros((n, rows, 4)), np.zeros((n, rows, kt.NSIG)), np.zeros((n, rows)), self.err, self.feat,
+            np.zeros((n, kt.NSIG)),
+        )  # fmt: skip
+        self.status = np.full(n, OK, np.int64)
+        self.repairs = np.zeros(n, np.int64)
+
+    def _prepare(self, trial: Trial):
+        env = self.template
+        params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **env.filter_kwargs)
+        mdist = trial_disturbance(trial, params, env.model_kwargs["model_c_a"], env.model_kwargs["model_c_b"])
+        truth = Truth.of(trial)
+        rows = {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist,
+                "mdist": mdist}  # fmt: skip
+        return rows, (params, kt.init(params, trial.acc[0], trial.mag[0]))
+
+    def _start(self, i: int, description) -> None:
+        params, state = description
+        self.dt[i], self.h_ref[i], self.m0[i], self.dip0[i] = params.dt, params.h_ref, params.m0, params.dip0
+        self.q[i], self.p[i] = state.q, state.p
+        self.scratch.trust[i, 0] = 1.0  # sample 0, the TRIAD start, uses the magnetometer fully
+        self.repairs[i] = 0
+
+    def _set_actions(self, values, stepping) -> dict:
+        if values is None:
+            self.gamma[:] = 1.0
+            return {}
+        np.copyto(self.gamma, np.where(stepping, values[:, 0], 1.0))
+        return {"trust": self.gamma.copy()}
+
+    def _step_info(self) -> dict:
+        return {"repairs": self.repairs.copy()}
+
+    def _check(self) -> None:
+        bad = np.flatnonzero(self.status != OK)
+        if bad.size:
+            i = int(bad[0])
+            sample, self.status[:] = int(self.status[i]), OK
+            raise kt.FilterError(
+                f"trust KF: non-finite sample or covariance at sample {sample} of trial {self._names[i]!r} "
+                f"(env {i}, trust {self.gamma[i]})"
+            )
+
+    def _batch(self) -> Batch:
+        p, s, a = self.params, self.scratch, self.store.arrays
+        return Batch(
+            p.sigma_gyr, p.sigma_acc, p.sigma_mag, p.th_acc, p.heading_only, p.g_ref, p.cov_floor, p.p0, self.dt,
+            self.h_ref, self.m0, self.dip0, self.q, self.p, a["gyr"], a["acc"], a["mag"], a["q_true"], a["dist"],
+            a["mdist"], self.off, self.n, self.pos, self.todo, self.gamma, s.est, s.sig, s.trust, self.err,
+            self.feat, s.peek, self.status, self.repairs,
+        )  # fmt: skip

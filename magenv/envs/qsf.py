@@ -19,12 +19,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from gymnasium import spaces
+from numba import njit, prange
 
 from magenv.envs import QSF_ID
-from magenv.envs.common import LoopVectorEnv, TrialRunner, TrustEnv
+from magenv.envs.batch import BatchVectorEnv
+from magenv.envs.common import TrialRunner, TrustEnv, Truth
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import qsf
 from magenv.filters.qsf import SIGNAL
@@ -56,6 +59,7 @@ FEATURES = FeatureTable(
     Feature("trust_prev", 0.0, 1.0, "–", "trust applied in the last step (0 after reset)"),
 )
 F = FEATURES.ix  # named kernel indices
+_LOW, _HIGH = FEATURES.low64, FEATURES.high64
 VARIANTS = ("delay_magyq", "magyq")
 DECISIONS = ("none", "start", "keep")  # indexed by the qsf.MAG_* codes
 
@@ -76,8 +80,100 @@ def decode_action(action) -> tuple[int, float, bool]:
     return code, trust, clipped
 
 
+RAD_TO_DEG = 180.0 / math.pi  # as math.degrees
+
+
+@njit(cache=True, inline="always")
+def _clip(x, lo, hi):
+    """``numpy.clip`` of one value: NaN stays NaN; ties and signed zeros as numpy gives them."""
+    if x != x:
+        return x
+    m = x if x > lo else lo
+    return m if m < hi else hi
+
+
+@njit(cache=True, inline="always")
+def _norm3(v):
+    return np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+
+
+@njit(cache=True)
+def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat):
+    """``feat`` of sample j = ``pos``, the next to fuse (the last sample once all are fused), and of the last
+    fused sample (``sig[pos − 1]``; zeros before any). ``site``: (m0 µT, θ0 degrees) of the trial."""
+    gyr, acc, mag = inputs.gyr, inputs.acc, inputs.mag
+    n = gyr.shape[0]
+    j = pos if pos < n else n - 1
+    m0, dip0 = site
+    q = state.x[0:4]  # qsf.ORIENTATION
+    active = state.period_active[0]
+    m_e = rotate1(q, mag[j])
+    sigma_m = p.sigma_mag
+    nm = _norm3(mag[j])
+    if nm > 0:
+        s = -m_e[2] / nm
+        s = s if s < 1.0 else 1.0  # max(-1, min(1, s)) as Python evaluates it
+        s = s if s > -1.0 else -1.0
+        dip = math.asin(s) * RAD_TO_DEG
+    else:
+        dip = dip0
+    innov, nis, hstd = 0.0, 0.0, 0.0
+    if pos > 0:
+        innov, nis, hstd = sig[pos - 1, SIGNAL.innov_norm], sig[pos - 1, SIGNAL.nis], sig[pos - 1, SIGNAL.heading_std]
+    f = feat
+    f[F.spread] = spread[j]
+    f[F.det_start] = 1.0 if codes[j] == qsf.MAG_START else 0.0
+    f[F.det_keep] = 1.0 if codes[j] == qsf.MAG_KEEP else 0.0
+    if active:
+        d0, d1, d2 = state.mag_ref[0] - m_e[0], state.mag_ref[1] - m_e[1], state.mag_ref[2] - m_e[2]
+        f[F.ref_mismatch] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) / sigma_m
+    else:
+        f[F.ref_mismatch] = 0.0
+    f[F.innov_norm] = innov / sigma_m
+    f[F.log_nis] = math.log10(1.0 + nis)
+    f[F.age] = (state.period_age[0] / AGE_SCALE_S) if active else 0.0
+    f[F.active] = 1.0 if active else 0.0
+    f[F.gyro_norm] = _norm3(gyr[j]) / GYRO_SCALE
+    f[F.acc_dev] = (_norm3(acc[j]) - GRAVITY) / GRAVITY
+    f[F.mag_norm_dev] = (nm - m0) / m0
+    f[F.dip_dev] = (dip - dip0) / DIP_SCALE_DEG
+    f[F.heading_std] = hstd
+    f[F.trust_prev] = trust_prev
+    for k in range(f.shape[0]):
+        f[k] = _clip(f[k], _LOW[k], _HIGH[k])
+
+
+@njit(cache=True)
+def advance(p, state, inputs, out, detected, truth, dt, site, code, trust, start, stop, err, feat):
+    """Fuse samples ``start:stop`` with one decision and one trust, then the observation of sample ``stop``.
+
+    Args:
+        p, state, inputs, out: ``qsf.Params``, ``State`` (updated in place), ``Inputs`` (its ``action`` and
+            ``trust`` rows start:stop written), ``Outputs`` (rows start:stop written).
+        detected: (codes (N,) int8, spread (N,) in units of th_spread) of the trial's QSF detector.
+        truth: ``magenv.envs.common.Truth``, for the error sums only. dt: s. site: (m0 µT, θ0 degrees).
+        code: MAG_START starts a period at sample ``start`` and keeps it for the rest, MAG_KEEP keeps,
+            MAG_NONE makes no magnetic update (and ends any period); ``trust`` ∈ [0, 1] scales every magnetic gain.
+        err: (N_ERR,) set to the error sums; feat: set to the observation of sample ``stop``.
+    Returns ``(bad, repairs)`` of ``qsf.run_kernel`` (bad −1: every sample fused).
+    """
+    keep = qsf.MAG_NONE if code == qsf.MAG_NONE else qsf.MAG_KEEP
+    for i in range(start, stop):
+        inputs.action[i] = keep
+        inputs.trust[i] = trust
+    if code == qsf.MAG_START and stop > start:
+        inputs.action[start] = qsf.MAG_START
+    bad, repairs = qsf.run_kernel(p, state, inputs, dt, start, stop, out)
+    if bad >= 0:
+        return bad, repairs
+    error_sums(out.q, truth.q_true, truth.dist, start, stop, err)
+    _features(p, state, inputs, detected[0], detected[1], out.sig, site, trust, stop, feat)
+    return bad, repairs
+
+
 class QSFRunner(TrialRunner):
-    """One trial under MAGYQ / Delay MAGYQ with per-step decisions (the ``MagQSF-v0`` runner).
+    """One trial under MAGYQ / Delay MAGYQ with per-step decisions (the ``MagQSF-v0`` runner), stepped through
+    the kernel :func:`advance`.
 
     Args:
         trial: the trial (any sensor trial).
@@ -103,11 +199,9 @@ class QSFRunner(TrialRunner):
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
         super().__init__(trial)
-        self.params = qsf.make_params(trial.field_norm, trial.field_dip, mode=variant, **(filter_kwargs or {}))
+        self.params, self.detected, self.state = episode_start(trial, variant, detector, init, filter_kwargs)
         self.detector = detector or qsf.QSFDetector()
-        self.codes, spread = self.detector.detect(trial.gyr, trial.mag, trial.rate)
-        self.spread = np.nan_to_num(spread, nan=0.0) / self.detector.th_spread
-        self.state = qsf.initial_state(qsf.initial_orientation(trial, init, self.params), trial.dt)
+        self.codes, self.spread = self.detected
         n = trial.n
         self.inputs = qsf.Inputs(trial.gyr, trial.acc, trial.mag, np.zeros(n, np.int8), np.zeros(n))
         self.out = qsf.Outputs.empty(n)
@@ -115,53 +209,29 @@ class QSFRunner(TrialRunner):
         self.err = np.zeros(N_ERR)
         self.trust_prev = 0.0
         self.feat = np.zeros(len(FEATURES))
-        self._args = (self.params, self.state, self.inputs, trial.dt)
-        self._run = self.compiled(qsf.run_kernel, *self._args, 0, 0, self.out)
-        self._features(0)
+        site = (trial.field_norm, trial.field_dip)
+        self._args = (self.params, self.state, self.inputs, self.out, self.detected, self.truth, trial.dt, site)
+        self._advance = self.compiled(advance, *self._args, 0, 0.0, 0, 0, self.err, self.feat)
+        self._advance(*self._args, qsf.MAG_NONE, 0.0, 0, 0, self.err, self.feat)  # the observation of sample 0
 
     def _fuse(self, i0: int, i1: int, action) -> None:
-        """``action`` = (code, trust): ``code`` MAG_START starts a period at sample i0 and keeps it for the
-        rest, MAG_KEEP keeps, MAG_NONE makes no magnetic update (and ends any period); ``trust`` ∈ [0, 1]
-        scales every magnetic gain."""
+        """``action`` = (code, trust) of :func:`advance`."""
         code, trust = action
-        actions = self.inputs.action
-        actions[i0:i1] = qsf.MAG_NONE if code == qsf.MAG_NONE else qsf.MAG_KEEP
-        if code == qsf.MAG_START and i1 > i0:
-            actions[i0] = qsf.MAG_START
-        self.inputs.trust[i0:i1] = trust
-        qsf.checked(self._run(*self._args, i0, i1, self.out), self.inputs)  # FilterError on a non-finite sample
-        error_sums(self.est, self.truth.q_true, self.truth.dist, i0, i1, self.err)
+        result = self._advance(*self._args, int(code), float(trust), i0, i1, self.err, self.feat)
+        qsf.checked(result, self.inputs)  # FilterError on a non-finite sample
         self.trust_prev = float(trust)
-        self._features(i1)
 
-    def _features(self, pos: int) -> None:
-        """Features of sample j = ``pos``, the next to fuse (the last sample once all are fused), and of the
-        last fused sample."""
-        tr, state = self.trial, self.state
-        j = min(pos, tr.n - 1)
-        q = state.x[qsf.ORIENTATION]
-        last = self.out.sig[pos - 1] if pos > 0 else np.zeros(qsf.N_SIGNALS)
-        active = bool(state.period_active[0])
-        m_e = rotate1(q, tr.mag[j])
-        sigma_m = self.params.sigma_mag
-        nm = float(np.linalg.norm(tr.mag[j]))
-        dip = math.degrees(math.asin(max(-1.0, min(1.0, -m_e[2] / nm)))) if nm > 0 else tr.field_dip
-        f = self.feat
-        f[F.spread] = self.spread[j]
-        f[F.det_start] = float(self.codes[j] == qsf.MAG_START)
-        f[F.det_keep] = float(self.codes[j] == qsf.MAG_KEEP)
-        f[F.ref_mismatch] = float(np.linalg.norm(state.mag_ref - m_e)) / sigma_m if active else 0.0
-        f[F.innov_norm] = last[SIGNAL.innov_norm] / sigma_m
-        f[F.log_nis] = math.log10(1.0 + last[SIGNAL.nis])
-        f[F.age] = (state.period_age[0] / AGE_SCALE_S) if active else 0.0
-        f[F.active] = float(active)
-        f[F.gyro_norm] = float(np.linalg.norm(tr.gyr[j])) / GYRO_SCALE
-        f[F.acc_dev] = (float(np.linalg.norm(tr.acc[j])) - GRAVITY) / GRAVITY
-        f[F.mag_norm_dev] = (nm - tr.field_norm) / tr.field_norm
-        f[F.dip_dev] = (dip - tr.field_dip) / DIP_SCALE_DEG
-        f[F.heading_std] = last[SIGNAL.heading_std]
-        f[F.trust_prev] = self.trust_prev
-        np.clip(f, FEATURES.low, FEATURES.high, out=f)
+
+def episode_start(trial: Trial, variant: str, detector, init: str, filter_kwargs: dict | None):
+    """(params, (codes, spread), initial state) of an episode on ``trial``: the filter's parameters for the
+    trial's site, the detector's codes and spread (in units of th_spread, 0 while its window fills) and the
+    start (``qsf.initial_orientation``)."""
+    params = qsf.make_params(trial.field_norm, trial.field_dip, mode=variant, **(filter_kwargs or {}))
+    detector = detector or qsf.QSFDetector()
+    codes, spread = detector.detect(trial.gyr, trial.mag, trial.rate)
+    spread = np.nan_to_num(spread, nan=0.0) / detector.th_spread
+    state = qsf.initial_state(qsf.initial_orientation(trial, init, params), trial.dt)
+    return params, (codes, spread), state
 
 
 @document(FEATURES)
@@ -266,6 +336,7 @@ class MagQSFEnv(TrustEnv):
         detector: qsf.QSFDetector | dict | None = None,
         filter_kwargs: dict | None = None,
         scenario_kwargs: dict | None = None,
+        trial_pool=None,
         render_mode: str | None = None,
     ):
         if variant not in VARIANTS:
@@ -282,6 +353,7 @@ class MagQSFEnv(TrustEnv):
             FEATURES.names,
             FEATURES.low,
             FEATURES.high,
+            trial_pool=trial_pool,
         )
         self.action_space = spaces.Box(
             np.array([-1.0, 0.0], np.float32), np.array([1.0, 1.0], np.float32), dtype=np.float32
@@ -321,8 +393,164 @@ class MagQSFEnv(TrustEnv):
         return self._need_reset().out.sig[:, SIGNAL.trust]
 
 
-class MagQSFVectorEnv(LoopVectorEnv):
-    """``num_envs`` copies of :class:`MagQSFEnv` in one process (``magenv.envs.common.LoopVectorEnv``, next-step
-    autoreset), with the env's `(2,)` action: ``actions`` of shape ``(num_envs, 2)``."""
+class Batch(NamedTuple):
+    """The arrays of :class:`MagQSFVectorEnv`'s kernel: N envs (leading axis N) on the store's rows."""
+
+    mode: int  # qsf.Params.mode, the same for every env
+    update_reference: bool  # qsf.Params.update_reference
+    pf: np.ndarray  # (N, 10) per env, the float fields of qsf.Params in order (sigma_gyr … th_acc, cov_floor,
+    grav: np.ndarray  # (N, 3)                                                radial_eps, max_age_s, acc_adaptive)
+    earth: np.ndarray  # (N, 3)
+    dt: np.ndarray  # (N,) sample interval, s
+    m0: np.ndarray  # (N,) the trial's field norm, µT
+    dip0: np.ndarray  # (N,) … and dip, degrees
+    x: np.ndarray  # (N, N_AUGMENTED) qsf.State …
+    cov: np.ndarray  # (N, N_AUGMENTED, N_AUGMENTED)
+    active: np.ndarray  # (N, 1) bool
+    age: np.ndarray  # (N, 1)
+    mag_t0: np.ndarray  # (N, 3)
+    mag_ref: np.ndarray  # (N, 3)
+    gyr: np.ndarray  # (M, 3) the store's rows: sensors …
+    acc: np.ndarray
+    mag: np.ndarray
+    q_true: np.ndarray  # (M, 4) … truth …
+    dist: np.ndarray  # (M,)
+    codes: np.ndarray  # (M,) int8 … and the detector's codes and spread
+    spread: np.ndarray  # (M,)
+    off: np.ndarray  # (N,) each env's first row in the store
+    n: np.ndarray  # (N,) samples of each env's episode
+    pos: np.ndarray  # (N,) next sample to fuse
+    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
+    code: np.ndarray  # (N,) the step's decision (qsf.MAG_*)
+    trust: np.ndarray  # (N,) the step's trust
+    action_h: np.ndarray  # (N, k + 2) int8 scratch Inputs.action / trust of the step's window
+    trust_h: np.ndarray  # (N, k + 2)
+    q_h: np.ndarray  # (N, k + 2, 4) scratch Outputs
+    sig_h: np.ndarray  # (N, k + 2, N_SIGNALS)
+    err: np.ndarray  # (N, N_ERR)
+    feat: np.ndarray  # (N, len(FEATURES))
+    bad: np.ndarray  # (N,) −1, or the sample where the env's filter failed
+
+
+@njit(cache=True)
+def _advance_env(b, i):
+    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` on the window of its step (from the sample
+    before the step to the one after)."""
+    o, start = b.off[i], b.pos[i]
+    stop = min(start + b.todo[i], b.n[i])
+    base, end = max(start - 1, 0), min(stop + 1, b.n[i])
+    f, g, e = b.pf[i], b.grav[i], b.earth[i]
+    p = qsf.Params(
+        b.mode, f[0], f[1], f[2], f[3], f[4], f[5], (g[0], g[1], g[2]), (e[0], e[1], e[2]), f[6], f[7],
+        b.update_reference, f[8], f[9],
+    )  # fmt: skip
+    state = qsf.State(b.x[i], b.cov[i], b.active[i], b.age[i], b.mag_t0[i], b.mag_ref[i])
+    r0, r1 = o + base, o + end
+    inputs = qsf.Inputs(b.gyr[r0:r1], b.acc[r0:r1], b.mag[r0:r1], b.action_h[i], b.trust_h[i])
+    out = qsf.Outputs(b.q_h[i], b.sig_h[i])
+    truth = Truth(b.q_true[r0:r1], b.dist[r0:r1])
+    bad, _ = advance(
+        p, state, inputs, out, (b.codes[r0:r1], b.spread[r0:r1]), truth, b.dt[i], (b.m0[i], b.dip0[i]), b.code[i],
+        b.trust[i], start - base, stop - base, b.err[i], b.feat[i],
+    )  # fmt: skip
+    if bad >= 0:
+        b.bad[i] = bad + base
+        return
+    b.pos[i] = stop
+
+
+@njit(cache=True)
+def advance_batch(b):
+    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
+    for i in range(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            _advance_env(b, i)
+
+
+@njit(cache=True, parallel=True)
+def advance_batch_threads(b):
+    """:func:`advance_batch` with the envs spread over numba's threads."""
+    for i in prange(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            _advance_env(b, i)
+
+
+class MagQSFVectorEnv(BatchVectorEnv):
+    """``num_envs`` MagQSF envs advanced together: one numba call per ``step`` fuses every env's samples.
+
+    The ``vector_entry_point`` of ``magenv/MagQSF-v0``, with the env's `(2,)` action: ``actions`` of shape
+    ``(num_envs, 2)``. Sub-env i is the single env seeded s + i bit for bit; seeding, autoreset and ``infos``
+    (with ``decision``, the ``qsf.MAG_*`` code, ``trust`` and ``qsf_active``): see
+    ``magenv.envs.batch.BatchVectorEnv``. A filter failure raises ``FilterError`` naming the env.
+    """
 
     env_class = MagQSFEnv
+    features = FEATURES
+    channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
+                "dist": ((), float), "codes": ((), np.int8), "spread": ((), float)}  # fmt: skip
+    kernels = (advance_batch, advance_batch_threads)
+    _floats = ("sigma_gyr", "sigma_bias_walk", "sigma_acc_bias_walk", "sigma_acc", "sigma_mag", "th_acc",
+               "cov_floor", "radial_eps", "max_age_s", "acc_adaptive")  # fmt: skip
+
+    def _alloc(self, n: int) -> None:
+        env = self.template
+        p = qsf.make_params(50.0, 60.0, mode=env.variant, **env.filter_kwargs)
+        self.constants = (p.mode, p.update_reference)
+        rows, na = self.k_steps + 2, qsf.N_AUGMENTED
+        self.pf, self.grav, self.earth = np.ones((n, len(self._floats))), np.zeros((n, 3)), np.zeros((n, 3))
+        self.dt, self.m0, self.dip0 = np.ones(n), np.ones(n), np.zeros(n)
+        self.state = qsf.State(
+            np.zeros((n, na)), np.zeros((n, na, na)), np.zeros((n, 1), np.bool_), np.zeros((n, 1)),
+            np.zeros((n, 3)), np.zeros((n, 3)),
+        )  # fmt: skip
+        self.code, self.trust = np.zeros(n, np.int64), np.zeros(n)
+        self.scratch = (
+            np.zeros((n, rows), np.int8), np.zeros((n, rows)), np.zeros((n, rows, 4)),
+            np.zeros((n, rows, qsf.N_SIGNALS)),
+        )  # fmt: skip
+        self.bad = np.full(n, -1, np.int64)
+
+    def _prepare(self, trial: Trial):
+        env = self.template
+        params, (codes, spread), state = episode_start(trial, env.variant, env.detector, env.init, env.filter_kwargs)
+        truth = Truth.of(trial)
+        rows = {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist,
+                "codes": codes, "spread": spread}  # fmt: skip
+        return rows, (params, state, float(trial.dt), trial.field_norm, trial.field_dip)
+
+    def _start(self, i: int, description) -> None:
+        p, state, self.dt[i], self.m0[i], self.dip0[i] = description
+        self.pf[i] = [getattr(p, name) for name in self._floats]
+        self.grav[i], self.earth[i] = p.gravity, p.earth_field
+        for mine, theirs in zip(self.state, state):
+            mine[i] = theirs
+
+    def _set_actions(self, values, stepping) -> dict:
+        if values is None:
+            self.code[:], self.trust[:] = qsf.MAG_NONE, 0.0
+            return {}
+        d = values[:, 0]
+        code = np.where(d < -1.0 / 3.0, qsf.MAG_NONE, np.where(d < 1.0 / 3.0, qsf.MAG_KEEP, qsf.MAG_START))
+        np.copyto(self.code, np.where(stepping, code, qsf.MAG_NONE))
+        np.copyto(self.trust, np.where(stepping, values[:, 1], 0.0))
+        return {"decision": self.code.copy(), "trust": self.trust.copy()}
+
+    def _step_info(self) -> dict:
+        return {"qsf_active": self.state.period_active[:, 0].copy()}
+
+    def _check(self) -> None:
+        bad = np.flatnonzero(self.bad >= 0)
+        if bad.size:
+            i = int(bad[0])
+            sample, self.bad[:] = int(self.bad[i]), -1
+            raise qsf.FilterError(
+                f"QSF filter: non-finite sample or covariance at sample {sample} of trial {self._names[i]!r} (env {i})"
+            )
+
+    def _batch(self) -> Batch:
+        a, st = self.store.arrays, self.state
+        return Batch(
+            *self.constants, self.pf, self.grav, self.earth, self.dt, self.m0, self.dip0, *st, a["gyr"], a["acc"],
+            a["mag"], a["q_true"], a["dist"], a["codes"], a["spread"], self.off, self.n, self.pos, self.todo,
+            self.code, self.trust, *self.scratch, self.err, self.feat, self.bad,
+        )  # fmt: skip

@@ -1,0 +1,368 @@
+"""The batched vector env of the trust envs: N envs' filter states as arrays, one compiled call per ``step``.
+
+* :class:`TrialStore` — the per-sample arrays of the episodes a vector env
+  has in use, concatenated (one array per channel, rows = samples), each
+  episode at an offset; episodes are shared by key between the envs.
+* :class:`BatchVectorEnv` — the base of each env's ``vector_entry_point``:
+  seeding, trial draws, next-step autoreset, action checks, rewards and
+  ``info`` arrays; a subclass holds its filter's state and parameters as
+  arrays with a leading axis of N and advances every env in one numba call.
+
+Sub-env i is, bit for bit, the single env seeded s + i: it draws its
+trials from its own ``np_random`` with the single env's
+:class:`~magenv.envs.common.TrialSource` (the same keys, the same trials),
+starts its filter with the runner's own functions, and its kernel runs the
+single env's kernel ``advance`` on *windows* of the arrays — the samples of
+the step plus the one before and the one after — with scratch outputs of a
+few rows instead of per-sample histories, so a vector env keeps no history
+(``estimate`` and the other per-sample views are single-env features).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.utils import seeding
+
+from magenv.envs.common import TrialRunner, TrustEnv, cut_trial
+from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR
+from magenv.trial import Trial
+
+
+class TrialStore:
+    """Per-sample arrays of the episodes in use, concatenated: one array per channel, an episode's rows at an
+    offset.
+
+    Args:
+        channels: channel name → (shape of one row, dtype).
+        capacity: initial rows.
+
+    :meth:`acquire` gives the offset of an episode (its rows copied in on first use) and counts its users;
+    :meth:`release` uncounts one. Episodes nobody uses stay until their rows are needed (oldest first).
+    When no free run of rows is long enough, the arrays double (rows keep their offsets; ``version``
+    counts the reallocations, so holders of the arrays know to fetch them again).
+    """
+
+    def __init__(self, channels: dict[str, tuple[tuple[int, ...], Any]], capacity: int = 1 << 14):
+        self.channels = dict(channels)
+        self.capacity = int(capacity)
+        self.arrays = {k: np.zeros((self.capacity, *shape), dtype) for k, (shape, dtype) in self.channels.items()}
+        self.free = [(0, self.capacity)]  # sorted, coalesced runs of free rows (start, length)
+        self.entries: dict = {}  # key → [offset, rows, users, description], least recently released first
+        self.version = 0
+
+    def __contains__(self, key) -> bool:
+        return key in self.entries
+
+    @property
+    def rows_used(self) -> int:
+        """Rows held by episodes (in use or kept)."""
+        return sum(e[1] for e in self.entries.values())
+
+    def get(self, key):
+        """(offset, description) of a stored episode, counted as one more user."""
+        entry = self.entries[key]
+        entry[2] += 1
+        return entry[0], entry[3]
+
+    def add(self, key, rows: dict[str, np.ndarray], description) -> int:
+        """Store a new episode: ``rows`` holds an (n, …) array per channel; returns its offset (one user)."""
+        n = len(next(iter(rows.values())))
+        offset = self._allocate(n)
+        for name, arr in self.arrays.items():
+            arr[offset : offset + n] = rows[name]
+        self.entries[key] = [offset, n, 1, description]
+        return offset
+
+    def release(self, key) -> None:
+        """One user fewer; an episode nobody uses is kept (most recently released last) until evicted."""
+        entry = self.entries.get(key)
+        if entry is not None:
+            entry[2] -= 1
+            if entry[2] <= 0:
+                self.entries[key] = self.entries.pop(key)  # to the end of the eviction order
+
+    def _allocate(self, n: int) -> int:
+        while True:
+            for k, (start, length) in enumerate(self.free):
+                if length >= n:
+                    self.free[k] = (start + n, length - n)
+                    if length == n:
+                        del self.free[k]
+                    return start
+            idle = next((key for key, e in self.entries.items() if e[2] <= 0), None)
+            if idle is None:
+                break
+            offset, rows = self.entries.pop(idle)[:2]
+            self._free(offset, rows)
+        self._grow(n)
+        return self._allocate(n)
+
+    def _free(self, start: int, length: int) -> None:
+        runs = sorted([*self.free, (start, length)])
+        merged = [runs[0]]
+        for s, m in runs[1:]:
+            if merged[-1][0] + merged[-1][1] == s:
+                merged[-1] = (merged[-1][0], merged[-1][1] + m)
+            else:
+                merged.append((s, m))
+        self.free = merged
+
+    def _grow(self, n: int) -> None:
+        old = self.capacity
+        self.capacity = max(2 * old, old + n)
+        for name, (shape, dtype) in self.channels.items():
+            arr = np.zeros((self.capacity, *shape), dtype)
+            arr[:old] = self.arrays[name]
+            self.arrays[name] = arr
+        self._free(old, self.capacity - old)
+        self.version += 1
+
+
+def check_box_actions(actions, num_envs: int, low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(values (N, d) float64 clipped to [low, high], clipped (N,) bool) from ``actions`` (N, d), or (N,) when
+    d = 1. A wrong shape or a non-finite value is a ValueError naming the env."""
+    d = low.shape[0]
+    a = np.asarray(actions, dtype=np.float64)
+    if a.shape != (num_envs, d) and not (d == 1 and a.shape == (num_envs,)):
+        raise ValueError(f"actions must have shape ({num_envs}, {d}), got {a.shape}")
+    a = a.reshape(num_envs, d)
+    bad = ~np.isfinite(a).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"actions must be finite; env {i} got {a[i].tolist()}")
+    values = np.minimum(np.maximum(a, low), high)
+    return values, (values != a).any(axis=1)
+
+
+class BatchVectorEnv(gym.vector.VectorEnv):
+    """``num_envs`` envs of ``env_class`` advanced together: their state as arrays, one kernel call per step.
+
+    Args:
+        num_envs: N.
+        parallel: numba threads over the envs (``prange``). Off by default: on the shared 2-core machine the
+            threaded kernel made 256 envs 1.5–10× slower than the serial one (``benchmarks/bench_vector.py
+            --parallel``); it may pay where cores are free.
+        kwargs: the single env's arguments (checked by constructing one, whose spaces and options the vector
+            env uses).
+
+    Seeding as for N single envs: ``reset(seed=s)`` seeds sub-env i with s + i (or a list of seeds), and
+    sub-env i then replays the single env seeded s + i exactly (same trials, observations, rewards).
+    ``reset(options={"trial": trial})`` starts every sub-env on ``trial``. Autoreset: next-step — the step
+    after a sub-env's truncation resets it (its action is ignored) and returns its first observation with
+    reward 0. ``infos`` (a dict of (N,) arrays; the ``_key`` masks mark the sub-envs that stepped):
+    ``error_total``, ``error_heading``, ``error_inclination`` (means over the step, °), ``disturbance_norm``
+    (µT), ``action_clipped``, ``sample`` and the env's action value(s); ``reset`` gives ``trial`` (names),
+    ``n_samples``, ``sample``.
+
+    Subclasses set ``env_class``, ``features`` (its FeatureTable), ``channels`` (the store's per-sample
+    channels), ``first`` (the first sample a step fuses), ``kernels`` (the serial and the threaded batch
+    kernel) and implement ``_alloc(n)``, ``_prepare(trial) → (rows, description)``, ``_start(i,
+    description)``, ``_set_actions(values, stepping) → action infos`` and ``_batch()`` (the kernels'
+    argument). ``todo[i]`` tells the kernel what env i does: fuse that many samples (≥ 1), only compute its
+    observation (0), or nothing (−1).
+    """
+
+    metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP, "render_modes": []}
+    env_class: type[TrustEnv]
+    features: Any  # the env's magenv.envs.features.FeatureTable
+    channels: dict[str, tuple[tuple[int, ...], Any]]
+    kernels: tuple  # (serial, threaded) numba kernels taking the _batch() tuple
+    first = 0
+
+    def __init__(self, num_envs: int = 1, parallel: bool = False, **kwargs):
+        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        self.num_envs = n = int(num_envs)
+        self.template = env = self.env_class(**kwargs)
+        self.env_kwargs = dict(kwargs)
+        self.trials = env.trials
+        self.trials.cache_size = 0  # the store keeps the trials in use
+        self.trials.max_pending = n
+        self.k_steps, self.episode_seconds = env.k_steps, env.episode_seconds
+        self.single_observation_space = env.observation_space
+        self.single_action_space = env.action_space
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, n)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, n)
+        self.render_mode = None
+        if not isinstance(parallel, (bool, np.bool_)):
+            raise TypeError(f"parallel must be True or False, got {parallel!r}")
+        self.parallel = bool(parallel)
+        self.store = TrialStore(self.channels)
+        self._rngs: list[np.random.Generator | None] = [None] * n
+        self._episode = np.zeros(n, np.int64)  # episodes since the sub-env's last seeded reset
+        self._keys: list = [None] * n
+        self._names = np.empty(n, object)
+        self._needs_reset = np.zeros(n, bool)
+        self._started = False
+        self.off = np.zeros(n, np.int64)  # first row of each env's episode in the store
+        self.n = np.zeros(n, np.int64)  # samples of each env's episode
+        self.pos = np.zeros(n, np.int64)  # next sample to fuse
+        self.todo = np.zeros(n, np.int64)  # what the next kernel call does per env (see class docstring)
+        self.err = np.zeros((n, N_ERR))  # the last step's error sums (magenv.metrics.E_*)
+        self.feat = np.zeros((n, len(self.features)))  # observations, all features, float64
+        self.has_dist = np.zeros(n, bool)  # the episode's trial has a true disturbance
+        self._returns = np.zeros(n)
+        self._lengths = np.zeros(n, np.int64)
+        self._alloc(n)
+        self._args, self._args_version, self._entry = None, -1, None
+
+    # ------------------------------------------------------------ subclass interface
+
+    def _alloc(self, n: int) -> None:
+        raise NotImplementedError
+
+    def _prepare(self, trial: Trial) -> tuple[dict[str, np.ndarray], Any]:
+        raise NotImplementedError
+
+    def _start(self, i: int, description) -> None:
+        raise NotImplementedError
+
+    def _set_actions(self, values: np.ndarray | None, stepping: np.ndarray) -> dict:
+        raise NotImplementedError
+
+    def _batch(self) -> tuple:
+        raise NotImplementedError
+
+    def _run(self) -> None:
+        """The one compiled call: every env does ``todo``; then checks the kernel's status (``_check``)."""
+        if self._args_version != self.store.version:
+            self._args, self._args_version = self._batch(), self.store.version
+            kernel = self.kernels[1 if self.parallel else 0]
+            self._entry = TrialRunner.compiled(kernel, self._args)
+        self._entry(self._args)
+        self._check()
+
+    def _check(self) -> None:
+        """Raise if the kernel reported a failing env (filters that can fail override it)."""
+
+    def _step_info(self) -> dict:
+        """The env's own ``infos`` arrays after a step (beyond the action's)."""
+        return {}
+
+    # ------------------------------------------------------------ episodes
+
+    def _begin(self, i: int, trial: Trial | None = None) -> None:
+        """Sub-env i starts an episode: on ``trial``, or on the next trial of its own draws."""
+        if trial is None:
+            rng = self._rngs[i]
+            key = self.trials.pick(rng, int(self._episode[i]))
+        else:
+            key = ("given", id(trial))
+        if key in self.store:
+            offset, entry = self.store.get(key)
+        else:
+            cut = cut_trial(self.trials.trial(key) if trial is None else trial, self.episode_seconds)
+            rows, description = self._prepare(cut)
+            entry = (cut.n, cut.name, "mag_disturbance" in cut.truth, description, trial)
+            offset = self.store.add(key, rows, entry)
+        if self._keys[i] is not None:
+            self.store.release(self._keys[i])
+        self._keys[i] = key
+        n, self._names[i], self.has_dist[i], description, _ = entry
+        self.off[i], self.n[i], self.pos[i], self.todo[i] = offset, n, self.first, 0
+        self._returns[i], self._lengths[i] = 0.0, 0
+        self._start(i, description)
+        if trial is None and self.trials.prefetch:
+            import copy
+
+            nxt = self.trials.pick(copy.deepcopy(rng), int(self._episode[i]) + 1)
+            if nxt not in self.store:
+                self.trials.prepare(nxt)
+
+    def _autoreset(self, idx: np.ndarray) -> None:
+        for i in idx:
+            self._episode[i] += 1
+            self._begin(int(i))
+
+    def reset(self, *, seed=None, options=None):
+        n = self.num_envs
+        if seed is None or isinstance(seed, (int, np.integer)):
+            seeds = [None if seed is None else int(seed) + i for i in range(n)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != n:
+                raise ValueError(f"got {len(seeds)} seeds for {n} envs")
+        trial = (options or {}).get("trial")
+        if trial is not None and not isinstance(trial, Trial):
+            raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
+        for i, s in enumerate(seeds):
+            if s is not None or self._rngs[i] is None:
+                self._rngs[i], _ = seeding.np_random(s)
+                self._episode[i] = 0
+            elif self._started:
+                self._episode[i] += 1
+            self._begin(i, trial)
+        self._started = True
+        self._needs_reset[:] = False
+        self.todo[:] = 0
+        self._set_actions(None, np.zeros(n, bool))
+        self._run()
+        return self._obs(), {"trial": self._names.copy(), "n_samples": self.n.copy(), "sample": self.pos.copy()}
+
+    def _obs(self) -> np.ndarray:
+        env = self.template
+        return (self.feat if env._all else self.feat[:, env._idx]).astype(np.float32)
+
+    def step(self, actions):
+        if not self._started:
+            raise RuntimeError(f"{type(self).__name__}.step() called before reset(); call reset() first")
+        values, clipped = self._check_actions(actions)
+        resetting = self._needs_reset
+        stepping = ~resetting
+        if resetting.any():
+            self._autoreset(np.flatnonzero(resetting))
+        np.copyto(self.todo, np.where(stepping, self.k_steps, 0))
+        before = self.pos.copy()
+        action_info = self._set_actions(values, stepping)
+        self._run()
+        err = self.err
+        has = err[:, E_COUNT] > 0
+        cnt = np.where(has, err[:, E_COUNT], 1.0)
+        total = np.where(has, err[:, E_TOTAL] / cnt, np.nan)
+        rewards = np.where(has, -total, 0.0)
+        truncated = stepping & (self.pos >= self.n)
+        self._needs_reset = truncated.copy()
+        self._returns += rewards
+        self._lengths += stepping
+        fused = np.maximum(self.pos - before, 1)
+        infos = {
+            "error_total": total,
+            "error_heading": np.where(has, err[:, E_HEADING] / cnt, np.nan),
+            "error_inclination": np.where(has, err[:, E_INCL] / cnt, np.nan),
+            "disturbance_norm": np.where(self.has_dist & stepping, err[:, E_DIST] / fused, np.nan),
+            "action_clipped": clipped & stepping,
+            "sample": self.pos.copy(),
+            **action_info,
+            **self._step_info(),
+        }
+        for key in list(infos):
+            infos["_" + key] = stepping
+        return self._obs(), rewards, np.zeros(self.num_envs, bool), truncated, infos
+
+    def _check_actions(self, actions) -> tuple[np.ndarray, np.ndarray]:
+        space = self.single_action_space
+        return check_box_actions(actions, self.num_envs, space.low.astype(np.float64), space.high.astype(np.float64))
+
+    def reset_done(self) -> np.ndarray:
+        """Reset now the sub-envs whose episode ended in the last step (instead of at the next step) and return
+        their first observations (rows of ``np.flatnonzero`` of the last step's truncations): the same-step
+        autoreset that Stable-Baselines3 expects (``magenv.agents.vec_env``). The episodes are the same."""
+        idx = np.flatnonzero(self._needs_reset)
+        if idx.size:
+            self._autoreset(idx)
+            self.todo[:] = -1
+            self.todo[idx] = 0
+            self._set_actions(None, np.zeros(self.num_envs, bool))
+            self._run()  # the new episodes' first observations; the other envs do nothing
+            self._needs_reset[:] = False
+        return self._obs()[idx]
+
+    def episode_statistics(self) -> tuple[np.ndarray, np.ndarray]:
+        """(return, steps) of each sub-env's current episode so far."""
+        return self._returns.copy(), self._lengths.copy()
+
+    def close_extras(self, **kwargs) -> None:
+        self.template.close()
