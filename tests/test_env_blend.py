@@ -267,14 +267,13 @@ def test_vector_env_replays_single_envs(short_trials):
         assert vrew[8, i] == 0.0
 
 
-def test_render_mode_is_refused_so_sb3_make_vec_env_falls_back():
+def test_sb3_make_vec_env_builds_rgb_array_envs():
     from stable_baselines3.common.env_util import make_vec_env
 
-    with pytest.raises(TypeError, match="no render modes"):
-        gym.make(ENV_ID, render_mode="rgb_array")
     venv = make_vec_env(ENV_ID, n_envs=2, seed=0, env_kwargs={"episode_seconds": 2.0})
     obs = venv.reset()
     assert obs.shape == (2, venv.observation_space.shape[0])
+    assert venv.get_attr("render_mode") == ["rgb_array"] * 2  # make_vec_env's default; nothing drawn unless asked
     venv.close()
 
 

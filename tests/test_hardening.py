@@ -518,3 +518,12 @@ def test_every_constructor_argument_has_a_rule_or_a_reason(algo):
     """A new SB3 argument is noticed here, not passed unchecked (it is refused as unknown until it has a rule)."""
     params = set(inspect.signature(algorithm_class(algo).__init__).parameters) - {"self", "env", "_init_setup_model"}
     assert params - set(VALUE_RULES) - set(NOT_IN_CONFIG) == set()
+
+
+@pytest.mark.slow
+def test_evaluate_records_a_video(trained_run, tmp_path):
+    video = tmp_path / "agent.mp4"
+    args = ["evaluate", str(trained_run), "--scenario", "dynamic_clean", "--seeds", "0", "--no-progress"]
+    assert cli([*args, "--video", str(video)]) == 0
+    assert video.stat().st_size > 10_000
+    assert cli([*args, "--video", str(tmp_path / "agent.gif")]) == 2
