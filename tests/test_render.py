@@ -149,3 +149,25 @@ def test_policy_runner_records_a_trial_as_mp4(short_trials, tmp_path):
     assert path.stat().st_size > 1000
     with pytest.raises(ValueError, match=r"\.mp4"):
         rd.write_video([np.zeros((8, 8, 3), np.uint8)], tmp_path / "x.gif")
+
+
+def test_pictures_frame_at_the_peak_disturbance_saved_small(tmp_path):
+    from magenv import registry
+    from magenv.scenarios import make_trial
+    from magenv.train.pictures import PALETTE_COLOURS, frame_at_peak, save_small_png
+
+    trial = make_trial("dynamic_magnet", 0, duration=8.0)
+    frame = frame_at_peak(registry.make("fan_lambda_tuned"), trial)
+    assert frame.shape == FRAME
+    from PIL import Image
+
+    saved = Image.open(save_small_png(frame, tmp_path / "f.png"))
+    assert saved.mode == "P" and len(saved.getcolors()) <= PALETTE_COLOURS
+
+
+@pytest.mark.slow
+def test_magenv_pictures_writes_both_pngs(tmp_path):
+    from magenv.train.cli import main
+
+    assert main(["pictures", "--out", str(tmp_path)]) == 0
+    assert {p.name for p in tmp_path.iterdir()} == {"frame.png", "trust.png"}

@@ -41,7 +41,7 @@ RENDER_MODES = ("rgb_array", "human")
 RENDER_FPS = 30  # frames per second of a recorded video (one frame per env step)
 WIDTH, SCENE_HEIGHT, STRIP_HEIGHT = 480, 320, 120  # pixels of a frame: scene above strip
 STRIP_SECONDS = 10.0  # s of history in the strip
-AXIS_LENGTH = 0.12  # m, drawn sensor axes
+AXIS_LENGTH = 0.2  # m, drawn sensor axes
 GL_PLATFORMS = ("egl", "osmesa", "glfw")
 _GL_OFF = ("disable", "disabled", "off", "false", "0")
 _TRUE_RGBA = ((0.9, 0.1, 0.1, 1.0), (0.1, 0.75, 0.1, 1.0), (0.15, 0.3, 1.0, 1.0))
@@ -235,7 +235,7 @@ class MujocoScene:
         self.ctx.make_current()
         origin = self.pose(self.data, i)
         mj.mjv_updateScene(self.model, self.data, self.opt, None, self.cam, mj.mjtCatBit.mjCAT_ALL, self.scn)
-        for q, width, pale in ((q_true, 0.006, 0.0), (q_est, 0.003, 0.45)):
+        for q, width, pale in ((q_true, 0.008, 0.0), (q_est, 0.005, 0.45)):
             if np.all(np.isfinite(q)):
                 axes = quat.to_matrix(q)  # columns: the sensor axes in ENU
                 for k in range(3):
