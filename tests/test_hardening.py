@@ -1,7 +1,7 @@
 """Untrusted run folders, truth checked on load, every bad input named.
 
-* ``test_readme_row``: every row of the README's "Bad input → what you get"
-  table, run as written (the table is read from the README);
+* ``test_readme_row``: every row of the "Bad input → what you get" table
+  (``docs/bad-input.md``, linked from the README), run as written (the table is read from the page);
 * planted pickles: code-running payloads in every pickle-bearing file of a
   run folder never run on load, evaluate, compare or resume — and do run
   with ``trust_pickle``, so the payloads are live;
@@ -90,8 +90,7 @@ def fake_run(folder: Path, files=("best", "last"), **changes) -> Path:
 
 def readme_rows() -> dict[str, tuple[str, str]]:
     """input cell → (outcome: the first code span of "you get", gist: the code span of "message")."""
-    text = (ROOT / "README.md").read_text()
-    section = text.split("\n## Bad input → what you get\n", 1)[1].split("\n## ", 1)[0]
+    section = (ROOT / "docs" / "bad-input.md").read_text().split("# Bad input → what you get\n", 1)[1]
     rows = {}
     for line in section.splitlines():
         if not line.startswith("| ") or line.startswith(("| input |", "|---")):
