@@ -246,11 +246,16 @@ class MujocoScene:
         return np.flipud(self.image).copy()  # OpenGL rows run bottom-up
 
     def close(self) -> None:
+        """Free the MuJoCo render context, then the GL context (in that order: the first needs the second)."""
         if self.ctx is not None:
             self.ctx.make_current()
             self.con.free()
             self.ctx.free()
             self.ctx = None
+
+    def __del__(self):
+        if getattr(self, "ctx", None) is not None:
+            self.close()
 
 
 class AxesScene:
