@@ -171,3 +171,23 @@ def test_magenv_pictures_writes_both_pngs(tmp_path):
 
     assert main(["pictures", "--out", str(tmp_path)]) == 0
     assert {p.name for p in tmp_path.iterdir()} == {"frame.png", "trust.png"}
+
+
+@pytest.mark.parametrize("scenario, site", [("constraint_test1", "imu_i"), ("dynamic_magnet", "imu")])
+def test_scene_is_posed_at_the_true_orientation(scenario, site):
+    import mujoco
+
+    from magenv.quaternion import to_matrix
+    from magenv.scenarios import make_trial
+
+    trial = make_trial(scenario, 1, duration=3.0)
+    built = rd._scene_model(trial)
+    data = mujoco.MjData(built.model)
+    for i in (0, trial.n // 2, trial.n - 1):
+        position = built.pose(data, i)
+        s = built.model.site(site).id
+        np.testing.assert_allclose(data.site_xmat[s].reshape(3, 3), to_matrix(trial.q_true[i]), atol=1e-6)
+        np.testing.assert_allclose(position, data.site_xpos[s])
+    if "q_j" in trial.extra:
+        j = built.model.site("imu_j").id
+        np.testing.assert_allclose(data.site_xmat[j].reshape(3, 3), to_matrix(trial.extra["q_j"][-1]), atol=1e-6)

@@ -5,8 +5,9 @@ A frame (H, W, 3) uint8 has two parts, stacked:
 * the **scene** (top): the world at the last fused sample with the true sensor frame (solid axes, x red,
   y green, z blue) and the estimated one (thin, pale axes) drawn from the sensor's position. Simulated
   gimbal trials show MuJoCo's gimbal model (frames, tube, magnet) posed from the trial's truth
-  (``joint_angles``, ``magnet_slide``); the other simulated worlds show a sensor box on a floor; a
-  recording (no world) shows the axes only.
+  (``joint_angles``, ``magnet_slide``); two-link trials the two links (``q_j``, ``q_true``; carriage
+  fixed); hand-held trials a sensor box on a floor (orientation only); a recording (no world) shows the
+  axes only.
 * the **strip** (bottom): the total orientation error (°) and the policy's magnetometer trust over the
   last ``STRIP_SECONDS`` of the episode.
 
@@ -29,7 +30,9 @@ import logging
 import os
 import sys
 import weakref
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -136,11 +139,18 @@ def open_gl_context(platform: str, width: int, height: int):
 # ------------------------------------------------------------------ scene models
 
 
-def _scene_model(trial: Trial):
-    """(MjModel, poser) of the trial's world, or None for a recording. ``poser(data, i)`` sets ``qpos`` to
-    sample ``i`` and returns the sensor's position in the world (m)."""
-    import mujoco
+class SceneModel(NamedTuple):
+    """A world's MjModel, ``pose(data, i)`` (sets ``qpos`` to sample ``i``, returns the sensor's position in
+    the world, m) and where the camera looks (``lookat``, m; ``distance``, m)."""
 
+    model: Any
+    pose: Callable
+    lookat: tuple[float, float, float]
+    distance: float
+
+
+def _scene_model(trial: Trial) -> SceneModel | None:
+    """The model of the trial's world posed from its truth, or None for a trial of no known world."""
     scenario = trial.meta.get(META_SCENARIO)
     if scenario is None:
         return None
@@ -150,26 +160,62 @@ def _scene_model(trial: Trial):
         world = scenarios.world_of(str(scenario))
     except ValueError:
         return None
-    joints, slide = trial.truth.get("joint_angles"), trial.truth.get("magnet_slide")
-    if world == "gimbal" and joints is not None:
-        from magenv.sim.gimbal import MODEL_PATH
-
-        model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
-        adr = {n: int(model.jnt_qposadr[model.joint(n).id]) for n in ("z", "y", "x", "slide")}
-        site = model.site("imu").id
-
-        def pose(data, i):
-            data.qpos[[adr["z"], adr["y"], adr["x"]]] = joints[i]
-            if slide is not None:
-                data.qpos[adr["slide"]] = slide[i]
-            mujoco.mj_kinematics(model, data)
-            return data.site_xpos[site].copy()
-
-        return model, pose
+    if world == "gimbal" and "joint_angles" in trial.truth:
+        return _gimbal_model(trial)
+    if world == "twolink" and "q_j" in trial.extra:
+        return _twolink_model(trial)
     return _sensor_box_model(trial)
 
 
-def _sensor_box_model(trial: Trial):
+def _gimbal_model(trial: Trial) -> SceneModel:
+    """The gimbal (``magenv/sim/gimbal.xml``): frames Z, Y, X at ``truth["joint_angles"]`` (ZYX, rad), the
+    magnet at ``truth["magnet_slide"]`` (m along its tube; the tube where the model puts it)."""
+    import mujoco
+
+    from magenv.sim.gimbal import MODEL_PATH
+
+    model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
+    adr = {n: int(model.jnt_qposadr[model.joint(n).id]) for n in ("z", "y", "x", "slide")}
+    site = model.site("imu").id
+    joints, slide = trial.truth["joint_angles"], trial.truth.get("magnet_slide")
+
+    def pose(data, i):
+        data.qpos[[adr["z"], adr["y"], adr["x"]]] = joints[i]
+        if slide is not None:
+            data.qpos[adr["slide"]] = slide[i]
+        mujoco.mj_kinematics(model, data)
+        return data.site_xpos[site].copy()
+
+    return SceneModel(model, pose, (0.0, 0.0, -0.06), 0.55)
+
+
+def _twolink_model(trial: Trial) -> SceneModel:
+    """The two links (``magenv/sim/twolink.xml``), carriage fixed: link j's hinges (jz, jy, jx) are the ZYX
+    angles of ``extra["q_j"]``; link i's (iz, iy, ix) those of q0* ⊗ q_j* ⊗ q_i, q0 its fixed mounting
+    quaternion in link j (each site frame is its link's frame). The axes are drawn at sensor i."""
+    import mujoco
+
+    from magenv.sim.twolink import MODEL_PATH
+
+    model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
+    adr = [int(model.jnt_qposadr[model.joint(n).id]) for n in ("jz", "jy", "jx", "iz", "iy", "ix")]
+    q0 = np.asarray(model.body("link_i").quat, float)
+    q_j, q_i = np.asarray(trial.extra["q_j"], float), trial.q_true
+    rel = quat.mul(quat.conj(np.broadcast_to(q0, q_j.shape)), quat.mul(quat.conj(q_j), q_i))
+    angles = np.concatenate([quat.to_euler_zyx(q_j), quat.to_euler_zyx(rel)], axis=1)
+    site = model.site("imu_i").id
+
+    def pose(data, i):
+        if np.all(np.isfinite(angles[i])):
+            data.qpos[adr] = angles[i]
+        mujoco.mj_kinematics(model, data)
+        return data.site_xpos[site].copy()
+
+    centre = model.body("carriage").pos
+    return SceneModel(model, pose, (0.4, 0.0, float(centre[2]) - 0.3), 1.4)
+
+
+def _sensor_box_model(trial: Trial) -> SceneModel:
     """A sensor box (10 × 6 × 2 cm) on a ball joint above a floor, posed by the true orientation."""
     import mujoco
 
@@ -191,19 +237,18 @@ def _sensor_box_model(trial: Trial):
         mujoco.mj_kinematics(model, data)
         return np.zeros(3)
 
-    return model, pose
+    return SceneModel(model, pose, (0.0, 0.0, -0.06), 0.55)
 
 
 class MujocoScene:
     """The trial's MuJoCo model drawn offscreen, with the true and estimated sensor axes as arrows."""
 
-    def __init__(self, built, platform: str, width: int, height: int):
-        """``built``: (MjModel, poser) from :func:`_scene_model`."""
+    def __init__(self, built: SceneModel, platform: str, width: int, height: int):
         import mujoco
 
         self.mujoco = mujoco
         self.width, self.height = width, height
-        self.model, self.pose = built
+        self.model, self.pose = built.model, built.pose
         self.model.vis.global_.offwidth = max(width, self.model.vis.global_.offwidth)
         self.model.vis.global_.offheight = max(height, self.model.vis.global_.offheight)
         self.data = mujoco.MjData(self.model)
@@ -213,8 +258,8 @@ class MujocoScene:
         self.scn = mujoco.MjvScene(self.model, 1000)
         self.opt = mujoco.MjvOption()
         self.cam = mujoco.MjvCamera()
-        self.cam.lookat[:] = (0.0, 0.0, -0.06)
-        self.cam.distance, self.cam.azimuth, self.cam.elevation = 0.55, 135.0, -25.0
+        self.cam.lookat[:] = built.lookat
+        self.cam.distance, self.cam.azimuth, self.cam.elevation = built.distance, 135.0, -25.0
         self.model.vis.headlight.ambient[:] = 0.35
         self.model.vis.headlight.diffuse[:] = 0.6
         self.rect = mujoco.MjrRect(0, 0, width, height)
