@@ -191,3 +191,18 @@ def test_scene_is_posed_at_the_true_orientation(scenario, site):
     if "q_j" in trial.extra:
         j = built.model.site("imu_j").id
         np.testing.assert_allclose(data.site_xmat[j].reshape(3, 3), to_matrix(trial.extra["q_j"][-1]), atol=1e-6)
+
+
+def test_hand_held_box_follows_the_true_position_and_orientation():
+    import mujoco
+
+    from magenv.quaternion import to_matrix
+    from magenv.scenarios import make_trial
+
+    trial = make_trial("handheld_texting", 1, duration=3.0)
+    built = rd._scene_model(trial)
+    assert built.lookat is None  # the camera follows the walker
+    data = mujoco.MjData(built.model)
+    for i in (0, trial.n - 1):
+        np.testing.assert_allclose(built.pose(data, i), trial.truth["position"][i])
+        np.testing.assert_allclose(data.xmat[1].reshape(3, 3), to_matrix(trial.q_true[i]), atol=1e-6)

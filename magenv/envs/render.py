@@ -6,7 +6,8 @@ A frame (H, W, 3) uint8 has two parts, stacked:
   y green, z blue) and the estimated one (thin, pale axes) drawn from the sensor's position. Simulated
   gimbal trials show MuJoCo's gimbal model (frames, tube, magnet) posed from the trial's truth
   (``joint_angles``, ``magnet_slide``); two-link trials the two links (``q_j``, ``q_true``; carriage
-  fixed); hand-held trials a sensor box on a floor (orientation only); a recording (no world) shows the
+  fixed); hand-held trials a sensor box over a floor at its true position, the camera following; a
+  recording (no world) shows the
   axes only.
 * the **strip** (bottom): the total orientation error (°) and the policy's magnetometer trust over the
   last ``STRIP_SECONDS`` of the episode.
@@ -145,7 +146,7 @@ class SceneModel(NamedTuple):
 
     model: Any
     pose: Callable
-    lookat: tuple[float, float, float]
+    lookat: tuple[float, float, float] | None  # None: follow the sensor
     distance: float
 
 
@@ -216,28 +217,32 @@ def _twolink_model(trial: Trial) -> SceneModel:
 
 
 def _sensor_box_model(trial: Trial) -> SceneModel:
-    """A sensor box (10 × 6 × 2 cm) on a ball joint above a floor, posed by the true orientation."""
+    """A sensor box (10 × 6 × 2 cm) on a free joint over a floor: at the true orientation, and at
+    ``truth["position"]`` (m, ENU; the floor at z = 0) where the trial has one (the hand-held walker), the
+    camera following it; else at 20 cm above the floor."""
     import mujoco
 
     spec = mujoco.MjSpec()
-    spec.worldbody.add_light(pos=[0, 0, 1.5], dir=[0, 0, -1])
+    spec.worldbody.add_light(pos=[0, 0, 3.0], dir=[0, 0, -1])
     floor = spec.worldbody.add_geom()
-    floor.type, floor.size, floor.pos = mujoco.mjtGeom.mjGEOM_PLANE, [0.4, 0.4, 0.01], [0, 0, -0.2]
-    floor.rgba = [0.45, 0.47, 0.5, 1]
+    floor.type, floor.size, floor.rgba = mujoco.mjtGeom.mjGEOM_PLANE, [0, 0, 0.5], [0.45, 0.47, 0.5, 1]
     body = spec.worldbody.add_body()
-    body.add_joint().type = mujoco.mjtJoint.mjJNT_BALL
+    body.add_freejoint()
     box = body.add_geom()
     box.type, box.size, box.rgba = mujoco.mjtGeom.mjGEOM_BOX, [0.05, 0.03, 0.01], [0.7, 0.7, 0.75, 1]
     model = spec.compile()
     q = trial.q_true
+    where = trial.truth.get("position")
+    where = np.broadcast_to([0.0, 0.0, 0.2], (trial.n, 3)) if where is None else np.asarray(where, float)
 
     def pose(data, i):
+        data.qpos[:3] = where[i]
         if np.all(np.isfinite(q[i])):
-            data.qpos[:4] = q[i]
+            data.qpos[3:7] = q[i]
         mujoco.mj_kinematics(model, data)
-        return np.zeros(3)
+        return data.xpos[1].copy()
 
-    return SceneModel(model, pose, (0.0, 0.0, -0.06), 0.55)
+    return SceneModel(model, pose, None, 0.55)
 
 
 class MujocoScene:
@@ -258,7 +263,7 @@ class MujocoScene:
         self.scn = mujoco.MjvScene(self.model, 1000)
         self.opt = mujoco.MjvOption()
         self.cam = mujoco.MjvCamera()
-        self.cam.lookat[:] = built.lookat
+        self.lookat = built.lookat
         self.cam.distance, self.cam.azimuth, self.cam.elevation = built.distance, 135.0, -25.0
         self.model.vis.headlight.ambient[:] = 0.35
         self.model.vis.headlight.diffuse[:] = 0.6
@@ -279,6 +284,7 @@ class MujocoScene:
         mj = self.mujoco
         self.ctx.make_current()
         origin = self.pose(self.data, i)
+        self.cam.lookat[:] = origin if self.lookat is None else self.lookat
         mj.mjv_updateScene(self.model, self.data, self.opt, None, self.cam, mj.mjtCatBit.mjCAT_ALL, self.scn)
         for q, width, pale in ((q_true, 0.008, 0.0), (q_est, 0.005, 0.45)):
             if np.all(np.isfinite(q)):
