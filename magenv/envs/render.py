@@ -7,8 +7,7 @@ A frame (H, W, 3) uint8 has two parts, stacked:
   gimbal trials show MuJoCo's gimbal model (frames, tube, magnet) posed from the trial's truth
   (``joint_angles``, ``magnet_slide``); two-link trials the two links (``q_j``, ``q_true``; carriage
   fixed); hand-held trials a sensor box over a floor at its true position, the camera following; a
-  recording (no world) shows the
-  axes only.
+  recording (no world) shows the axes only.
 * the **strip** (bottom): the total orientation error (°) and the policy's magnetometer trust over the
   last ``STRIP_SECONDS`` of the episode.
 
