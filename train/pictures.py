@@ -76,8 +76,9 @@ def run(args: argparse.Namespace) -> int:
     frame = frame_at_peak(rule, trial)
     print(f"wrote {save_small_png(frame, args.out / 'frame.png')}")
 
-    names = ["mimu", "imu", args.method] + ([f"{registry.AGENT_PREFIX}{args.agent}"] if args.agent else [])
-    methods = {n.split("/")[-1]: registry.make(n) for n in names}
+    methods = {n: registry.make(n) for n in ("mimu", "imu", args.method)}
+    if args.agent:
+        methods["agent"] = registry.make(f"{registry.AGENT_PREFIX}{args.agent}")
     runs = evaluation.evaluate(methods, [trial])
     tmp = args.out / "trust.full.png"
     _plot_trial(runs, tmp)
