@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from magenv import metrics
+from magenv.envs.render import magnetometer_trust, write_video
 from magenv.protocols import is_policy
 from magenv.trial import META_SCENARIO, Trial
 
@@ -89,7 +90,7 @@ class PolicyRunner:
         self.env_id, self.env_kwargs = env_id, dict(env_kwargs or {})
         self._envs: dict[Any, Any] = {}
 
-    def _env(self, policy, trial: Trial):
+    def _env(self, policy, trial: Trial, render_mode: str | None = None):
         import gymnasium as gym
 
         import magenv  # noqa: F401  (registers the envs)
@@ -99,9 +100,9 @@ class PolicyRunner:
         kwargs["scenario"] = [trial]  # never simulate: the trial comes through reset options
         if "episode_seconds" in kwargs:
             kwargs["episode_seconds"] = None  # evaluation scores whole trials
-        key = (env_id, repr(sorted((k, repr(v)) for k, v in kwargs.items() if k != "scenario")))
+        key = (env_id, render_mode, repr(sorted((k, repr(v)) for k, v in kwargs.items() if k != "scenario")))
         if key not in self._envs:
-            self._envs[key] = gym.make(env_id, disable_env_checker=True, **kwargs).unwrapped
+            self._envs[key] = gym.make(env_id, disable_env_checker=True, render_mode=render_mode, **kwargs).unwrapped
         return self._envs[key]
 
     def run(self, policy, trial: Trial) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -114,9 +115,24 @@ class PolicyRunner:
             obs, _, terminated, truncated, _ = env.step(policy(obs))
         lam = getattr(env, "lambdas", None)
         lam = None if lam is None else np.array(lam, copy=True)
-        trust = getattr(env, "trust", None)  # the env's own trust history, else 1 − λ
-        trust = np.array(trust, copy=True) if trust is not None else (None if lam is None else 1.0 - lam)
-        return env.estimate.copy(), lam, trust
+        trust = magnetometer_trust(env)
+        return env.estimate.copy(), lam, None if trust is None else trust.copy()
+
+    def record(self, policy, trial: Trial, path: str | Path) -> Path:
+        """Run ``policy`` over ``trial`` with ``render_mode="rgb_array"`` and write one frame per step to the MP4
+        file ``path`` (``magenv.envs.render.write_video``)."""
+        env = self._env(policy, trial, render_mode="rgb_array")
+
+        def frames():
+            policy.reset()
+            obs, _ = env.reset(seed=0, options={"trial": trial})
+            yield env.render()
+            truncated = terminated = False
+            while not (truncated or terminated):
+                obs, _, terminated, truncated, _ = env.step(policy(obs))
+                yield env.render()
+
+        return write_video(frames(), path)
 
 
 def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = None, label: str | None = None) -> Run:

@@ -229,8 +229,8 @@ def test_env_bad_actions_and_order(short_trials):
         env.step(np.array([0.5], np.float32))
     with pytest.raises(ValueError, match="unknown two-link scenario"):
         MagConstraintEnv(scenario="random")
-    with pytest.raises(TypeError, match="render"):
-        MagConstraintEnv(scenario=short_trials, render_mode="human")
+    with pytest.raises(ValueError, match="render_mode"):
+        MagConstraintEnv(scenario=short_trials, render_mode="rgb")
 
 
 # ------------------------------------------------------------------ environment

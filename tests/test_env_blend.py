@@ -267,14 +267,13 @@ def test_vector_env_replays_single_envs(short_trials):
         assert vrew[8, i] == 0.0
 
 
-def test_render_mode_is_refused_so_sb3_make_vec_env_falls_back():
+def test_sb3_make_vec_env_builds_rgb_array_envs():
     from stable_baselines3.common.env_util import make_vec_env
 
-    with pytest.raises(TypeError, match="no render modes"):
-        gym.make(ENV_ID, render_mode="rgb_array")
     venv = make_vec_env(ENV_ID, n_envs=2, seed=0, env_kwargs={"episode_seconds": 2.0})
     obs = venv.reset()
     assert obs.shape == (2, venv.observation_space.shape[0])
+    assert venv.get_attr("render_mode") == ["rgb_array"] * 2  # make_vec_env's default; nothing drawn unless asked
     venv.close()
 
 
@@ -320,11 +319,11 @@ def test_prefetch_gives_the_same_episodes_bit_for_bit():
 # ------------------------------------------------------------------ one feature table
 
 
-def test_feature_table_is_the_space_the_docstring_the_readme_and_the_kernel_layout(short_trials):
+def test_feature_table_is_the_space_the_docstring_the_env_docs_and_the_kernel_layout(short_trials):
     env = MagBlendEnv(scenario=short_trials)
     check_feature_table(env, FEATURES)
     check_kernel_layout(env, FEATURES, blend_env.F)
-    assert FEATURES.markdown() in (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert FEATURES.markdown() in (Path(__file__).resolve().parents[1] / "docs" / "environments.md").read_text()
 
 
 @pytest.mark.slow

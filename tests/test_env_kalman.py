@@ -206,8 +206,8 @@ def test_bad_actions_and_arguments(short_trials):
     env.reset(seed=0)
     check_scalar_action(env, "trust")
     np.testing.assert_array_equal(env.trust[:25], np.r_[1.0, [1.0] * 8, [0.0] * 8, [0.25] * 8])
-    with pytest.raises(TypeError, match="render"):
-        MagKalmanEnv(scenario=short_trials, render_mode="human")
+    with pytest.raises(ValueError, match="render_mode"):
+        MagKalmanEnv(scenario=short_trials, render_mode="rgb")
     with pytest.raises(ValueError, match="decision_every"):
         MagKalmanEnv(scenario=short_trials, decision_every=0)
     with pytest.raises(ValueError, match="sigma_mag"):

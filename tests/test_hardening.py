@@ -1,7 +1,7 @@
 """Untrusted run folders, truth checked on load, every bad input named.
 
-* ``test_readme_row``: every row of the README's "Bad input → what you get"
-  table, run as written (the table is read from the README);
+* ``test_readme_row``: every row of the "Bad input → what you get" table
+  (``docs/bad-input.md``, linked from the README), run as written (the table is read from the page);
 * planted pickles: code-running payloads in every pickle-bearing file of a
   run folder never run on load, evaluate, compare or resume — and do run
   with ``trust_pickle``, so the payloads are live;
@@ -90,8 +90,7 @@ def fake_run(folder: Path, files=("best", "last"), **changes) -> Path:
 
 def readme_rows() -> dict[str, tuple[str, str]]:
     """input cell → (outcome: the first code span of "you get", gist: the code span of "message")."""
-    text = (ROOT / "README.md").read_text()
-    section = text.split("\n## Bad input → what you get\n", 1)[1].split("\n## ", 1)[0]
+    section = (ROOT / "docs" / "bad-input.md").read_text().split("# Bad input → what you get\n", 1)[1]
     rows = {}
     for line in section.splitlines():
         if not line.startswith("| ") or line.startswith(("| input |", "|---")):
@@ -518,3 +517,12 @@ def test_every_constructor_argument_has_a_rule_or_a_reason(algo):
     """A new SB3 argument is noticed here, not passed unchecked (it is refused as unknown until it has a rule)."""
     params = set(inspect.signature(algorithm_class(algo).__init__).parameters) - {"self", "env", "_init_setup_model"}
     assert params - set(VALUE_RULES) - set(NOT_IN_CONFIG) == set()
+
+
+@pytest.mark.slow
+def test_evaluate_records_a_video(trained_run, tmp_path):
+    video = tmp_path / "agent.mp4"
+    args = ["evaluate", str(trained_run), "--scenario", "dynamic_clean", "--seeds", "0", "--no-progress"]
+    assert cli([*args, "--video", str(video)]) == 0
+    assert video.stat().st_size > 10_000
+    assert cli([*args, "--video", str(tmp_path / "agent.gif")]) == 2

@@ -1,18 +1,26 @@
-"""The README's Python snippets run as written."""
+"""The Python snippets of the README and of the docs/ pages it links run as written."""
 
 import re
 from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-SNIPPETS = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+SNIPPETS = [(page, code) for page in PAGES for code in re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S)]
 
 
-def test_readme_has_snippets():
-    assert len(SNIPPETS) >= 2
+def test_readme_and_docs_have_snippets():
+    assert sum(page.name == "README.md" for page, _ in SNIPPETS) >= 1 and len(SNIPPETS) >= 2
 
 
-@pytest.mark.parametrize("code", SNIPPETS, ids=[f"snippet{i}" for i in range(len(SNIPPETS))])
-def test_snippet_runs(code):
-    exec(compile(code, str(README), "exec"), {"__name__": "readme"})
+def test_readme_links_every_docs_page():
+    readme = (ROOT / "README.md").read_text()
+    assert [p.name for p in PAGES[1:] if f"(docs/{p.name})" not in readme] == []
+
+
+@pytest.mark.parametrize(
+    "page, code", SNIPPETS, ids=[f"{page.stem}-snippet{i}" for i, (page, _) in enumerate(SNIPPETS)]
+)
+def test_snippet_runs(page, code):
+    exec(compile(code, str(page), "exec"), {"__name__": "readme"})

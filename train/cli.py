@@ -18,6 +18,7 @@ COMMANDS = {
     "sweep": ("magenv.train.sweep", "train many runs (envs × algorithms × seeds × hyperparameters) on Ray Tune"),
     "evaluate": ("magenv.train.evaluate", "score a trained agent on scenarios or recordings"),
     "tune": ("magenv.train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
+    "pictures": ("magenv.train.pictures", "draw the README's pictures: a rendered frame and trust over time"),
     "report": ("magenv.train.report", "write a Markdown report with tables and plots"),
     "paper": ("magenv.train.paper", "print a paper check: the papers' tables reproduced in simulation"),
     "demo": ("magenv.train.demo", "the main job: train briefly, then compare learned against hand-tuned weighting"),

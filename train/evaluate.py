@@ -1,12 +1,14 @@
 """``magenv evaluate``: score a trained agent on scenarios or recordings.
 
     magenv evaluate runs/NAME [--scenario dynamic_magnet,dynamic_clean] [--seeds 0:10]
-                    [--recordings FILE ...] [--which best|last] [--csv FILE] [--trust-pickle]
+                    [--recordings FILE ...] [--which best|last] [--csv FILE] [--video FILE.mp4] [--trust-pickle]
 
 Seeds below 10 000 are never used for training (``magenv train`` draws its
 trials from ``random`` and above), so the default seeds are held out. The
 first line says which model file was loaded. Exit status 1 if the agent
-could not run some trial (its cell is n/a, the reason printed).
+could not run some trial (its cell is n/a, the reason printed). ``--video``
+records the agent on the first trial (``render_mode="rgb_array"``, one frame
+per step; needs ``magenv[video]``).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--recordings", nargs="+", default=[], metavar="FILE")
     p.add_argument("--which", choices=("best", "last"), default="best", help="which saved model (default %(default)s)")
     p.add_argument("--csv", default=None, metavar="FILE")
+    p.add_argument("--video", default=None, metavar="FILE.mp4", help="record the agent on the first trial (MP4)")
     p.add_argument("--trust-pickle", action="store_true", help=TRUST_PICKLE_HELP)
     p.add_argument("--no-progress", action="store_true")
 
@@ -50,5 +53,11 @@ def run(args: argparse.Namespace) -> int:
         args.scenario if args.scenario is not None else ("" if args.recordings else "dynamic_magnet,dynamic_clean")
     )
     trials, labels = make_trials(scenarios, args.seeds, args.recordings)
+    if args.video is not None and not str(args.video).lower().endswith(".mp4"):
+        raise CommandError(f"--video must name an .mp4 file, got {args.video!r}")
     rows = evaluation.summarize(run_comparison({agent.name: agent}, trials, labels, progress=not args.no_progress))
-    return finish(rows, f"{agent.name} ({agent.which} model): orientation RMSE (°)", args.csv)
+    status = finish(rows, f"{agent.name} ({agent.which} model): orientation RMSE (°)", args.csv)
+    if args.video is not None:
+        path = evaluation.PolicyRunner().record(agent, trials[0], args.video)
+        print(f"wrote {path} ({trials[0].name})")
+    return status

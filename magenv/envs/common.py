@@ -5,7 +5,7 @@
   one world's scenarios and Trials with the channels an env needs) and the
   draw of one trial per ``reset`` from the env's ``np_random``.
 * :func:`cut_trial` — the ``episode_seconds`` option.
-* :func:`check_env_args` — ``decision_every``, ``episode_seconds``, ``render_mode``.
+* :func:`check_env_args` — ``decision_every``, ``episode_seconds``, ``render_mode`` (rendering: ``magenv.envs.render``).
 * :func:`select_features` — the ``features`` option → index array and Box bounds.
 * :func:`scalar_action` — one trust value from an action: NaN / wrong shape →
   ValueError, finite out-of-range → clipped.
@@ -28,6 +28,7 @@ import gymnasium as gym
 import numba
 import numpy as np
 
+from magenv.envs.render import RenderMixin, check_render_mode
 from magenv.filters.sensors import Sensors
 from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL
 from magenv.seeding import draw_training_seed
@@ -274,10 +275,7 @@ def check_env_args(env_name: str, decision_every, episode_seconds, render_mode) 
         raise ValueError(f"decision_every must be a positive integer, got {decision_every!r}")
     if episode_seconds is not None and not episode_seconds > 0:
         raise ValueError(f"episode_seconds must be positive or None, got {episode_seconds!r}")
-    if render_mode is not None:
-        # TypeError, like an unknown keyword: wrappers that try a render mode first
-        # (stable-baselines3's make_vec_env) fall back to none.
-        raise TypeError(f"{env_name} has no render modes, got render_mode={render_mode!r}")
+    check_render_mode(env_name, render_mode)
     return int(decision_every)
 
 
@@ -401,7 +399,7 @@ class TrialRunner:
         return stop - start
 
 
-class TrustEnv(gym.Env):
+class TrustEnv(RenderMixin, gym.Env):
     """Bookkeeping every trust env shares: arguments, trial per ``reset``, step checks, errors, histories.
 
     Subclasses call :meth:`_setup` in ``__init__`` and implement
@@ -411,7 +409,6 @@ class TrustEnv(gym.Env):
     ``last_count``, ``has_dist``, ``est`` (N, 4) and ``q_true`` (N, 4).
     """
 
-    metadata = {"render_modes": []}
     env_name = "TrustEnv"  # registered id without the namespace, for messages
 
     def _setup(
@@ -442,7 +439,7 @@ class TrustEnv(gym.Env):
         self.episode_seconds = episode_seconds
         self.features, self._idx, self._all, self.observation_space = select_features(features, names, low, high)
         self.action_space = gym.spaces.Box(0.0, 1.0, (action_dim,), dtype=np.float32)
-        self.render_mode = None
+        self.render_mode = render_mode
         self._runner = None
         self.trial: Trial | None = None
 
@@ -451,6 +448,7 @@ class TrustEnv(gym.Env):
 
     def close(self) -> None:
         self.trials.close()
+        self._close_view()
         super().close()
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -472,6 +470,8 @@ class TrustEnv(gym.Env):
             "field_dip": self.trial.field_dip,
             "sample": self._runner.pos,
         }
+        if self.render_mode == "human":
+            self.render()
         return self._obs(), info
 
     def _obs(self) -> np.ndarray:
@@ -513,6 +513,8 @@ class TrustEnv(gym.Env):
             "q_true": runner.q_true[last].copy(),
             **(extra_info or {}),
         }
+        if self.render_mode == "human":
+            self.render()
         return self._obs(), float(reward), False, runner.done, info
 
     def _need_reset(self):
