@@ -97,7 +97,7 @@ def test_random_search_draws_the_same_configurations_from_the_same_file():
     [
         ({"paralel": 2}, None, "unknown key(s) in search: paralel"),
         ({"params": {"learning_rate": ["fast"]}}, None, "configuration 0: {'learning_rate': 'fast'}]: learning_rate"),
-        ({"params": {"n_envs": [0]}}, None, "n_envs must be an integer from 1 to 256, got 0"),
+        ({"params": {"n_envs": [0]}}, None, "n_envs must be an integer from 1 to 1024, got 0"),
         (
             {"algos": ["ppo", "sac"]},
             None,
