@@ -13,6 +13,8 @@ from __future__ import annotations
 import base64
 import inspect
 import json
+import math
+import os
 import pickle
 import re
 import shutil
@@ -20,11 +22,13 @@ import warnings
 import zipfile
 from pathlib import Path
 
+import gymnasium as gym
 import h5py
 import numpy as np
 import pytest
 import yaml
 
+from magenv import registry
 from magenv.agents import weights
 from magenv.agents.hyperparams import NOT_IN_CONFIG, VALUE_RULES, algorithm_class, check_section, load_hyperparams
 from magenv.agents.loading import RunError, build_model, load_agent
@@ -183,6 +187,43 @@ def _scaled_truth(c: Case, factor):
     return c.call(lambda: load_recording(c.recording(opt_quat=np.tile([factor, 0, 0, 0], (100, 1)))))
 
 
+def _write_bytes(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+def _env(env: str, **kwargs):
+    """``gymnasium.make("magenv/" + env, **kwargs)``: the call of a constructor row."""
+    return gym.make(f"magenv/{env}", **kwargs)
+
+
+def _stepped(env: str, action):
+    """One reset of ``env`` on a 1 s kinematic trial, then ``step(action)``."""
+    e = _env(env, scenario=[kinematic_trial(duration=1.0)])
+    e.reset(seed=0)
+    e.step(action)
+
+
+def _user_tuned(c: Case, text: str):
+    """``tuned_params("fan_lambda")`` with the user's file holding ``text`` (in a data folder of its own)."""
+    old = os.environ.get(registry.DATA_DIR_ENV)
+    os.environ[registry.DATA_DIR_ENV] = str(c.tmp / "data")
+    try:
+        registry.user_tuned_dir().mkdir(parents=True)
+        (registry.user_tuned_dir() / "fan_lambda.json").write_text(text)
+        return c.call(lambda: registry.tuned_params("fan_lambda"))
+    finally:
+        os.environ[registry.DATA_DIR_ENV] = old
+
+
+def _yaml_payload(c: Case):
+    """A config whose YAML would call ``touch MARKER`` if it were loaded unsafely."""
+    marker = c.tmp / "ran"
+    got = c.config(f"learning_rate: !!python/object/apply:os.system ['touch {marker}']")
+    assert not marker.exists()
+    return got
+
+
 CASES = {
     "a run folder holding its model only as SB3 `.zip` (an older magenv, or SB3)": _pickle_only,
     "`magenv train` resuming such a folder": lambda c: c.cli(
@@ -260,6 +301,37 @@ CASES = {
         "compare", "--scenario", "dynamic_magnet", "--seeds", "0", "--methods", "mimu,cf_constraint", "--no-progress"
     ),
     "`magenv compare --seeds 5:3`": lambda c: c.cli("compare", "--seeds", "5:3"),
+    '`MagBlend-v0` with `beta=float("nan")`': lambda c: c.call(lambda: _env("MagBlend-v0", beta=math.nan)),
+    "`MagBlend-v0` with `t0=-1`": lambda c: c.call(lambda: _env("MagBlend-v0", t0=-1)),
+    "`MagKalman-v0` with `sigma_mag=0`": lambda c: c.call(lambda: _env("MagKalman-v0", sigma_mag=0)),
+    "`MagKalman-v0` with `model_c_a=1.0`": lambda c: c.call(lambda: _env("MagKalman-v0", model_c_a=1.0)),
+    '`MagKalman-v0` with `heading_only="yes"`': lambda c: c.call(lambda: _env("MagKalman-v0", heading_only="yes")),
+    "`MagConstraint-v0` with `th2=1.5`": lambda c: c.call(lambda: _env("MagConstraint-v0", th2=1.5)),
+    "`MagConstraint-v0` with `k_min=2, k_max=1`": lambda c: c.call(lambda: _env("MagConstraint-v0", k_min=2, k_max=1)),
+    '`MagQSF-v0` with `filter_kwargs={"max_age_s": math.inf}`': lambda c: c.call(
+        lambda: _env("MagQSF-v0", filter_kwargs={"max_age_s": math.inf})
+    ),
+    '`MagQSF-v0` with `variant="aekf"`': lambda c: c.call(lambda: _env("MagQSF-v0", variant="aekf")),
+    'any env with `decision_every=float("nan")`': lambda c: c.call(
+        lambda: _env("MagKalman-v0", decision_every=math.nan)
+    ),
+    "any env with `decision_every=None`": lambda c: c.call(lambda: _env("MagQSF-v0", decision_every=None)),
+    "any env with `episode_seconds=math.inf`": lambda c: c.call(lambda: _env("MagBlend-v0", episode_seconds=math.inf)),
+    '`env.reset(options="abc")`': lambda c: c.call(lambda: _env("MagBlend-v0").reset(options="abc")),
+    '`env.reset(options={"trail": trial})` (a misspelt key)': lambda c: c.call(
+        lambda: _env("MagBlend-v0").reset(options={"trail": kinematic_trial(duration=1.0)})
+    ),
+    "`env.reset(seed=-1)`": lambda c: c.call(lambda: _env("MagBlend-v0").reset(seed=-1)),
+    "`MagBlend-v0`: `env.step([math.nan])`": lambda c: c.call(lambda: _stepped("MagBlend-v0", [math.nan])),
+    '`MagBlend-v0`: `env.step("fast")`': lambda c: c.call(lambda: _stepped("MagBlend-v0", "fast")),
+    "`MagQSF-v0`: `env.step` with an action of shape (2, 1)": lambda c: c.call(
+        lambda: _stepped("MagQSF-v0", np.array([[0.5], [0.5]], np.float32))
+    ),
+    "a config file holding `!!python/object/apply:os.system`": _yaml_payload,
+    "a tuned-parameter JSON cut short": lambda c: _user_tuned(c, '{"params": {"beta": 0.1'),
+    "a trial file of random bytes": lambda c: c.call(
+        lambda: Trial.load(_write_bytes(c.tmp / "trial.h5", np.random.default_rng(0).bytes(4096)))
+    ),
 }
 ROWS = readme_rows()
 
