@@ -329,6 +329,14 @@ CASES = {
     ),
     "a config file holding `!!python/object/apply:os.system`": _yaml_payload,
     "a tuned-parameter JSON cut short": lambda c: _user_tuned(c, '{"params": {"beta": 0.1'),
+    "a trial file whose `gyr` holds text": lambda c: c.call(
+        lambda: Trial.load(c.trial_file(lambda f: (f.__delitem__("gyr"), f.create_dataset("gyr", data=[b"a", b"b"]))))
+    ),
+    "a trial file whose `truth/stationary` is one number": lambda c: c.call(
+        lambda: Trial.load(
+            c.trial_file(lambda f: (f.__delitem__("truth/stationary"), f.create_dataset("truth/stationary", data=1.0)))
+        )
+    ),
     "a trial file of random bytes": lambda c: c.call(
         lambda: Trial.load(_write_bytes(c.tmp / "trial.h5", np.random.default_rng(0).bytes(4096)))
     ),
