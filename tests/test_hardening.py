@@ -204,6 +204,18 @@ def _stepped(env: str, action):
     e.step(action)
 
 
+def _vector_step(actions):
+    """Two MagBlend-v0 envs in one vector env, reset, then ``step(actions)``."""
+    e = gym.make_vec(
+        "magenv/MagBlend-v0",
+        num_envs=2,
+        vectorization_mode="vector_entry_point",
+        scenario=[kinematic_trial(duration=1.0)],
+    )
+    e.reset(seed=0)
+    e.step(actions)
+
+
 def _user_tuned(c: Case, text: str):
     """``tuned_params("fan_lambda")`` with the user's file holding ``text`` (in a data folder of its own)."""
     old = os.environ.get(registry.DATA_DIR_ENV)
@@ -326,6 +338,12 @@ CASES = {
     '`MagBlend-v0`: `env.step("fast")`': lambda c: c.call(lambda: _stepped("MagBlend-v0", "fast")),
     "`MagQSF-v0`: `env.step` with an action of shape (2, 1)": lambda c: c.call(
         lambda: _stepped("MagQSF-v0", np.array([[0.5], [0.5]], np.float32))
+    ),
+    '`gym.make_vec("magenv/MagBlend-v0", num_envs=0, vectorization_mode="vector_entry_point")`': lambda c: c.call(
+        lambda: gym.make_vec("magenv/MagBlend-v0", num_envs=0, vectorization_mode="vector_entry_point")
+    ),
+    "a vector env's `step` with NaN in one row of `actions`": lambda c: c.call(
+        lambda: _vector_step(np.array([[0.5], [np.nan]], np.float32))
     ),
     "a config file holding `!!python/object/apply:os.system`": _yaml_payload,
     "a tuned-parameter JSON cut short": lambda c: _user_tuned(c, '{"params": {"beta": 0.1'),

@@ -239,3 +239,20 @@ def test_a_refused_action_names_the_action_and_leaves_the_episode_as_it_was(env_
                 break
 
     check()
+
+
+def test_a_refused_vector_step_steps_no_sub_env(env_trials):
+    """NaN in one row of a vector env's actions: refused before any sub-env steps (sub-env 0 then goes on
+    exactly as a vector env that never saw the bad step)."""
+    make = lambda: gym.make_vec(
+        "magenv/MagBlend-v0", num_envs=2, vectorization_mode="vector_entry_point", scenario=env_trials["MagBlend-v0"]
+    )
+    env, clean = make(), make()
+    for e in (env, clean):
+        e.reset(seed=3)
+    with pytest.raises(ValueError, match=r"row\(s\) \[1\]"):
+        env.step(np.array([[0.2], [np.nan]], np.float32))
+    good = np.array([[0.2], [0.7]], np.float32)
+    for _ in range(3):
+        got, want = env.step(good), clean.step(good)
+        assert got[0].tobytes() == want[0].tobytes() and np.array_equal(got[1], want[1])

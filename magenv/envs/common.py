@@ -499,9 +499,7 @@ class LoopVectorEnv(gym.vector.VectorEnv):
     env_class: type[gym.Env]
 
     def __init__(self, num_envs: int = 1, **kwargs):
-        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        self.num_envs = int(num_envs)
+        self.num_envs = check_int("num_envs", num_envs, 1)
         self.envs = [self.env_class(**kwargs) for _ in range(self.num_envs)]
         self.single_observation_space = self.envs[0].observation_space
         self.single_action_space = self.envs[0].action_space
@@ -517,16 +515,24 @@ class LoopVectorEnv(gym.vector.VectorEnv):
             seeds = list(seed)
             if len(seeds) != self.num_envs:
                 raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} envs")
+        for s in seeds:  # every argument checked before any sub-env resets
+            check_reset_args(s, options)
         obs = np.stack([env.reset(seed=s, options=options)[0] for env, s in zip(self.envs, seeds)])
         self._needs_reset[:] = False
         return obs, {}
 
     def step(self, actions):
         dim = self.single_action_space.shape[0]
-        actions = np.asarray(actions, dtype=np.float32)
+        try:
+            actions = np.asarray(actions, dtype=np.float32)
+        except (TypeError, ValueError):
+            raise TypeError(f"actions must be numbers, shape ({self.num_envs}, {dim}), got {actions!r}") from None
         if actions.shape not in ((self.num_envs, dim),) + (((self.num_envs,),) if dim == 1 else ()):
             raise ValueError(f"actions must have shape ({self.num_envs}, {dim}), got {actions.shape}")
         actions = actions.reshape(self.num_envs, dim)
+        bad = np.flatnonzero(~np.isfinite(actions).all(axis=1))
+        if bad.size:  # refused before any sub-env steps, so none is left a step ahead
+            raise ValueError(f"actions must be finite; row(s) {bad.tolist()} hold NaN or inf")
         n, f = self.num_envs, self.single_observation_space.shape[0]
         obs = np.empty((n, f), np.float32)
         rewards = np.zeros(n)
