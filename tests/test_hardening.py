@@ -616,3 +616,43 @@ def test_every_constructor_argument_has_a_rule_or_a_reason(algo):
     """A new SB3 argument is noticed here, not passed unchecked (it is refused as unknown until it has a rule)."""
     params = set(inspect.signature(algorithm_class(algo).__init__).parameters) - {"self", "env", "_init_setup_model"}
     assert params - set(VALUE_RULES) - set(NOT_IN_CONFIG) == set()
+
+
+# ----------------------------------------------------------------- filter entry points
+
+
+def _filter_calls():
+    """(call, exception, part of the message) for a bad argument of each filter entry point."""
+    from magenv.filters import blend, kalman_model, kalman_threshold, kalman_trust, madgwick, qsf, solvers, stationary
+
+    trial = kinematic_trial(duration=0.5)
+    z = np.zeros((10, 3))
+    return [
+        (lambda: madgwick.run_madgwick(z, z, beta=math.nan), ValueError, "beta must be a finite number in [0, 10]"),
+        (lambda: madgwick.run_madgwick(z, z, rate=0), ValueError, "rate must be a finite number > 0"),
+        (lambda: madgwick.run_madgwick(z, z[:, :2]), ValueError, "acc must be (N, 3)"),
+        (lambda: madgwick.run_madgwick(z, z, q0=[0, 0, 0, 0]), ValueError, "q0 must be 4 finite numbers, not all zero"),
+        (lambda: blend.BlendEstimator(lam=math.nan), ValueError, "lam must be a finite number in [0, 1]"),
+        (lambda: blend.BlendEstimator(th_gyro_dps=-1), ValueError, "th_gyro_dps must be a finite number ≥ 0"),
+        (lambda: stationary.make_state(256.0, t0=1e9), ValueError, "t0 must be a finite number in [0, 60]"),
+        (lambda: solvers.make_solver("quest", (0, 0)), ValueError, "weights must be 2 finite numbers, not all zero"),
+        (lambda: solvers.make_solver("svd"), ValueError, "solver must be one of"),
+        (lambda: kalman_model.ModelKF(c_a_mag=1.0), ValueError, "c_a_mag (a stable Gauss–Markov correlation)"),
+        (lambda: kalman_threshold.ThresholdKF(th_acc=-1.0), ValueError, "th_acc must be a number > 0"),
+        (lambda: kalman_trust.make_params(46.0, 120.0, 0.01), ValueError, "field_dip must be a finite number in [-90"),
+        (lambda: kalman_trust.run_trial(trial, [0.5, 0.5]), ValueError, "trust must be a number in [0, 1] or one per"),
+        (lambda: qsf.make_params(46.0, 49.6, acc_adaptive=-1), ValueError, "acc_adaptive must be a finite number ≥ 0"),
+        (lambda: qsf.run_trial(trial, trust="x"), ValueError, "trust must be in [0, 1]"),
+        (lambda: qsf.run_trial(trial, q0=[np.nan] * 4), ValueError, "q0 must be 4 finite numbers"),
+        (lambda: qsf.QSFDetector(window_s=math.inf), ValueError, "QSFDetector.window_s must be a finite number > 0"),
+    ]
+
+
+@pytest.mark.parametrize("i", range(17))
+def test_filter_entry_points_name_a_bad_argument(i):
+    calls = _filter_calls()
+    assert len(calls) == 17
+    call, error, message = calls[i]
+    with pytest.raises(error) as caught:
+        call()
+    assert message in str(caught.value)

@@ -445,7 +445,10 @@ class ConstraintFilter:
         self.q0 = ecompass1(trial.acc[0], trial.mag[0]) if q0 is None else normalize1(check_vector("q0", q0, 4, True))
 
     def run(self, weight: float | None = None, gain: float | None = None) -> Trace:
-        """The whole trial from ``q0`` with constant w and k (None = eq. 16 / eq. 18); returns its :class:`Trace`."""
+        """The whole trial from ``q0`` with constant w ∈ [0, 1] and k ≥ 0 1/s (None = eq. 16 / eq. 18); returns its
+        :class:`Trace`. ValueError / TypeError naming a bad w or k."""
+        weight = None if weight is None else check_number("weight", weight, 0.0, 1.0)
+        gain = None if gain is None else check_number("gain", gain, 0.0)
         trace = Trace.empty(self.trial.n)
         fuse(self.params, self.q0.copy(), self.inputs, Control.of(weight, gain), 0, self.trial.n, trace)
         return trace

@@ -316,7 +316,10 @@ def run_trial(trial, trust, params: Params | None = None) -> tuple[np.ndarray, n
     if params is None:
         params = make_params(trial.field_norm, trial.field_dip, trial.dt)
     n = trial.n
-    trust = np.broadcast_to(np.asarray(trust, dtype=float), (n,))
+    try:
+        trust = np.broadcast_to(np.asarray(trust, dtype=float), (n,))
+    except (TypeError, ValueError):
+        raise ValueError(f"trust must be a number in [0, 1] or one per sample ({n},), got {trust!r:.80}") from None
     sensors = Sensors.of(trial)
     state = init(params, trial.acc[0], trial.mag[0])
     q_out = np.empty((n, 4))

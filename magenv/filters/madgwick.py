@@ -249,6 +249,9 @@ def run_madgwick(gyr, acc, mag=None, rate: float = 256.0, beta: float = BETA_DEF
     acc = np.ascontiguousarray(acc, float)
     use_mag = mag is not None
     mag = np.ascontiguousarray(mag, float) if use_mag else np.zeros_like(acc)
+    for name, a in (("gyr", gyr), ("acc", acc), ("mag", mag)):
+        if a.ndim != 2 or a.shape[1] != 3 or len(a) != len(gyr) or len(a) == 0:
+            raise ValueError(f"{name} must be (N, 3) with the N ≥ 1 rows of gyr, got shape {a.shape}")
     rate, beta = check_number("rate", rate, 0.0, lo_open=True), check_beta(beta)
     if q0 is None:
         q0 = ecompass1(acc[0], mag[0]) if use_mag else np.array([1.0, 0.0, 0.0, 0.0])

@@ -723,9 +723,12 @@ def run_trial(
         codes = np.ascontiguousarray(actions, np.int8)
         if codes.shape != (trial.n,) or np.any((codes < 0) | (codes > 2)):
             raise ValueError(f"actions must be (N,) = ({trial.n},) with values 0, 1, 2")
-    q_init = initial_orientation(trial, init, params) if q0 is None else np.asarray(q0, float)
+    q_init = initial_orientation(trial, init, params) if q0 is None else check_vector("q0", q0, 4, nonzero=True)
     state = initial_state(q_init, trial.dt, **(p0 or {}))
-    trusts = np.broadcast_to(np.asarray(trust, float), (trial.n,)).copy()
+    try:
+        trusts = np.broadcast_to(np.asarray(trust, float), (trial.n,)).copy()
+    except (TypeError, ValueError):
+        trusts = np.full(trial.n, np.nan)  # refused just below, with the trust named
     if not np.all((trusts >= 0) & (trusts <= 1)):
         raise ValueError(f"trust must be in [0, 1] (a number or one per sample), got {trust!r}")
     out = Outputs.empty(trial.n)
