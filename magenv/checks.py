@@ -103,6 +103,14 @@ def check_vector(name: str, value, n: int, nonzero: bool = False) -> np.ndarray:
 
 
 FIELD_NORM_MAX_UT = 1000.0  # µT, the largest undisturbed field accepted (Earth's is 25–65 µT)
+# The largest white-noise stds a filter accepts (MEMS sensors: ~0.01 rad/s, ~0.05 m/s², ~0.5 µT); beyond them
+# a Kalman covariance loses all precision (σ_gyr = 1e9 rad/s leaves it singular).
+NOISE_MAX = {"gyr": 10.0, "acc": 100.0, "mag": FIELD_NORM_MAX_UT}  # rad/s, m/s², µT
+
+
+def check_noise(name: str, value, sensor: str) -> float:
+    """A sensor's white-noise std as a float: finite, in (0, ``NOISE_MAX[sensor]``] (``sensor``: gyr, acc, mag)."""
+    return check_number(name, value, 0.0, NOISE_MAX[sensor], lo_open=True)
 
 
 def check_site(field_norm, field_dip) -> tuple[float, float]:

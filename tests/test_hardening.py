@@ -316,6 +316,7 @@ CASES = {
     '`MagBlend-v0` with `beta=float("nan")`': lambda c: c.call(lambda: _env("MagBlend-v0", beta=math.nan)),
     "`MagBlend-v0` with `t0=-1`": lambda c: c.call(lambda: _env("MagBlend-v0", t0=-1)),
     "`MagKalman-v0` with `sigma_mag=0`": lambda c: c.call(lambda: _env("MagKalman-v0", sigma_mag=0)),
+    "`MagKalman-v0` with `sigma_gyr=1e9`": lambda c: c.call(lambda: _env("MagKalman-v0", sigma_gyr=1e9)),
     "`MagKalman-v0` with `model_c_a=1.0`": lambda c: c.call(lambda: _env("MagKalman-v0", model_c_a=1.0)),
     '`MagKalman-v0` with `heading_only="yes"`': lambda c: c.call(lambda: _env("MagKalman-v0", heading_only="yes")),
     "`MagConstraint-v0` with `th2=1.5`": lambda c: c.call(lambda: _env("MagConstraint-v0", th2=1.5)),

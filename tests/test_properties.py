@@ -256,3 +256,45 @@ def test_a_refused_vector_step_steps_no_sub_env(env_trials):
     for _ in range(3):
         got, want = env.step(good), clean.step(good)
         assert got[0].tobytes() == want[0].tobytes() and np.array_equal(got[1], want[1])
+
+
+# ----------------------------------------------------------------- constructor arguments, fuzzed
+
+ODD_VALUES = [math.nan, math.inf, -math.inf, -1, 0, 1e-9, 0.5, 1, 2, 1e9, None, "x", True, [1.0], {}, (1, 2)]
+NOT_FUZZED = {"scenario", "render_mode", "prefetch"}  # the trial source; a worker process; refused by design
+
+
+def _arguments(env_id: str) -> list[str]:
+    import inspect
+
+    cls = gym.spec(f"magenv/{env_id}").entry_point
+    cls = gym.envs.registration.load_env_creator(cls) if isinstance(cls, str) else cls
+    return [p for p in inspect.signature(cls.__init__).parameters if p not in NOT_FUZZED | {"self"}]
+
+
+@pytest.mark.parametrize("env_id", list(ENVS))
+def test_any_constructor_argument_is_taken_or_refused_by_name(env_id, env_trials):
+    """One argument set to an odd value: the env is built and runs a finite, unit-norm episode (or reports a
+    divergence as FloatingPointError), or the constructor raises ValueError/TypeError naming the argument."""
+    names = _arguments(env_id)
+    assert len(names) >= 4
+
+    @settings(SETTINGS, max_examples=40)
+    @given(st.sampled_from(names), st.sampled_from(ODD_VALUES))
+    def check(name, value):
+        try:
+            env = gym.make(f"magenv/{env_id}", scenario=env_trials[env_id][:1], **{name: value})
+        except (ValueError, TypeError) as exc:
+            assert name in str(exc), f"{name}={value!r}: {exc}"
+            return
+        env.reset(seed=0)
+        mid = (env.action_space.low + env.action_space.high) / 2
+        done = False
+        try:
+            while not done:
+                obs, reward, _, done, info = env.step(mid)
+                assert np.all(np.isfinite(obs)) and math.isfinite(reward) and unit(info["q_est"], 1e-9)
+        except FloatingPointError as exc:
+            assert "diverged" in str(exc) or "non-finite" in str(exc), f"{name}={value!r}: {exc}"
+
+    check()

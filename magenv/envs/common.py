@@ -224,7 +224,9 @@ def select_features(
     chosen = names if features is None else tuple(features)
     unknown = [f for f in chosen if f not in names]
     if unknown or not chosen:
-        raise ValueError(f"unknown observation feature(s) {unknown or '(none selected)'}; known: {', '.join(names)}")
+        raise ValueError(
+            f"features: unknown observation feature(s) {unknown or '(none selected)'}; known: {', '.join(names)}"
+        )
     idx = np.array([names.index(f) for f in chosen])
     return chosen, idx, chosen == names, gym.spaces.Box(low[idx], high[idx], dtype=np.float32)
 

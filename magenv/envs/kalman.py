@@ -281,7 +281,10 @@ class KalmanRunner(TrialRunner):
         self.params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt) if params is None else params
         model = make_model_params(self.params, model_c_a, model_c_b, model_p0)
         self.mdist = np.empty(trial.n)
-        st = model_disturbance(model, self.sensors, self.mdist)
+        try:
+            st = model_disturbance(model, self.sensors, self.mdist)
+        except np.linalg.LinAlgError as exc:  # a covariance the noise model left singular
+            raise kt.FilterError(f"model-based disturbance split of trial {trial.name!r}: {exc}") from None
         if st != OK:
             raise kt.FilterError(f"model-based disturbance split failed at sample {st} of trial {trial.name!r}")
         self.state = kt.init(self.params, trial.acc[0], trial.mag[0])

@@ -43,7 +43,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
-from magenv.checks import check_number, check_positive, check_site
+from magenv.checks import check_noise, check_number, check_positive, check_site
 from magenv.filters.kalman_threshold import (
     COV_FLOOR,
     OK,
@@ -94,7 +94,7 @@ def make_vec_params(
     n_sigma, n_ca, n_cb, n_p0 = names
     return VecParams(
         check_positive("dt", dt),
-        check_positive("sigma_gyr", sigma_gyr),
+        check_noise("sigma_gyr", sigma_gyr, "gyr"),
         check_positive(n_sigma, sigma_y),
         check_number(f"{n_ca} (a stable Gauss–Markov correlation)", c_a, 0.0, 1.0, hi_open=True),
         check_positive(n_cb, c_b),

@@ -50,7 +50,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
-from magenv.checks import check_positive, check_site
+from magenv.checks import check_noise, check_positive, check_site
 from magenv.filters.sensors import Sensors
 from magenv.filters.solvers import Solver, make_solver, solve1
 from magenv.quaternion import GRAVITY, align1, from_rotvec1, mul1, normalize1, rotate_inv1
@@ -356,14 +356,17 @@ class ThresholdKF:
         TypeError naming a bad one."""
         solver = make_solver(self.solver, self.weights)
         field_norm, field_dip = check_site(field_norm, field_dip)
-        sigma_acc, sigma_mag = check_positive("sigma_acc", self.sigma_acc), check_positive("sigma_mag", self.sigma_mag)
+        sigma_acc, sigma_mag = (
+            check_noise("sigma_acc", self.sigma_acc, "acc"),
+            check_noise("sigma_mag", self.sigma_mag, "mag"),
+        )
         if self.sigma_meas is None:
             sig = np.hypot(sigma_acc / GRAVITY, sigma_mag / (field_norm * np.cos(np.deg2rad(field_dip))))
         else:
             sig = check_positive("sigma_meas", self.sigma_meas)
         return Params(
             check_positive("dt", dt),
-            check_positive("sigma_gyr", self.sigma_gyr),
+            check_noise("sigma_gyr", self.sigma_gyr, "gyr"),
             float(0.25 * sig * sig),
             field_norm,
             float(np.deg2rad(field_dip)),

@@ -67,7 +67,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
-from magenv.checks import check_bool, check_positive, check_site
+from magenv.checks import check_bool, check_noise, check_positive, check_site
 from magenv.filters.kalman_threshold import (
     COV_FLOOR,
     OK,
@@ -151,9 +151,9 @@ def make_params(
     field_norm, field_dip = check_site(field_norm, field_dip)
     return Params(
         check_positive("dt", dt),
-        check_positive("sigma_gyr", sigma_gyr),
-        check_positive("sigma_acc", sigma_acc),
-        check_positive("sigma_mag", sigma_mag),
+        check_noise("sigma_gyr", sigma_gyr, "gyr"),
+        check_noise("sigma_acc", sigma_acc, "acc"),
+        check_noise("sigma_mag", sigma_mag, "mag"),
         check_positive("th_acc", th_acc, inf_ok=True),
         check_bool("heading_only", heading_only),
         quat.gravity_up(),

@@ -104,7 +104,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
-from magenv.checks import check_bool, check_choice, check_number, check_positive, check_site, check_vector
+from magenv.checks import check_bool, check_choice, check_noise, check_number, check_positive, check_site, check_vector
 from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_cov1, right_matrix1
 from magenv.filters.solvers import triad1
 from magenv.quaternion import GRAVITY, from_rotvec1, mul1, normalize1, rotate1
@@ -237,11 +237,11 @@ def make_params(
     vector = lambda v: tuple(float(c) for c in v)
     return Params(
         MODES[mode],
-        check_positive("sigma_gyr", sigma_gyr),
+        check_noise("sigma_gyr", sigma_gyr, "gyr"),
         check_positive("sigma_bias_walk", sigma_bias_walk),
         check_positive("sigma_acc_bias_walk", sigma_acc_bias_walk),
-        check_positive("sigma_acc", sigma_acc),
-        check_positive("sigma_mag", sigma_mag),
+        check_noise("sigma_acc", sigma_acc, "acc"),
+        check_noise("sigma_mag", sigma_mag, "mag"),
         check_positive("th_acc (m/s²; inf disables the gate)", th_acc, inf_ok=True),
         vector(quat.gravity_up()),
         vector(quat.earth_field(field_norm, field_dip)),
