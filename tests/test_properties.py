@@ -298,3 +298,40 @@ def test_any_constructor_argument_is_taken_or_refused_by_name(env_id, env_trials
             assert "diverged" in str(exc) or "non-finite" in str(exc), f"{name}={value!r}: {exc}"
 
     check()
+
+
+def _keywords(fn, skip=()) -> list[str]:
+    import inspect
+
+    return [
+        p.name for p in inspect.signature(fn).parameters.values() if p.default is not p.empty and p.name not in skip
+    ]
+
+
+def test_any_qsf_filter_or_detector_keyword_is_taken_or_refused_by_name(env_trials):
+    """``MagQSF-v0``'s ``filter_kwargs`` and ``detector`` mappings, one key set to an odd value: as above."""
+    from magenv.filters import qsf
+
+    keys = [("filter_kwargs", k) for k in _keywords(qsf.make_params, skip={"mode"})]
+    keys += [("detector", k) for k in ("window_s", "th_spread", "th_drift", "max_period_s")]
+    assert len(keys) >= 12
+
+    @settings(SETTINGS, max_examples=40)
+    @given(st.sampled_from(keys), st.sampled_from(ODD_VALUES))
+    def check(key, value):
+        option, name = key
+        try:
+            env = gym.make("magenv/MagQSF-v0", scenario=env_trials["MagQSF-v0"][:1], **{option: {name: value}})
+        except (ValueError, TypeError) as exc:
+            assert name in str(exc), f"{option}={{{name!r}: {value!r}}}: {exc}"
+            return
+        env.reset(seed=0)
+        done = False
+        try:
+            while not done:
+                obs, reward, _, done, info = env.step(np.array([0.0, 0.5], np.float32))
+                assert np.all(np.isfinite(obs)) and math.isfinite(reward) and unit(info["q_est"], 1e-9)
+        except FloatingPointError as exc:
+            assert "diverged" in str(exc) or "non-finite" in str(exc), f"{option}={{{name!r}: {value!r}}}: {exc}"
+
+    check()
