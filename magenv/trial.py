@@ -144,7 +144,12 @@ class Trial:
         self.rate = check_rate(self.rate, f"trial {self.name!r}: rate")
         n = len(self.gyr) if hasattr(self.gyr, "__len__") else -1
         for key, cols in (("gyr", 3), ("acc", 3), ("mag", 3), ("q_true", 4)):
-            arr = np.ascontiguousarray(getattr(self, key), dtype=float)
+            try:
+                arr = np.ascontiguousarray(getattr(self, key), dtype=float)
+            except (TypeError, ValueError):
+                raise TrialError(
+                    f"trial {self.name!r}: {key} must be numbers, got {getattr(self, key)!r:.80}"
+                ) from None
             if arr.shape != (n, cols):
                 raise TrialError(f"trial {self.name!r}: {key} must have shape ({n}, {cols}), got {arr.shape}")
             if key != "q_true" and not np.all(np.isfinite(arr)):
@@ -160,10 +165,9 @@ class Trial:
         for group in ("truth", "extra"):
             for key, value in getattr(self, group).items():
                 value = np.asarray(value)
-                if len(value) != n:
-                    raise TrialError(
-                        f"trial {self.name!r}: {group} channel {key!r} has {len(value)} rows, expected {n}"
-                    )
+                rows = len(value) if value.ndim else "no"  # a scalar has no rows
+                if rows != n:
+                    raise TrialError(f"trial {self.name!r}: {group} channel {key!r} has {rows} rows, expected {n}")
                 getattr(self, group)[key] = value
         self.field_norm = float(self.field_norm)
         self.field_dip = float(self.field_dip)

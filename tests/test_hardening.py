@@ -13,6 +13,8 @@ from __future__ import annotations
 import base64
 import inspect
 import json
+import math
+import os
 import pickle
 import re
 import shutil
@@ -20,11 +22,13 @@ import warnings
 import zipfile
 from pathlib import Path
 
+import gymnasium as gym
 import h5py
 import numpy as np
 import pytest
 import yaml
 
+from magenv import registry
 from magenv.agents import weights
 from magenv.agents.hyperparams import NOT_IN_CONFIG, VALUE_RULES, algorithm_class, check_section, load_hyperparams
 from magenv.agents.loading import RunError, build_model, load_agent
@@ -182,6 +186,55 @@ def _scaled_truth(c: Case, factor):
     return c.call(lambda: load_recording(c.recording(opt_quat=np.tile([factor, 0, 0, 0], (100, 1)))))
 
 
+def _write_bytes(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+def _env(env: str, **kwargs):
+    """``gymnasium.make("magenv/" + env, **kwargs)``: the call of a constructor row."""
+    return gym.make(f"magenv/{env}", **kwargs)
+
+
+def _stepped(env: str, action):
+    """One reset of ``env`` on a 1 s kinematic trial, then ``step(action)``."""
+    e = _env(env, scenario=[kinematic_trial(duration=1.0)])
+    e.reset(seed=0)
+    e.step(action)
+
+
+def _vector_step(actions):
+    """Two MagBlend-v0 envs in one vector env, reset, then ``step(actions)``."""
+    e = gym.make_vec(
+        "magenv/MagBlend-v0",
+        num_envs=2,
+        vectorization_mode="vector_entry_point",
+        scenario=[kinematic_trial(duration=1.0)],
+    )
+    e.reset(seed=0)
+    e.step(actions)
+
+
+def _user_tuned(c: Case, text: str):
+    """``tuned_params("fan_lambda")`` with the user's file holding ``text`` (in a data folder of its own)."""
+    old = os.environ.get(registry.DATA_DIR_ENV)
+    os.environ[registry.DATA_DIR_ENV] = str(c.tmp / "data")
+    try:
+        registry.user_tuned_dir().mkdir(parents=True)
+        (registry.user_tuned_dir() / "fan_lambda.json").write_text(text)
+        return c.call(lambda: registry.tuned_params("fan_lambda"))
+    finally:
+        os.environ[registry.DATA_DIR_ENV] = old
+
+
+def _yaml_payload(c: Case):
+    """A config whose YAML would call ``touch MARKER`` if it were loaded unsafely."""
+    marker = c.tmp / "ran"
+    got = c.config(f"learning_rate: !!python/object/apply:os.system ['touch {marker}']")
+    assert not marker.exists()
+    return got
+
+
 CASES = {
     "a run folder holding its model only as SB3 `.zip` (an older magenv, or SB3)": _pickle_only,
     "`magenv train` resuming such a folder": lambda c: c.cli(
@@ -259,6 +312,52 @@ CASES = {
         "compare", "--scenario", "dynamic_magnet", "--seeds", "0", "--methods", "mimu,cf_constraint", "--no-progress"
     ),
     "`magenv compare --seeds 5:3`": lambda c: c.cli("compare", "--seeds", "5:3"),
+    '`MagBlend-v0` with `beta=float("nan")`': lambda c: c.call(lambda: _env("MagBlend-v0", beta=math.nan)),
+    "`MagBlend-v0` with `t0=-1`": lambda c: c.call(lambda: _env("MagBlend-v0", t0=-1)),
+    "`MagKalman-v0` with `sigma_mag=0`": lambda c: c.call(lambda: _env("MagKalman-v0", sigma_mag=0)),
+    "`MagKalman-v0` with `sigma_gyr=1e9`": lambda c: c.call(lambda: _env("MagKalman-v0", sigma_gyr=1e9)),
+    "`MagKalman-v0` with `model_c_a=1.0`": lambda c: c.call(lambda: _env("MagKalman-v0", model_c_a=1.0)),
+    '`MagKalman-v0` with `heading_only="yes"`': lambda c: c.call(lambda: _env("MagKalman-v0", heading_only="yes")),
+    "`MagConstraint-v0` with `th2=1.5`": lambda c: c.call(lambda: _env("MagConstraint-v0", th2=1.5)),
+    "`MagConstraint-v0` with `k_min=2, k_max=1`": lambda c: c.call(lambda: _env("MagConstraint-v0", k_min=2, k_max=1)),
+    '`MagQSF-v0` with `filter_kwargs={"max_age_s": math.inf}`': lambda c: c.call(
+        lambda: _env("MagQSF-v0", filter_kwargs={"max_age_s": math.inf})
+    ),
+    '`MagQSF-v0` with `variant="aekf"`': lambda c: c.call(lambda: _env("MagQSF-v0", variant="aekf")),
+    'any env with `decision_every=float("nan")`': lambda c: c.call(
+        lambda: _env("MagKalman-v0", decision_every=math.nan)
+    ),
+    "any env with `decision_every=None`": lambda c: c.call(lambda: _env("MagQSF-v0", decision_every=None)),
+    "any env with `episode_seconds=math.inf`": lambda c: c.call(lambda: _env("MagBlend-v0", episode_seconds=math.inf)),
+    '`env.reset(options="abc")`': lambda c: c.call(lambda: _env("MagBlend-v0").reset(options="abc")),
+    '`env.reset(options={"trail": trial})` (a misspelt key)': lambda c: c.call(
+        lambda: _env("MagBlend-v0").reset(options={"trail": kinematic_trial(duration=1.0)})
+    ),
+    "`env.reset(seed=-1)`": lambda c: c.call(lambda: _env("MagBlend-v0").reset(seed=-1)),
+    "`MagBlend-v0`: `env.step([math.nan])`": lambda c: c.call(lambda: _stepped("MagBlend-v0", [math.nan])),
+    '`MagBlend-v0`: `env.step("fast")`': lambda c: c.call(lambda: _stepped("MagBlend-v0", "fast")),
+    "`MagQSF-v0`: `env.step` with an action of shape (2, 1)": lambda c: c.call(
+        lambda: _stepped("MagQSF-v0", np.array([[0.5], [0.5]], np.float32))
+    ),
+    '`gym.make_vec("magenv/MagBlend-v0", num_envs=0, vectorization_mode="vector_entry_point")`': lambda c: c.call(
+        lambda: gym.make_vec("magenv/MagBlend-v0", num_envs=0, vectorization_mode="vector_entry_point")
+    ),
+    "a vector env's `step` with NaN in one row of `actions`": lambda c: c.call(
+        lambda: _vector_step(np.array([[0.5], [np.nan]], np.float32))
+    ),
+    "a config file holding `!!python/object/apply:os.system`": _yaml_payload,
+    "a tuned-parameter JSON cut short": lambda c: _user_tuned(c, '{"params": {"beta": 0.1'),
+    "a trial file whose `gyr` holds text": lambda c: c.call(
+        lambda: Trial.load(c.trial_file(lambda f: (f.__delitem__("gyr"), f.create_dataset("gyr", data=[b"a", b"b"]))))
+    ),
+    "a trial file whose `truth/stationary` is one number": lambda c: c.call(
+        lambda: Trial.load(
+            c.trial_file(lambda f: (f.__delitem__("truth/stationary"), f.create_dataset("truth/stationary", data=1.0)))
+        )
+    ),
+    "a trial file of random bytes": lambda c: c.call(
+        lambda: Trial.load(_write_bytes(c.tmp / "trial.h5", np.random.default_rng(0).bytes(4096)))
+    ),
 }
 ROWS = readme_rows()
 
@@ -526,3 +625,43 @@ def test_evaluate_records_a_video(trained_run, tmp_path):
     assert cli([*args, "--video", str(video)]) == 0
     assert video.stat().st_size > 10_000
     assert cli([*args, "--video", str(tmp_path / "agent.gif")]) == 2
+
+
+# ----------------------------------------------------------------- filter entry points
+
+
+def _filter_calls():
+    """(call, exception, part of the message) for a bad argument of each filter entry point."""
+    from magenv.filters import blend, kalman_model, kalman_threshold, kalman_trust, madgwick, qsf, solvers, stationary
+
+    trial = kinematic_trial(duration=0.5)
+    z = np.zeros((10, 3))
+    return [
+        (lambda: madgwick.run_madgwick(z, z, beta=math.nan), ValueError, "beta must be a finite number in [0, 10]"),
+        (lambda: madgwick.run_madgwick(z, z, rate=0), ValueError, "rate must be a finite number > 0"),
+        (lambda: madgwick.run_madgwick(z, z[:, :2]), ValueError, "acc must be (N, 3)"),
+        (lambda: madgwick.run_madgwick(z, z, q0=[0, 0, 0, 0]), ValueError, "q0 must be 4 finite numbers, not all zero"),
+        (lambda: blend.BlendEstimator(lam=math.nan), ValueError, "lam must be a finite number in [0, 1]"),
+        (lambda: blend.BlendEstimator(th_gyro_dps=-1), ValueError, "th_gyro_dps must be a finite number ≥ 0"),
+        (lambda: stationary.make_state(256.0, t0=1e9), ValueError, "t0 must be a finite number in [0, 60]"),
+        (lambda: solvers.make_solver("quest", (0, 0)), ValueError, "weights must be 2 finite numbers, not all zero"),
+        (lambda: solvers.make_solver("svd"), ValueError, "solver must be one of"),
+        (lambda: kalman_model.ModelKF(c_a_mag=1.0), ValueError, "c_a_mag (a stable Gauss–Markov correlation)"),
+        (lambda: kalman_threshold.ThresholdKF(th_acc=-1.0), ValueError, "th_acc must be a number > 0"),
+        (lambda: kalman_trust.make_params(46.0, 120.0, 0.01), ValueError, "field_dip must be a finite number in [-90"),
+        (lambda: kalman_trust.run_trial(trial, [0.5, 0.5]), ValueError, "trust must be a number in [0, 1] or one per"),
+        (lambda: qsf.make_params(46.0, 49.6, acc_adaptive=-1), ValueError, "acc_adaptive must be a finite number ≥ 0"),
+        (lambda: qsf.run_trial(trial, trust="x"), ValueError, "trust must be in [0, 1]"),
+        (lambda: qsf.run_trial(trial, q0=[np.nan] * 4), ValueError, "q0 must be 4 finite numbers"),
+        (lambda: qsf.QSFDetector(window_s=math.inf), ValueError, "QSFDetector.window_s must be a finite number > 0"),
+    ]
+
+
+@pytest.mark.parametrize("i", range(17))
+def test_filter_entry_points_name_a_bad_argument(i):
+    calls = _filter_calls()
+    assert len(calls) == 17
+    call, error, message = calls[i]
+    with pytest.raises(error) as caught:
+        call()
+    assert message in str(caught.value)

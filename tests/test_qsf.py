@@ -389,7 +389,7 @@ def test_detector_option_takes_a_mapping():
     assert env.detector == qsf.QSFDetector(th_spread=3.0, window_s=0.2)
     with pytest.raises(TypeError, match="detector must be"):
         MagQSFEnv(scenario=[_env_trial()], detector=3.0)
-    with pytest.raises(ValueError, match="th_drift must be a positive"):
+    with pytest.raises(ValueError, match="th_drift must be a finite number > 0"):
         MagQSFEnv(scenario=[_env_trial()], detector={"th_drift": -1.0})
 
 
@@ -405,7 +405,7 @@ def test_detector_policy_with_thresholds_matches_the_tuned_estimator():
     from magenv.registry import rule_class
 
     np.testing.assert_array_equal(env.estimate, rule_class("delay_magyq").from_params(thresholds).run(tr).q)
-    with pytest.raises(ValueError, match="window_s must be a positive"):
+    with pytest.raises(ValueError, match="window_s must be a finite number > 0"):
         DetectorPolicy(detector={"window_s": 0.0})
 
 

@@ -21,6 +21,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from magenv.checks import check_bool
 from magenv.envs import BLEND_ID
 from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
@@ -339,8 +340,12 @@ class MagBlendEnv(TrustEnv):
     - `episode_seconds` (default None): use only the first seconds of each trial; None = whole trial.
     - `stationary_hold` (default True): hold the estimate on stationary samples (eqs. 11–13).
     - `features` (default None = all): names of the observation features to keep, in the given order.
-    - `beta` (default 0.1 rad/s): Madgwick gain β (eq. 10).
-    - `t0`, `th_acc_g`, `th_gyro_dps` (defaults 0.5 s, 0.04 g, 0.5 °/s): stationary detection (eqs. 11–13).
+    - `beta` (default 0.1 rad/s): Madgwick gain β (eq. 10), finite in [0, 10].
+    - `t0`, `th_acc_g`, `th_gyro_dps` (defaults 0.5 s, 0.04 g, 0.5 °/s): stationary detection (eqs. 11–13);
+      t0 in [0, 60] s, thresholds finite ≥ 0.
+
+    A bad argument (NaN, inf, out of range, wrong type) raises ValueError / TypeError naming it at
+    construction.
     - `scenario_kwargs` (default None): overrides passed to ``magenv.scenarios.make_trial``.
     - `prefetch` (default False): simulate the next reset's trial meanwhile in a worker process
       (same trials, bit for bit; hides the reset cost when a core is free). ``close()`` stops it.
@@ -393,10 +398,13 @@ class MagBlendEnv(TrustEnv):
             prefetch=prefetch,
             trial_pool=trial_pool,
         )
-        self.stationary_hold = bool(stationary_hold)
+        # bad filter arguments fail here, not at reset (ValueError / TypeError naming the argument)
+        params = blend.make_params(1.0, beta, check_bool("stationary_hold", stationary_hold), th_acc_g, th_gyro_dps)
+        stationary.make_state(1.0, t0)
+        self.stationary_hold = params.hold
         self.filter_kwargs = dict(
-            beta=float(beta),
-            hold=self.stationary_hold,
+            beta=params.beta,
+            hold=params.hold,
             t0=float(t0),
             th_acc_g=float(th_acc_g),
             th_gyro_dps=float(th_gyro_dps),

@@ -6,13 +6,17 @@
   draw of one trial per ``reset`` from the env's ``np_random``.
 * :func:`cut_trial` — the ``episode_seconds`` option.
 * :func:`check_env_args` — ``decision_every``, ``episode_seconds``, ``render_mode`` (rendering: ``magenv.envs.render``).
+* :func:`check_reset_args` — ``reset``'s ``seed`` and ``options``.
 * :func:`select_features` — the ``features`` option → index array and Box bounds.
+* :func:`action_array` — an action as a float array (TypeError naming the action if it is no numbers).
 * :func:`scalar_action` — one trust value from an action: NaN / wrong shape →
   ValueError, finite out-of-range → clipped.
 * :class:`Truth`, :class:`TrialRunner` — the truth-only arrays of a trial
   and the base of each env's runner (one trial stepped k samples at a time).
 * :class:`TrustEnv` — base single env: arguments, reset (trial draw and
-  cut), step checks, reward and info from the runner's error sums.
+  cut), step checks, reward and info from the runner's error sums, and the
+  divergence policy: a non-finite estimate or observation raises
+  ``FloatingPointError`` naming the step (never a NaN reward or observation).
 * :class:`TrialPool` — the ``trial_pool`` option: reset trials from a seeded pool.
 
 The batched vector env every env module builds its ``vector_entry_point`` on is ``magenv.envs.batch``.
@@ -28,6 +32,7 @@ import gymnasium as gym
 import numba
 import numpy as np
 
+from magenv.checks import check_bool, check_int, check_mapping, check_number
 from magenv.envs.render import RenderMixin, check_render_mode
 from magenv.filters.sensors import Sensors
 from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL
@@ -35,6 +40,7 @@ from magenv.seeding import draw_training_seed
 from magenv.trial import Trial
 
 RECORDING_PREFIX = "recording:"
+RESET_OPTIONS = ("trial",)  # the keys ``reset(options=…)`` takes
 
 
 def trial_source(scenario, world: str | None = None, require: Callable[[Trial], None] | None = None) -> tuple[str, Any]:
@@ -270,37 +276,68 @@ def cut_trial(trial: Trial, episode_seconds: float | None) -> Trial:
 
 
 def check_env_args(env_name: str, decision_every, episode_seconds, render_mode) -> int:
-    """Validate the options every trust env takes; returns ``decision_every`` as int."""
-    if isinstance(decision_every, bool) or int(decision_every) != decision_every or decision_every < 1:
-        raise ValueError(f"decision_every must be a positive integer, got {decision_every!r}")
-    if episode_seconds is not None and not episode_seconds > 0:
-        raise ValueError(f"episode_seconds must be positive or None, got {episode_seconds!r}")
+    """Validate the options every trust env takes; returns ``decision_every`` as int.
+
+    ``decision_every`` an integer ≥ 1; ``episode_seconds`` None (the whole trial) or a finite number of
+    seconds > 0; ``render_mode`` None or one of ``magenv.envs.render``'s modes. ValueError or TypeError
+    naming the argument (``magenv.checks``).
+    """
+    check_int("decision_every", decision_every, 1)
+    if episode_seconds is not None:
+        check_number("episode_seconds (None = the whole trial)", episode_seconds, 0.0, lo_open=True)
     check_render_mode(env_name, render_mode)
     return int(decision_every)
+
+
+def check_reset_args(seed, options) -> dict:
+    """``reset``'s arguments: ``seed`` None or an integer ≥ 0, ``options`` None or a dict with keys of
+    ``RESET_OPTIONS``; returns the options as a dict. TypeError / ValueError naming the argument."""
+    if seed is not None:
+        if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool):
+            raise TypeError(f"seed must be None or an integer ≥ 0, got {seed!r}")
+        if seed < 0:
+            raise ValueError(f"seed must be None or an integer ≥ 0, got {seed!r}")
+    options = check_mapping("options", options)
+    unknown = [k for k in options if k not in RESET_OPTIONS]
+    if unknown:
+        raise ValueError(f"options: unknown key(s) {', '.join(map(repr, unknown))}; known: {', '.join(RESET_OPTIONS)}")
+    return options
 
 
 def select_features(
     features: Sequence[str] | None, names: tuple[str, ...], low: np.ndarray, high: np.ndarray
 ) -> tuple[tuple[str, ...], np.ndarray, bool, gym.spaces.Box]:
     """The ``features`` option: (chosen names, their indices, all-in-order?, observation Box)."""
+    if features is not None and (isinstance(features, str) or not isinstance(features, Sequence)):
+        raise TypeError(f"features must be None or a list of feature names, got {features!r}")
     chosen = names if features is None else tuple(features)
     unknown = [f for f in chosen if f not in names]
     if unknown or not chosen:
-        raise ValueError(f"unknown observation feature(s) {unknown or '(none selected)'}; known: {', '.join(names)}")
+        raise ValueError(
+            f"features: unknown observation feature(s) {unknown or '(none selected)'}; known: {', '.join(names)}"
+        )
     idx = np.array([names.index(f) for f in chosen])
     return chosen, idx, chosen == names, gym.spaces.Box(low[idx], high[idx], dtype=np.float32)
+
+
+def action_array(action, what: str) -> np.ndarray:
+    """``action`` as a float array; TypeError naming the action (``what`` it must hold) if it is no numbers."""
+    try:
+        return np.asarray(action, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"action must be numbers ({what}), got {action!r}") from None
 
 
 def scalar_action(action, symbol: str = "λ") -> tuple[float, bool]:
     """(value in [0, 1], clipped?) from an action of shape (1,) or ().
 
-    NaN/inf or another shape raise ValueError; finite values outside [0, 1]
+    NaN/inf or another shape raise ValueError, no numbers TypeError; finite values outside [0, 1]
     are clipped (and reported as clipped).
     """
-    if isinstance(action, np.ndarray) and action.shape == (1,):
+    if isinstance(action, np.ndarray) and action.shape == (1,) and action.dtype.kind == "f":
         value = float(action[0])
     else:
-        a = np.asarray(action, dtype=float)
+        a = action_array(action, f"{symbol} in [0, 1]")
         if a.shape not in ((1,), ()):
             raise ValueError(f"action must have shape (1,) holding {symbol} in [0, 1], got shape {a.shape}")
         value = float(a.reshape(-1)[0])
@@ -407,6 +444,11 @@ class TrustEnv(RenderMixin, gym.Env):
     sample), ``err`` (the last step's sums, indexed by
     ``magenv.metrics.E_*``), ``pos`` (next sample), ``done``,
     ``last_count``, ``has_dist``, ``est`` (N, 4) and ``q_true`` (N, 4).
+
+    Divergence: should the estimate after a step, or the next observation, hold NaN or inf, ``step``
+    raises ``FloatingPointError`` naming the step, its samples and the trial, so no reward, ``info`` or
+    observation ever carries a non-finite number (and a NaN estimate never scores as a small error;
+    offline, ``magenv.metrics`` charges it 180°).
     """
 
     env_name = "TrustEnv"  # registered id without the namespace, for messages
@@ -431,6 +473,8 @@ class TrustEnv(RenderMixin, gym.Env):
         """Check the common arguments; set ``k_steps``, ``trials`` (a :class:`TrialSource`), ``scenario``,
         ``features``, the spaces."""
         self.k_steps = check_env_args(self.env_name, decision_every, episode_seconds, render_mode)
+        scenario_kwargs = check_mapping("scenario_kwargs", scenario_kwargs)
+        prefetch = check_bool("prefetch", prefetch)
         self.trials = TrialSource(
             scenario, scenario_kwargs, prefetch=prefetch, world=world, require=require, trial_pool=trial_pool
         )
@@ -441,6 +485,7 @@ class TrustEnv(RenderMixin, gym.Env):
         self.action_space = gym.spaces.Box(0.0, 1.0, (action_dim,), dtype=np.float32)
         self.render_mode = render_mode
         self._runner = None
+        self._steps = 0  # steps since the last reset, for the divergence message
         self.trial: Trial | None = None
 
     def _make_runner(self, trial: Trial):
@@ -452,9 +497,9 @@ class TrustEnv(RenderMixin, gym.Env):
         super().close()
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        options = check_reset_args(seed, options)
         super().reset(seed=seed)
         self.episode = 0 if seed is not None else self.episode + (self._runner is not None)
-        options = options or {}
         trial = options.get("trial")
         if trial is None:
             trial = self.trials.draw(self.np_random, self.episode)
@@ -462,6 +507,7 @@ class TrustEnv(RenderMixin, gym.Env):
             raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
         self.trial = cut_trial(trial, self.episode_seconds)
         self._runner = self._make_runner(self.trial)
+        self._steps = 0
         info = {
             "trial": self.trial.name,
             "rate": self.trial.rate,
@@ -501,6 +547,14 @@ class TrustEnv(RenderMixin, gym.Env):
             total = heading = incl = math.nan
             reward = 0.0
         last = runner.pos - 1
+        self._steps += 1
+        obs, q_est = self._obs(), runner.est[last].copy()
+        if not (math.isfinite(reward) and np.isfinite(q_est).all() and np.isfinite(obs).all()):
+            raise FloatingPointError(
+                f"{type(self).__name__}: the filter diverged in step {self._steps} after reset (samples "
+                f"{runner.pos - runner.last_count}…{last} of trial {self.trial.name!r}): non-finite "
+                f"{'observation' if np.isfinite(q_est).all() else 'estimate'}; check the env's filter arguments"
+            )
         info = {
             "t": last / self.trial.rate,
             "sample": runner.pos,
@@ -509,13 +563,13 @@ class TrustEnv(RenderMixin, gym.Env):
             "error_heading": heading,
             "error_inclination": incl,
             "disturbance_norm": (err[E_DIST] / runner.last_count) if runner.has_dist else math.nan,
-            "q_est": runner.est[last].copy(),
+            "q_est": q_est,
             "q_true": runner.q_true[last].copy(),
             **(extra_info or {}),
         }
         if self.render_mode == "human":
             self.render()
-        return self._obs(), float(reward), False, runner.done, info
+        return obs, float(reward), False, runner.done, info
 
     def _need_reset(self):
         """The runner of the current episode (RuntimeError before the first ``reset()``)."""

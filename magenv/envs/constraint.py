@@ -11,16 +11,16 @@ decision per sample reproduces the paper's filter.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
 
+from magenv.checks import check_bool, check_positive
 from magenv.envs import CONSTRAINT_ID
 from magenv.envs.batch import BatchVectorEnv, check_box_actions
-from magenv.envs.common import TrialRunner, TrustEnv, Truth
+from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import constraint as cf
 from magenv.metrics import N_ERR, error_sums
@@ -255,8 +255,9 @@ class MagConstraintEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
-        if not (math.isfinite(gain_max) and gain_max > 0):
-            raise ValueError(f"gain_max must be a positive number, got {gain_max!r}")
+        # bad arguments fail here, not at reset (ValueError / TypeError naming the argument)
+        control_gain, gain_max = check_bool("control_gain", control_gain), check_positive("gain_max", gain_max)
+        _, th2, th3, k_min, k_max = cf.check_rule_params(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
         self._setup(
             scenario,
             decision_every,
@@ -272,18 +273,17 @@ class MagConstraintEnv(TrustEnv):
             require=cf.require_two_link,
             trial_pool=trial_pool,
         )
-        self.control_gain = bool(control_gain)
-        self.gain_max = float(gain_max)
-        self.filter_kwargs = dict(th2=float(th2), th3=float(th3), k_min=float(k_min), k_max=float(k_max))
+        self.control_gain, self.gain_max = control_gain, gain_max
+        self.filter_kwargs = dict(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
 
     def _make_runner(self, trial: Trial) -> ConstraintRunner:
         return ConstraintRunner(trial, **self.filter_kwargs)  # checks link j's channels
 
     def _action(self, action) -> tuple[float, float | None, bool]:
         dim = self.action_space.shape[0]
-        a = np.asarray(action, dtype=float)
+        what = "[w, k/gain_max]" if self.control_gain else "w"
+        a = action_array(action, f"{what} in [0, 1]")
         if a.shape != (dim,) and not (dim == 1 and a.shape == ()):
-            what = "[w, k/gain_max]" if self.control_gain else "w"
             raise ValueError(f"action must have shape ({dim},) holding {what} in [0, 1], got shape {a.shape}")
         a = a.reshape(-1)
         if not np.all(np.isfinite(a)):

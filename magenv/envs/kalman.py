@@ -33,7 +33,7 @@ from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import kalman_trust as kt
-from magenv.filters.kalman_model import C_A, C_B, VecParams, vec_init, vec_step1
+from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
 from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
 from magenv.filters.kalman_trust import SIG
 from magenv.filters.sensors import Sensors
@@ -129,6 +129,20 @@ def _clip(x, i):
     if x != x:
         return 0.0 if lo <= 0.0 <= hi else lo
     return min(hi, max(lo, x))
+
+
+def make_model_params(params: kt.Params, model_c_a=C_A, model_c_b=C_B, model_p0=1.0) -> VecParams:
+    """The Gauss–Markov split of ``model_dist`` on the magnetometer (``kalman_model.make_vec_params``) with
+    the trust KF's Δt and noise; ``model_c_a`` in [0, 1), ``model_c_b`` µT and ``model_p0`` µT² finite > 0."""
+    return make_vec_params(
+        params.dt,
+        params.sigma_gyr,
+        params.sigma_mag,
+        model_c_a,
+        model_c_b,
+        model_p0,
+        ("sigma_mag", "model_c_a", "model_c_b", "model_p0"),
+    )
 
 
 @njit(cache=True)
@@ -245,17 +259,12 @@ def _features(params, sensors, mdist, out, start, stop, j):
 def trial_disturbance(trial: Trial, params: kt.Params, model_c_a: float, model_c_b: float, model_p0: float = 1.0):
     """(N,) ‖d̂‖ of ``trial`` (:func:`model_disturbance`) with the Gauss–Markov parameters of the ``model_dist``
     feature and the filter's noise model ``params``; FilterError if the split fails."""
-    model = VecParams(
-        params.dt,
-        params.sigma_gyr,
-        params.sigma_mag,
-        float(model_c_a),
-        float(model_c_b),
-        float(model_p0),
-        params.cov_floor,
-    )
+    model = make_model_params(params, model_c_a, model_c_b, model_p0)
     mdist = np.empty(trial.n)
-    st = model_disturbance(model, Sensors.of(trial), mdist)
+    try:
+        st = model_disturbance(model, Sensors.of(trial), mdist)
+    except np.linalg.LinAlgError as exc:  # a covariance the noise model left singular
+        raise kt.FilterError(f"model-based disturbance split of trial {trial.name!r}: {exc}") from None
     if st != OK:
         raise kt.FilterError(f"model-based disturbance split failed at sample {st} of trial {trial.name!r}")
     return mdist
@@ -286,8 +295,6 @@ class KalmanRunner(TrialRunner):
     ):
         super().__init__(trial, first=1)
         self.params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt) if params is None else params
-        if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
-            raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a}, {model_c_b}")
         self.mdist = trial_disturbance(trial, self.params, model_c_a, model_c_b, model_p0)
         self.state = kt.init(self.params, trial.acc[0], trial.mag[0])
         self.out = Outputs.empty(trial.n)
@@ -453,10 +460,9 @@ class MagKalmanEnv(TrustEnv):
             prefetch=prefetch,
             trial_pool=trial_pool,
         )
-        if not 0.0 <= model_c_a < 1.0 or not model_c_b > 0.0:
-            raise ValueError(f"model_c_a must be in [0, 1) and model_c_b > 0, got {model_c_a!r}, {model_c_b!r}")
-        if not th_acc > 0:
-            raise ValueError(f"th_acc must be positive (math.inf disables the gate), got {th_acc!r}")
+        # validate the noise model now, not at reset (ValueError / TypeError naming the argument)
+        probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only)
+        make_model_params(probe, model_c_a, model_c_b)
         self.filter_kwargs = dict(
             sigma_gyr=float(sigma_gyr),
             sigma_acc=float(sigma_acc),
@@ -464,7 +470,6 @@ class MagKalmanEnv(TrustEnv):
             th_acc=float(th_acc),
             heading_only=bool(heading_only),
         )
-        kt.make_params(46.0, 49.6, 1.0 / 256.0, **self.filter_kwargs)  # validate the noise model now, not at reset
         self.model_kwargs = dict(model_c_a=float(model_c_a), model_c_b=float(model_c_b))
 
     def _make_runner(self, trial: Trial) -> KalmanRunner:

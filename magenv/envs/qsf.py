@@ -25,9 +25,10 @@ import numpy as np
 from gymnasium import spaces
 from numba import njit, prange
 
+from magenv.checks import check_choice, check_mapping
 from magenv.envs import QSF_ID
 from magenv.envs.batch import BatchVectorEnv
-from magenv.envs.common import TrialRunner, TrustEnv, Truth
+from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import qsf
 from magenv.filters.qsf import SIGNAL
@@ -66,13 +67,12 @@ DECISIONS = ("none", "start", "keep")  # indexed by the qsf.MAG_* codes
 
 def decode_action(action) -> tuple[int, float, bool]:
     """(magnetic action code, trust, clipped) of an action ``[a0, a1]`` (see MagQSFEnv docstring)."""
-    a = np.asarray(action, dtype=float).reshape(-1)
-    if a.shape != (2,):
-        raise ValueError(
-            f"action must have shape (2,) = [decision in [-1, 1], trust in [0, 1]], got {np.shape(action)}"
-        )
+    what = "[decision in [-1, 1], trust in [0, 1]]"
+    a = action_array(action, what)
+    if a.shape != (2,):  # exactly (2,): a (2, 1) or (1, 2) array is refused, not flattened
+        raise ValueError(f"action must have shape (2,) = {what}, got shape {a.shape}")
     if not np.all(np.isfinite(a)):
-        raise ValueError(f"action must be finite, got {a}")
+        raise ValueError(f"action must be finite numbers {what}, got {a.tolist()}")
     clipped = bool(a[0] < -1 or a[0] > 1 or a[1] < 0 or a[1] > 1)
     d = min(1.0, max(-1.0, a[0]))
     trust = min(1.0, max(0.0, a[1]))
@@ -339,10 +339,9 @@ class MagQSFEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
-        if variant not in VARIANTS:
-            raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
-        if init not in qsf.INITS:
-            raise ValueError(f"init must be one of {qsf.INITS}, got {init!r}")
+        check_choice("variant", variant, VARIANTS)
+        check_choice("init", init, qsf.INITS)
+        filter_kwargs = check_mapping("filter_kwargs", filter_kwargs)
         self._setup(
             scenario,
             decision_every,
@@ -364,7 +363,7 @@ class MagQSFEnv(TrustEnv):
         elif detector is not None and not isinstance(detector, qsf.QSFDetector):
             raise TypeError(f"detector must be a QSFDetector or a mapping of its thresholds, got {detector!r}")
         self.detector = detector or qsf.QSFDetector()
-        self.filter_kwargs = dict(filter_kwargs or {})
+        self.filter_kwargs = filter_kwargs
         qsf.make_params(50.0, 60.0, mode=variant, **self.filter_kwargs)  # bad keywords fail here, not at reset
 
     def _make_runner(self, trial: Trial) -> QSFRunner:

@@ -27,8 +27,9 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from magenv.checks import check_bool, check_number, check_vector
 from magenv.filters import stationary
-from magenv.filters.madgwick import BETA_DEFAULT, MODE_IMU, MODE_MIMU, NO_REF, ecompass1, step
+from magenv.filters.madgwick import BETA_DEFAULT, MODE_IMU, MODE_MIMU, NO_REF, check_beta, ecompass1, step
 from magenv.filters.sensors import Sensors
 from magenv.protocols import Estimate
 from magenv.quaternion import normalize1
@@ -63,15 +64,22 @@ def make_params(
     th_acc_g: float = stationary.TH_ACC_G,
     th_gyro_dps: float = stationary.TH_GYRO_DPS,
 ) -> Params:
-    """Parameters for sample interval ``dt`` s, gain β rad/s and the stationary thresholds (g, °/s)."""
+    """Parameters for sample interval ``dt`` s > 0, gain β rad/s (``madgwick.check_beta``), the stationary hold
+    (a bool) and the stationary thresholds (g, °/s; ``stationary.thresholds``). Raises ValueError or
+    TypeError naming a bad one."""
     th_acc, th_gyro = stationary.thresholds(th_acc_g, th_gyro_dps)
-    return Params(float(beta), float(dt), float(th_acc), float(th_gyro), bool(hold))
+    dt = check_number("dt", dt, 0.0, lo_open=True)
+    return Params(check_beta(beta), dt, float(th_acc), float(th_gyro), check_bool("hold", hold))
 
 
 def make_state(trial: Trial, t0: float = stationary.T0_S, q0=None) -> State:
-    """Initial state: ``q0`` (normalised) or, if None, ``ecompass1`` of the first sample (never truth);
-    an empty stationary detector of interval ``t0`` s."""
-    q = ecompass1(trial.acc[0], trial.mag[0]) if q0 is None else np.array(normalize1(np.asarray(q0, float)), float)
+    """Initial state: ``q0`` (4 finite numbers, not all zero; normalised) or, if None, ``ecompass1`` of the
+    first sample (never truth); an empty stationary detector of interval ``t0`` s."""
+    q = (
+        ecompass1(trial.acc[0], trial.mag[0])
+        if q0 is None
+        else np.array(normalize1(check_vector("q0", q0, 4, nonzero=True)), float)
+    )
     return State(q, stationary.make_state(trial.rate, t0))
 
 
@@ -133,10 +141,12 @@ class BlendEstimator:
         th_gyro_dps: float = stationary.TH_GYRO_DPS,
         q0=None,
     ):
-        if not 0.0 <= lam <= 1.0:
-            raise ValueError(f"λ must lie in [0, 1], got {lam}")
-        self.lam, self.hold, self.beta, self.t0, self.q0 = float(lam), hold, beta, t0, q0
-        self.th_acc_g, self.th_gyro_dps = th_acc_g, th_gyro_dps
+        self.lam = check_number("lam", lam, 0.0, 1.0)
+        make_params(1.0, beta, hold, th_acc_g, th_gyro_dps)  # bad values fail here, not in run()
+        stationary.make_state(1.0, t0)
+        self.hold, self.beta, self.t0 = bool(hold), float(beta), float(t0)
+        self.q0 = None if q0 is None else check_vector("q0", q0, 4, nonzero=True)
+        self.th_acc_g, self.th_gyro_dps = float(th_acc_g), float(th_gyro_dps)
 
     def run(self, trial: Trial) -> Estimate:
         params = make_params(trial.dt, self.beta, self.hold, self.th_acc_g, self.th_gyro_dps)

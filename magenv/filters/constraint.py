@@ -51,6 +51,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from magenv.checks import check_bool, check_number, check_positive, check_vector
 from magenv.filters.madgwick import ecompass1
 from magenv.quaternion import earth_field, normalize1, rotate, rotate1
 from magenv.trial import Trial
@@ -360,39 +361,44 @@ def make_params(
     k_max: float = K_MAX,
     use_constraint: bool = True,
 ) -> Params:
-    """:class:`Params` for ``trial`` (its Δt and Earth field); raises ValueError for thresholds out of range."""
-    for name, v in (("th1", th1), ("th3", th3)):
-        if not v > 0:
-            raise ValueError(f"{name} must be > 0, got {v!r}")
-    if not (0 <= th2 <= 1 and 0 <= k_min <= k_max):
-        raise ValueError(f"need 0 ≤ th2 ≤ 1 and 0 ≤ k_min ≤ k_max, got th2={th2}, k_min={k_min}, k_max={k_max}")
+    """:class:`Params` for ``trial`` (its Δt and Earth field) and the rules' parameters
+    (:func:`check_rule_params`); ValueError / TypeError naming a bad one."""
+    th1, th2, th3, k_min, k_max = check_rule_params(th1, th2, th3, k_min, k_max)
     n = earth_field(trial.field_norm, trial.field_dip) / trial.field_norm
     return Params(
         float(trial.dt),
         float(trial.field_norm),
         (float(n[0]), float(n[1]), float(n[2])),
-        float(th1),
-        float(th2),
-        float(th3),
-        float(k_min),
-        float(k_max),
-        bool(use_constraint),
+        th1,
+        th2,
+        th3,
+        k_min,
+        k_max,
+        check_bool("use_constraint", use_constraint),
     )
+
+
+def check_rule_params(th1=TH1, th2=TH2, th3=TH3, k_min=K_MIN, k_max=K_MAX) -> tuple[float, float, float, float, float]:
+    """The parameters of eqs. 16 and 18 as floats: ``th1`` (field deviation, fraction of m0) and ``th3`` (‖Δq‖)
+    finite > 0, ``th2`` (a weight) in [0, 1], gains ``k_min`` finite ≥ 0 and ``k_max`` finite ≥ k_min (1/s);
+    ValueError / TypeError naming a bad one."""
+    th1, th3 = check_positive("th1", th1), check_positive("th3", th3)
+    th2, k_min = check_number("th2", th2, 0.0, 1.0), check_number("k_min", k_min, 0.0)
+    k_max = check_number(f"k_max (≥ k_min = {k_min:g})", k_max, k_min)
+    return th1, th2, th3, k_min, k_max
 
 
 def _lever(trial: Trial, given, key: str) -> np.ndarray:
     """Lever arm r (3,) m, sensor → joint centre: ``given`` or ``trial.meta[key]``."""
+    name = f"{key.removesuffix('_m')} (lever arm, m)"
     if given is None:
         if key not in trial.meta:
             raise MissingChannelsError(
                 f"trial {trial.name!r} has no meta[{key!r}] (sensor → joint centre, m); "
                 f"pass lever_i / lever_j to the filter"
             )
-        given = trial.meta[key]
-    r = np.asarray(given, float)
-    if r.shape != (3,) or not np.all(np.isfinite(r)):
-        raise ValueError(f"lever arm {key} must be 3 finite numbers (m), got {given!r}")
-    return r
+        given, name = trial.meta[key], f"trial {trial.name!r} meta[{key!r}] (lever arm, m)"
+    return check_vector(name, given, 3)
 
 
 def make_inputs(trial: Trial, lever_i: np.ndarray, lever_j: np.ndarray) -> Inputs:
@@ -436,10 +442,13 @@ class ConstraintFilter:
         self.params = make_params(trial, th1, th2, th3, k_min, k_max, use_constraint)
         self.trial = trial
         self.inputs = make_inputs(trial, self.lever_i, self.lever_j)
-        self.q0 = ecompass1(trial.acc[0], trial.mag[0]) if q0 is None else normalize1(np.asarray(q0, float)).copy()
+        self.q0 = ecompass1(trial.acc[0], trial.mag[0]) if q0 is None else normalize1(check_vector("q0", q0, 4, True))
 
     def run(self, weight: float | None = None, gain: float | None = None) -> Trace:
-        """The whole trial from ``q0`` with constant w and k (None = eq. 16 / eq. 18); returns its :class:`Trace`."""
+        """The whole trial from ``q0`` with constant w ∈ [0, 1] and k ≥ 0 1/s (None = eq. 16 / eq. 18); returns its
+        :class:`Trace`. ValueError / TypeError naming a bad w or k."""
+        weight = None if weight is None else check_number("weight", weight, 0.0, 1.0)
+        gain = None if gain is None else check_number("gain", gain, 0.0)
         trace = Trace.empty(self.trial.n)
         fuse(self.params, self.q0.copy(), self.inputs, Control.of(weight, gain), 0, self.trial.n, trace)
         return trace

@@ -43,6 +43,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
+from magenv.checks import check_noise, check_number, check_positive, check_site
 from magenv.filters.kalman_threshold import (
     COV_FLOOR,
     OK,
@@ -82,6 +83,24 @@ class Params(NamedTuple):
     solver: Solver  # TRIAD or QUEST on the a-posteriori references
     g_ref: np.ndarray  # (3,) gravity reference, ENU (up), m/s²
     h_ref: np.ndarray  # (3,) Earth field, ENU, µT
+
+
+def make_vec_params(
+    dt, sigma_gyr, sigma_y, c_a=C_A, c_b=C_B, p0_ref=1.0, names=("sigma_y", "c_a", "c_b", "p0_ref")
+) -> VecParams:
+    """:class:`VecParams` of one split: ``dt`` s, ``sigma_gyr`` rad/s, the sensor's ``sigma_y``, ``c_b`` and
+    ``p0_ref`` finite > 0, ``c_a`` in [0, 1) (a stable Gauss–Markov model); ``names`` are the caller's names
+    of (sigma_y, c_a, c_b, p0_ref) in the ValueError / TypeError of a bad one."""
+    n_sigma, n_ca, n_cb, n_p0 = names
+    return VecParams(
+        check_positive("dt", dt),
+        check_noise("sigma_gyr", sigma_gyr, "gyr"),
+        check_positive(n_sigma, sigma_y),
+        check_number(f"{n_ca} (a stable Gauss–Markov correlation)", c_a, 0.0, 1.0, hi_open=True),
+        check_positive(n_cb, c_b),
+        check_positive(n_p0, p0_ref),
+        COV_FLOOR,
+    )
 
 
 @njit(cache=True)
@@ -235,29 +254,25 @@ class ModelKF:
     p0_acc: float = 1.0
     p0_mag: float = 1.0
 
+    def __post_init__(self) -> None:
+        self.params(46.0, 49.6, 1.0 / 256.0)  # bad attributes fail here, not in run()
+
     def params(self, field_norm: float, field_dip: float, dt: float) -> Params:
-        """Kernel parameters for a site (m0 µT, θ0 degrees) and sample interval ``dt`` s."""
+        """Kernel parameters for a site (m0 µT, θ0 degrees) and sample interval ``dt`` s (each split by
+        :func:`make_vec_params`); ValueError / TypeError naming a bad attribute."""
         solver = make_solver(self.solver, self.weights)
-        for name in ("c_a", "c_a_mag"):
-            if not 0.0 <= getattr(self, name) < 1.0:
-                raise ValueError(f"{name} must be in [0, 1) for a stable Gauss–Markov model, got {getattr(self, name)}")
-        acc = VecParams(
-            float(dt),
-            float(self.sigma_gyr),
-            float(self.sigma_acc),
-            float(self.c_a),
-            float(self.c_b),
-            float(self.p0_acc),
-            COV_FLOOR,
+        field_norm, field_dip = check_site(field_norm, field_dip)
+        acc = make_vec_params(
+            dt, self.sigma_gyr, self.sigma_acc, self.c_a, self.c_b, self.p0_acc, ("sigma_acc", "c_a", "c_b", "p0_acc")
         )
-        mag = VecParams(
-            float(dt),
-            float(self.sigma_gyr),
-            float(self.sigma_mag),
-            float(self.c_a_mag),
-            float(self.c_b_mag),
-            float(self.p0_mag),
-            COV_FLOOR,
+        mag = make_vec_params(
+            dt,
+            self.sigma_gyr,
+            self.sigma_mag,
+            self.c_a_mag,
+            self.c_b_mag,
+            self.p0_mag,
+            ("sigma_mag", "c_a_mag", "c_b_mag", "p0_mag"),
         )
         return Params(acc, mag, solver, quat.gravity_up(), quat.earth_field(field_norm, field_dip))
 

@@ -50,6 +50,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
+from magenv.checks import check_noise, check_positive, check_site
 from magenv.filters.sensors import Sensors
 from magenv.filters.solvers import Solver, make_solver, solve1
 from magenv.quaternion import GRAVITY, align1, from_rotvec1, mul1, normalize1, rotate_inv1
@@ -67,8 +68,9 @@ COV_FLOOR = 1e-14  # eigenvalue floor of a repaired covariance (state units²)
 OK = -1
 
 
-class FilterError(RuntimeError):
-    """A filter met a non-finite input or an unrecoverable covariance."""
+class FilterError(FloatingPointError, RuntimeError):
+    """A filter met a non-finite input or an unrecoverable covariance (a ``FloatingPointError``, as the envs'
+    divergence, and a ``RuntimeError``)."""
 
 
 class Params(NamedTuple):
@@ -345,26 +347,37 @@ class ThresholdKF:
     sigma_meas: float | None = None
     p0: float = 1e-2
 
+    def __post_init__(self) -> None:
+        self.params(46.0, 49.6, 1.0 / 256.0)  # bad attributes fail here, not in run()
+
     def params(self, field_norm: float, field_dip: float, dt: float) -> Params:
-        """Kernel parameters for a site (m0 µT, θ0 degrees) and sample interval ``dt`` s."""
+        """Kernel parameters for a site (m0 µT, θ0 degrees) and sample interval ``dt`` s. Noise stds,
+        ``sigma_meas`` (or None) and ``p0`` finite > 0, thresholds > 0 (inf: never gated); ValueError /
+        TypeError naming a bad one."""
         solver = make_solver(self.solver, self.weights)
-        sig = self.sigma_meas
-        if sig is None:
-            sig = np.hypot(self.sigma_acc / GRAVITY, self.sigma_mag / (field_norm * np.cos(np.deg2rad(field_dip))))
+        field_norm, field_dip = check_site(field_norm, field_dip)
+        sigma_acc, sigma_mag = (
+            check_noise("sigma_acc", self.sigma_acc, "acc"),
+            check_noise("sigma_mag", self.sigma_mag, "mag"),
+        )
+        if self.sigma_meas is None:
+            sig = np.hypot(sigma_acc / GRAVITY, sigma_mag / (field_norm * np.cos(np.deg2rad(field_dip))))
+        else:
+            sig = check_positive("sigma_meas", self.sigma_meas)
         return Params(
-            float(dt),
-            float(self.sigma_gyr),
+            check_positive("dt", dt),
+            check_noise("sigma_gyr", self.sigma_gyr, "gyr"),
             float(0.25 * sig * sig),
-            float(field_norm),
+            field_norm,
             float(np.deg2rad(field_dip)),
-            float(self.th_acc),
-            float(self.th_mag),
-            float(np.deg2rad(self.th_dip)),
+            check_positive("th_acc", self.th_acc, inf_ok=True),
+            check_positive("th_mag", self.th_mag, inf_ok=True),
+            float(np.deg2rad(check_positive("th_dip", self.th_dip, inf_ok=True))),
             solver,
             quat.gravity_up(),
             quat.earth_field(field_norm, field_dip),
             COV_FLOOR,
-            float(self.p0),
+            check_positive("p0", self.p0),
         )
 
     def run(self, trial) -> ThresholdResult:

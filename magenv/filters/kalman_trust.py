@@ -67,6 +67,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
+from magenv.checks import check_bool, check_noise, check_positive, check_site
 from magenv.filters.kalman_threshold import (
     COV_FLOOR,
     OK,
@@ -138,37 +139,29 @@ def make_params(
     heading_only: bool = True,
     p0: float = P0,
 ) -> Params:
-    """Parameters for a site and sample interval.
+    """Parameters for a site and sample interval; ValueError / TypeError naming a bad one (``magenv.checks``).
 
     Args:
-        field_norm: m0, µT. field_dip: θ0, degrees down. dt: s.
-        sigma_gyr: rad/s. sigma_acc: m/s². sigma_mag: µT (survey noise by default).
-        th_acc: accelerometer gate, m/s² (Table A1); ``np.inf`` disables it.
-        heading_only: the magnetometer corrects the heading only (Schmidt gain).
-        p0: initial variance of each error angle, rad².
+        field_norm: m0, µT (``magenv.checks.check_site``). field_dip: θ0, degrees down. dt: s > 0.
+        sigma_gyr: rad/s. sigma_acc: m/s². sigma_mag: µT (survey noise by default); each finite > 0.
+        th_acc: accelerometer gate, m/s² > 0 (Table A1); ``np.inf`` disables it.
+        heading_only: the magnetometer corrects the heading only (Schmidt gain); a bool.
+        p0: initial variance of each error angle, rad², finite > 0.
     """
-    for name, v in (
-        ("sigma_gyr", sigma_gyr),
-        ("sigma_acc", sigma_acc),
-        ("sigma_mag", sigma_mag),
-        ("p0", p0),
-        ("dt", dt),
-    ):
-        if not (np.isfinite(v) and v > 0):
-            raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+    field_norm, field_dip = check_site(field_norm, field_dip)
     return Params(
-        float(dt),
-        float(sigma_gyr),
-        float(sigma_acc),
-        float(sigma_mag),
-        float(th_acc),
-        bool(heading_only),
+        check_positive("dt", dt),
+        check_noise("sigma_gyr", sigma_gyr, "gyr"),
+        check_noise("sigma_acc", sigma_acc, "acc"),
+        check_noise("sigma_mag", sigma_mag, "mag"),
+        check_positive("th_acc", th_acc, inf_ok=True),
+        check_bool("heading_only", heading_only),
         quat.gravity_up(),
         quat.earth_field(field_norm, field_dip),
-        float(field_norm),
+        field_norm,
         float(np.deg2rad(field_dip)),
         COV_FLOOR,
-        float(p0),
+        check_positive("p0", p0),
     )
 
 
@@ -323,7 +316,10 @@ def run_trial(trial, trust, params: Params | None = None) -> tuple[np.ndarray, n
     if params is None:
         params = make_params(trial.field_norm, trial.field_dip, trial.dt)
     n = trial.n
-    trust = np.broadcast_to(np.asarray(trust, dtype=float), (n,))
+    try:
+        trust = np.broadcast_to(np.asarray(trust, dtype=float), (n,))
+    except (TypeError, ValueError):
+        raise ValueError(f"trust must be a number in [0, 1] or one per sample ({n},), got {trust!r:.80}") from None
     sensors = Sensors.of(trial)
     state = init(params, trial.acc[0], trial.mag[0])
     q_out = np.empty((n, 4))

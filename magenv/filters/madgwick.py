@@ -47,9 +47,16 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
+from magenv.checks import check_number, check_vector
 from magenv.filters.solvers import quat_from_dcm1
 
 BETA_DEFAULT = 0.1  # rad/s, Fan et al. 2017 §3
+BETA_MAX = 10.0  # rad/s, the largest gain accepted (eq. 10: a gyro error of 11.5 rad/s, far beyond any MEMS gyro)
+
+
+def check_beta(beta) -> float:
+    """The gain β as a float, rad/s: a finite number in [0, ``BETA_MAX``] (0: gyro integration only)."""
+    return check_number("beta", beta, 0.0, BETA_MAX)
 
 
 @njit(cache=True, inline="always")
@@ -242,7 +249,11 @@ def run_madgwick(gyr, acc, mag=None, rate: float = 256.0, beta: float = BETA_DEF
     acc = np.ascontiguousarray(acc, float)
     use_mag = mag is not None
     mag = np.ascontiguousarray(mag, float) if use_mag else np.zeros_like(acc)
+    for name, a in (("gyr", gyr), ("acc", acc), ("mag", mag)):
+        if a.ndim != 2 or a.shape[1] != 3 or len(a) != len(gyr) or len(a) == 0:
+            raise ValueError(f"{name} must be (N, 3) with the N ≥ 1 rows of gyr, got shape {a.shape}")
+    rate, beta = check_number("rate", rate, 0.0, lo_open=True), check_beta(beta)
     if q0 is None:
         q0 = ecompass1(acc[0], mag[0]) if use_mag else np.array([1.0, 0.0, 0.0, 0.0])
-    q0 = quat.normalize(np.asarray(q0, float))
-    return _run(q0, gyr, acc, mag, float(beta), 1.0 / float(rate), use_mag)
+    q0 = quat.normalize(check_vector("q0", q0, 4, nonzero=True))
+    return _run(q0, gyr, acc, mag, beta, 1.0 / rate, use_mag)

@@ -104,6 +104,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
+from magenv.checks import check_bool, check_choice, check_noise, check_number, check_positive, check_site, check_vector
 from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_cov1, right_matrix1
 from magenv.filters.solvers import triad1
 from magenv.quaternion import GRAVITY, from_rotvec1, mul1, normalize1, rotate1
@@ -214,54 +215,41 @@ def make_params(
     max_age_s: float = MAX_AGE_S,
     acc_adaptive: float = 0.0,
 ) -> Params:
-    """:class:`Params` of the kernels.
+    """:class:`Params` of the kernels; ValueError / TypeError naming a bad argument (``magenv.checks``).
 
     Args:
-        field_norm: Earth field m0, µT; field_dip: ° down (used by the AEKF reference and TRIAD init).
+        field_norm: Earth field m0, µT; field_dip: ° down (used by the AEKF reference and TRIAD init;
+            ``magenv.checks.check_site``).
         mode: "aekf", "magyq" or "delay_magyq".
         sigma_gyr: gyro white noise, rad/s. sigma_acc: m/s² (default 0.1 g, §5.3).
-        sigma_mag: µT (default 0.1·m0, §5.3). th_acc: accelerometer norm gate, m/s² (inf = never gated).
+        sigma_mag: µT (default 0.1·m0, §5.3). th_acc: accelerometer norm gate, m/s² > 0 (inf = never gated).
         sigma_bias_walk: gyro bias random walk, rad/s per √s. sigma_acc_bias_walk: m/s² per √s.
-        update_reference: Delay MAGYQ corrects the t0 estimate (and the reference) too.
-        max_age_s: a QSF period is restarted once older than this, s.
+            Every σ finite > 0.
+        update_reference: Delay MAGYQ corrects the t0 estimate (and the reference) too (a bool).
+        max_age_s: a QSF period is restarted once older than this, s (finite > 0).
         acc_adaptive: k ≥ 0; the accelerometer variance becomes σ_a² + (k·(|y_a| − g))² (0 = the paper's
             constant R_a).
     """
-    if mode not in MODES:
-        raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
+    check_choice("mode", mode, tuple(MODES))
+    field_norm, field_dip = check_site(field_norm, field_dip)
     sigma_acc = 0.1 * GRAVITY if sigma_acc is None else sigma_acc
     sigma_mag = 0.1 * field_norm if sigma_mag is None else sigma_mag
-    for name, v in (
-        ("sigma_gyr", sigma_gyr),
-        ("sigma_acc", sigma_acc),
-        ("sigma_mag", sigma_mag),
-        ("sigma_bias_walk", sigma_bias_walk),
-        ("sigma_acc_bias_walk", sigma_acc_bias_walk),
-        ("max_age_s", max_age_s),
-        ("field_norm", field_norm),
-    ):
-        if not (np.isfinite(v) and v > 0):
-            raise ValueError(f"{name} must be a positive finite number, got {v!r}")
-    if not th_acc > 0:
-        raise ValueError(f"th_acc must be > 0 m/s² (inf disables the gate), got {th_acc!r}")
-    if not (np.isfinite(acc_adaptive) and acc_adaptive >= 0):
-        raise ValueError(f"acc_adaptive must be a finite number ≥ 0, got {acc_adaptive!r}")
     vector = lambda v: tuple(float(c) for c in v)
     return Params(
         MODES[mode],
-        float(sigma_gyr),
-        float(sigma_bias_walk),
-        float(sigma_acc_bias_walk),
-        float(sigma_acc),
-        float(sigma_mag),
-        float(th_acc),
+        check_noise("sigma_gyr", sigma_gyr, "gyr"),
+        check_positive("sigma_bias_walk", sigma_bias_walk),
+        check_positive("sigma_acc_bias_walk", sigma_acc_bias_walk),
+        check_noise("sigma_acc", sigma_acc, "acc"),
+        check_noise("sigma_mag", sigma_mag, "mag"),
+        check_positive("th_acc (m/s²; inf disables the gate)", th_acc, inf_ok=True),
         vector(quat.gravity_up()),
         vector(quat.earth_field(field_norm, field_dip)),
         float(COV_FLOOR),
         float(RADIAL_EPS),
-        bool(update_reference),
-        float(max_age_s),
-        float(acc_adaptive),
+        check_bool("update_reference", update_reference),
+        check_positive("max_age_s", max_age_s),
+        check_number("acc_adaptive", acc_adaptive, 0.0),
     )
 
 
@@ -586,16 +574,13 @@ class QSFDetector:
 
     def __post_init__(self) -> None:
         for k in ("window_s", "th_spread", "th_drift", "max_period_s"):
-            v = getattr(self, k)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"QSFDetector.{k} must be a positive finite number, got {v!r}")
+            check_positive(f"QSFDetector.{k}", getattr(self, k))
 
     @classmethod
     def for_noise(cls, sigma_ut: float, **kw) -> QSFDetector:
         """Thresholds scaled to a magnetometer's white noise σ (µT per axis): the 3D spread of pure noise is
         ≈ √3·σ, so th_spread = 2√3·σ and th_drift = 4√3·σ (σ = 0.3 µT gives the defaults 1.0 / 2.0 µT)."""
-        if not (np.isfinite(sigma_ut) and sigma_ut > 0):
-            raise ValueError(f"sigma_ut must be a positive number of µT, got {sigma_ut!r}")
+        sigma_ut = check_positive("sigma_ut (µT)", sigma_ut)
         return cls(th_spread=2.0 * np.sqrt(3.0) * sigma_ut, th_drift=4.0 * np.sqrt(3.0) * sigma_ut, **kw)
 
     def detect(self, gyr, mag, rate: float) -> tuple[np.ndarray, np.ndarray]:
@@ -633,11 +618,12 @@ def initial_state(
     """:class:`State` at orientation q0 (4,): zero biases, no QSF period.
 
     p0_angle: rad (quaternion variance (p0/2)² per component); p0_gyr_bias: rad/s (quaternion bias
-    std dt/2 · p0_gyr_bias); p0_acc_bias: m/s².
+    std dt/2 · p0_gyr_bias); p0_acc_bias: m/s²; each finite > 0 (ValueError / TypeError naming it).
     """
-    q0 = np.asarray(q0, float)
-    if q0.shape != (4,) or not np.all(np.isfinite(q0)) or np.linalg.norm(q0) < 1e-9:
-        raise FilterError(f"QSF filters: bad initial quaternion {q0}")
+    q0 = check_vector("q0", q0, 4, nonzero=True)
+    dt = check_positive("dt", dt)
+    p0_angle, p0_gyr_bias = check_positive("p0_angle", p0_angle), check_positive("p0_gyr_bias", p0_gyr_bias)
+    p0_acc_bias = check_positive("p0_acc_bias", p0_acc_bias)
     x = np.zeros(N_AUGMENTED)
     x[ORIENTATION] = q0 / np.linalg.norm(q0)
     cov = np.zeros((N_AUGMENTED, N_AUGMENTED))
@@ -737,11 +723,14 @@ def run_trial(
         codes = np.ascontiguousarray(actions, np.int8)
         if codes.shape != (trial.n,) or np.any((codes < 0) | (codes > 2)):
             raise ValueError(f"actions must be (N,) = ({trial.n},) with values 0, 1, 2")
-    q_init = initial_orientation(trial, init, params) if q0 is None else np.asarray(q0, float)
+    q_init = initial_orientation(trial, init, params) if q0 is None else check_vector("q0", q0, 4, nonzero=True)
     state = initial_state(q_init, trial.dt, **(p0 or {}))
-    trusts = np.broadcast_to(np.asarray(trust, float), (trial.n,)).copy()
-    if np.any((trusts < 0) | (trusts > 1)):
-        raise ValueError("trust must be in [0, 1]")
+    try:
+        trusts = np.broadcast_to(np.asarray(trust, float), (trial.n,)).copy()
+    except (TypeError, ValueError):
+        trusts = np.full(trial.n, np.nan)  # refused just below, with the trust named
+    if not np.all((trusts >= 0) & (trusts <= 1)):
+        raise ValueError(f"trust must be in [0, 1] (a number or one per sample), got {trust!r}")
     out = Outputs.empty(trial.n)
     repairs = run(params, state, Inputs(trial.gyr, trial.acc, trial.mag, codes, trusts), trial.dt, 0, trial.n, out)
     return QSFResult(out.q, out.sig, codes, spread, repairs)

@@ -36,6 +36,7 @@ import numpy as np
 from numba import njit
 
 from magenv import quaternion as quat
+from magenv.checks import check_choice, check_vector
 
 
 class SolverError(ValueError):
@@ -56,10 +57,13 @@ class Solver(NamedTuple):
 
 
 def make_solver(name: str, weights: tuple[float, float] = QUEST_WEIGHTS) -> Solver:
-    """The :class:`Solver` named ``name`` (``"triad"`` or ``"quest"``) with QUEST ``weights`` (w_acc, w_mag)."""
-    if name not in SOLVERS:
-        raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {name!r}")
-    return Solver(SOLVERS[name], float(weights[0]), float(weights[1]))
+    """The :class:`Solver` named ``name`` (``"triad"`` or ``"quest"``) with QUEST ``weights`` (w_acc, w_mag):
+    two finite numbers ≥ 0, not both zero. ValueError / TypeError naming the bad argument."""
+    check_choice("solver", name, sorted(SOLVERS))
+    w = check_vector("weights", weights, 2, nonzero=True)
+    if np.any(w < 0):
+        raise ValueError(f"weights must be two finite numbers ≥ 0 (w_acc, w_mag), not both zero, got {weights!r}")
+    return Solver(SOLVERS[name], float(w[0]), float(w[1]))
 
 
 @njit(cache=True, inline="always")

@@ -20,11 +20,13 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from magenv.checks import check_number
 from magenv.quaternion import GRAVITY
 
 T0_S = 0.5  # s, eq. 11 interval
 TH_ACC_G = 0.04  # g, eq. 12
 TH_GYRO_DPS = 0.5  # °/s, eq. 13
+T0_MAX_S = 60.0  # s, the longest eq. 11 interval accepted (its ring buffer holds t0·rate samples)
 
 
 class State(NamedTuple):
@@ -35,14 +37,15 @@ class State(NamedTuple):
 
 
 def make_state(rate: float, t0: float = T0_S) -> State:
-    """Empty detector state for ``rate`` Hz and interval ``t0`` s."""
-    length = max(1, int(round(t0 * rate)))
+    """Empty detector state for ``rate`` Hz and interval ``t0`` s ∈ [0, ``T0_MAX_S``]."""
+    t0 = check_number("t0", t0, 0.0, T0_MAX_S)
+    length = max(1, int(round(t0 * check_number("rate", rate, 0.0, lo_open=True))))
     return State(np.zeros((length, 3)), np.zeros(2, np.int64))
 
 
 def thresholds(th_acc_g: float = TH_ACC_G, th_gyro_dps: float = TH_GYRO_DPS) -> tuple[float, float]:
-    """Thresholds in SI units: (m/s², rad/s)."""
-    return th_acc_g * GRAVITY, np.deg2rad(th_gyro_dps)
+    """Thresholds in SI units: (m/s², rad/s), from finite ``th_acc_g`` g ≥ 0 and ``th_gyro_dps`` °/s ≥ 0."""
+    return check_number("th_acc_g", th_acc_g, 0.0) * GRAVITY, np.deg2rad(check_number("th_gyro_dps", th_gyro_dps, 0.0))
 
 
 @njit(cache=True, inline="always")

@@ -42,15 +42,8 @@ from collections.abc import Callable
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.scenarios.checks import (
-    check_instance,
-    check_intervals,
-    check_number,
-    check_numbers,
-    check_range,
-    check_shared_fields,
-)
-from magenv.scenarios.world import STATIONARY_RATE, World, trial_meta, trial_name
+from magenv.checks import check_instance, check_intervals, check_number, check_numbers, check_range
+from magenv.scenarios.world import STATIONARY_RATE, World, check_shared_fields, trial_meta, trial_name
 from magenv.sim import base_paths, earth, indoor, profiles
 from magenv.sim.gimbal import PHYSICS_RATE, Tube, simulate_gimbal
 from magenv.sim.hand import Approach, hand_path

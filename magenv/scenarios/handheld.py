@@ -46,8 +46,8 @@ import dataclasses
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.scenarios.checks import check_number, check_range, check_shared_fields
-from magenv.scenarios.world import World, trial_meta, trial_name
+from magenv.checks import check_number, check_range
+from magenv.scenarios.world import World, check_shared_fields, trial_meta, trial_name
 from magenv.sim import earth
 from magenv.sim.handheld import MODES, Motion, ideal_readings
 from magenv.sim.indoor_field import random_indoor_field

@@ -51,14 +51,8 @@ import dataclasses
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.scenarios.checks import (
-    check_intervals,
-    check_number,
-    check_numbers,
-    check_range,
-    check_shared_fields,
-)
-from magenv.scenarios.world import STATIONARY_RATE, World, trial_meta, trial_name
+from magenv.checks import check_intervals, check_number, check_numbers, check_range
+from magenv.scenarios.world import STATIONARY_RATE, World, check_shared_fields, trial_meta, trial_name
 from magenv.sim import earth, indoor
 from magenv.sim import twolink as tl
 from magenv.sim.hand import Approach, tool_path

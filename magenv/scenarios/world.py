@@ -15,11 +15,23 @@ from typing import Any
 
 import numpy as np
 
+from magenv.checks import check_instance, check_site
 from magenv.sim.sensors import SensorConfig
 from magenv.trial import META_SCENARIO, META_SEED, Trial
 
 #: A sample counts as stationary when the true (noise-free) angular rate is below this, rad/s.
 STATIONARY_RATE = 1e-3
+
+
+def check_shared_fields(cfg) -> None:
+    """The fields every world's config has, besides its own ``duration`` and ``rate`` bounds: the undisturbed
+    Earth field ``field_norm`` µT in (0, 1000] and ``field_dip`` ° in [-90, 90], ``sensor`` a SensorConfig,
+    and ``duration`` s × ``rate`` Hz at least 2 samples. Raises ValueError (TypeError for a non-number)
+    naming the field (``magenv.checks``)."""
+    check_site(cfg.field_norm, cfg.field_dip)
+    check_instance("sensor", cfg.sensor, SensorConfig)
+    if cfg.duration * cfg.rate < 2:
+        raise ValueError(f"duration × rate must give at least 2 samples, got {cfg.duration} s × {cfg.rate} Hz")
 
 
 @dataclasses.dataclass(frozen=True)
