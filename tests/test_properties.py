@@ -250,7 +250,7 @@ def test_a_refused_vector_step_steps_no_sub_env(env_trials):
     env, clean = make(), make()
     for e in (env, clean):
         e.reset(seed=3)
-    with pytest.raises(ValueError, match=r"row\(s\) \[1\]"):
+    with pytest.raises(ValueError, match=r"env 1 got \[nan\]"):
         env.step(np.array([[0.2], [np.nan]], np.float32))
     good = np.array([[0.2], [0.7]], np.float32)
     for _ in range(3):

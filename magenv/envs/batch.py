@@ -26,6 +26,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.utils import seeding
 
+from magenv.checks import check_int
 from magenv.envs.common import TrialRunner, TrustEnv, cut_trial
 from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR
 from magenv.trial import Trial
@@ -123,9 +124,13 @@ class TrialStore:
 
 def check_box_actions(actions, num_envs: int, low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(values (N, d) float64 clipped to [low, high], clipped (N,) bool) from ``actions`` (N, d), or (N,) when
-    d = 1. A wrong shape or a non-finite value is a ValueError naming the env."""
+    d = 1. A wrong shape or a non-finite value is a ValueError naming the env, actions that are no numbers a
+    TypeError."""
     d = low.shape[0]
-    a = np.asarray(actions, dtype=np.float64)
+    try:
+        a = np.asarray(actions, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"actions must be numbers, shape ({num_envs}, {d}), got {actions!r}") from None
     if a.shape != (num_envs, d) and not (d == 1 and a.shape == (num_envs,)):
         raise ValueError(f"actions must have shape ({num_envs}, {d}), got {a.shape}")
     a = a.reshape(num_envs, d)
@@ -173,9 +178,7 @@ class BatchVectorEnv(gym.vector.VectorEnv):
     first = 0
 
     def __init__(self, num_envs: int = 1, parallel: bool = False, **kwargs):
-        if isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        self.num_envs = n = int(num_envs)
+        self.num_envs = n = check_int("num_envs", num_envs, 1)
         self.template = env = self.env_class(**kwargs)
         self.env_kwargs = dict(kwargs)
         self.trials = env.trials
@@ -365,4 +368,5 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         return self._returns.copy(), self._lengths.copy()
 
     def close_extras(self, **kwargs) -> None:
-        self.template.close()
+        if hasattr(self, "template"):  # not when __init__ refused its arguments
+            self.template.close()
