@@ -36,6 +36,7 @@ class BatchVecEnv(VecEnv):
     def __init__(self, venv: BatchVectorEnv):
         self.venv = venv
         space = venv.single_action_space
+        assert isinstance(space, gym.spaces.Box) and space.shape is not None  # every magenv env acts in a Box
         self._low, self._high = space.low.astype(np.float64), space.high.astype(np.float64)
         box = gym.spaces.Box(-1.0, 1.0, space.shape, dtype=np.float32)
         super().__init__(venv.num_envs, venv.single_observation_space, box)
@@ -74,7 +75,7 @@ class BatchVecEnv(VecEnv):
         self.venv.close()
 
     def get_attr(self, attr_name: str, indices=None) -> list[Any]:
-        return [getattr(self.venv, attr_name)] * len(self._get_indices(indices))
+        return [getattr(self.venv, attr_name)] * len(list(self._get_indices(indices)))
 
     def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
         raise AttributeError(f"the {self.num_envs} envs of a batched vector env share their attributes")
@@ -83,7 +84,7 @@ class BatchVecEnv(VecEnv):
         raise AttributeError(f"a batched vector env has no per-env method {method_name!r}")
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
-        return [False] * len(self._get_indices(indices))
+        return [False] * len(list(self._get_indices(indices)))
 
 
 def make_train_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict) -> VecEnv:
@@ -93,7 +94,7 @@ def make_train_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict) -> Vec
     import magenv  # noqa: F401  (registers the envs)
 
     spec = gym.spec(env_id)
-    entry = spec.vector_entry_point
+    entry: Any = spec.vector_entry_point
     if isinstance(entry, str):
         from gymnasium.envs.registration import load_env_creator
 

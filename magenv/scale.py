@@ -109,7 +109,8 @@ def override_env_kwargs(methods: dict, overrides: dict[str, dict] | None) -> dic
     """``methods`` with ``overrides[env_id]`` merged into the ``env_kwargs`` of each policy acting in ``env_id``
     (e.g. ``{BLEND_ID: {"stationary_hold": False}}`` for ``compare --no-hold``); returns ``methods``."""
     for method in methods.values():
-        extra = (overrides or {}).get(getattr(method, "env_id", None))
+        env_id = getattr(method, "env_id", None)
+        extra = (overrides or {}).get(env_id) if env_id is not None else None
         if extra:
             method.env_kwargs = {**method.env_kwargs, **extra}
     return methods
@@ -135,7 +136,8 @@ class _Evaluator:
             {n: self.methods[n] for n in names}, [trial], self.env_kwargs, [label], keep_going=keep_going
         )
         if not keep:
-            runs = [evaluation.Run(r.method, None, r.label, None, None, None, r.score, r.error) for r in runs]
+            # the trial and the arrays stay with the caller (no transfer back)
+            runs = [evaluation.Run(r.method, None, r.label, None, None, None, r.score, r.error) for r in runs]  # type: ignore[arg-type]
         return index, runs
 
 
@@ -180,10 +182,10 @@ def evaluate(
     pool = ActorPool(
         [actor.remote(builds, env_kwargs, overrides, trust_pickle) for _ in range(min(workers, len(tasks)))]
     )
-    keep = set(keep)
+    kept = set(keep)
     cells: dict[tuple[int, str], evaluation.Run] = {}
     for index, runs in pool.map_unordered(
-        lambda a, task: a.run.remote(task[0], specs[task[0]], labels[task[0]], task[1], keep_going, task[0] in keep),
+        lambda a, task: a.run.remote(task[0], specs[task[0]], labels[task[0]], task[1], keep_going, task[0] in kept),
         tasks,
     ):
         for r in runs:
@@ -269,11 +271,12 @@ def tune_runs(
         ),
     )
     results: dict[str, dict | str] = {}
-    for result in tuner.fit():
-        name = result.config["run"]
+    grid = tuner.fit()
+    for result in (grid[i] for i in range(len(grid))):
+        name = (result.config or {})["run"]
         if result.error is not None:
             results[name] = f"{type(result.error).__name__}: {result.error}"
-        elif (result.metrics or {}).get("done"):
+        elif result.metrics and result.metrics.get("done"):
             results[name] = result.metrics
     return results
 

@@ -57,6 +57,28 @@ def test_an_upward_import_breaks_the_layers(tmp_path):
     assert "magenv.filters.upward -> magenv.evaluation" in result.stdout
 
 
+def test_types_check(tmp_path):
+    """mypy over the whole package (``[tool.mypy]`` in pyproject.toml), on the installed layout."""
+    staged = stage(tmp_path)
+    result = subprocess.run(
+        [
+            str(BIN / "mypy"),
+            "--config-file",
+            str(ROOT / "pyproject.toml"),
+            "--cache-dir",
+            str(tmp_path / ".mypy"),
+            "-p",
+            "magenv",
+        ],
+        cwd=staged,
+        env={**os.environ, "PYTHONPATH": str(staged)},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
+
+
 @pytest.mark.parametrize("folder", ["agents", "baselines", "train"])
 def test_repository_folders_are_subpackages_of_magenv(folder):
     import importlib

@@ -54,7 +54,7 @@ def frame_at_peak(policy, trial) -> np.ndarray:
         obs, _, terminated, truncated, info = env.step(policy(obs))
         if terminated or truncated:
             break
-    frame = env.render()
+    frame = np.asarray(env.render())
     env.close()
     return frame
 

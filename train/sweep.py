@@ -132,7 +132,7 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
     trials = [make_trial(s, seed) for s in spec["report_scenarios"] for seed in spec["report_seeds"]]
     reference = spec["reference"]
     runs_ = evaluation.evaluate({"agent": load_agent(run_dir), reference: registry.make(reference)}, trials)
-    scores = {m: [r.score.total for r in runs_ if r.method == m] for m in ("agent", reference)}
+    scores = {m: [r.scored.total for r in runs_ if r.method == m] for m in ("agent", reference)}
     progress = json.loads(state.read_text())
     record = {
         "name": name,

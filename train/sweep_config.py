@@ -39,6 +39,7 @@ import itertools
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -266,7 +267,7 @@ def load_sweep(path: str | Path) -> list[SweepRun]:
     )
     report_seeds = _seeds(where, "search.report.seeds", report.get("seeds", DEFAULT_REPORT_SEEDS), VALIDATION_START)
     reference = report.get("reference", DEFAULT_REFERENCE)
-    references = {
+    references: dict[str, Any] = {  # checked below: each a known method name
         e: reference.get(e, DEFAULT_REFERENCE.get(e)) if isinstance(reference, dict) else reference for e in envs
     }
     methods = registry.names()

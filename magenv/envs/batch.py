@@ -179,7 +179,8 @@ class BatchVectorEnv(gym.vector.VectorEnv):
 
     def __init__(self, num_envs: int = 1, parallel: bool = False, **kwargs):
         self.num_envs = n = check_int("num_envs", num_envs, 1)
-        self.template = env = self.env_class(**kwargs)
+        self.template: Any = self.env_class(**kwargs)  # the env subclass's options (filter_kwargs, …)
+        env = self.template
         self.env_kwargs = dict(kwargs)
         self.trials = env.trials
         self.trials.cache_size = 0  # the store keeps the trials in use
@@ -210,7 +211,9 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         self._returns = np.zeros(n)
         self._lengths = np.zeros(n, np.int64)
         self._alloc(n)
-        self._args, self._args_version, self._entry = None, -1, None
+        self._args: Any = None
+        self._args_version = -1
+        self._entry: Any = None
 
     # ------------------------------------------------------------ subclass interface
 
@@ -251,6 +254,7 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         """Sub-env i starts an episode: on ``trial``, or on the next trial of its own draws."""
         if trial is None:
             rng = self._rngs[i]
+            assert rng is not None  # seeded by reset() before any episode
             key = self.trials.pick(rng, int(self._episode[i]))
         else:
             key = ("given", id(trial))
@@ -271,6 +275,8 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         if trial is None and self.trials.prefetch:
             import copy
 
+            rng = self._rngs[i]
+            assert rng is not None
             nxt = self.trials.pick(copy.deepcopy(rng), int(self._episode[i]) + 1)
             if nxt not in self.store:
                 self.trials.prepare(nxt)
@@ -347,6 +353,7 @@ class BatchVectorEnv(gym.vector.VectorEnv):
 
     def _check_actions(self, actions) -> tuple[np.ndarray, np.ndarray]:
         space = self.single_action_space
+        assert isinstance(space, gym.spaces.Box)
         return check_box_actions(actions, self.num_envs, space.low.astype(np.float64), space.high.astype(np.float64))
 
     def reset_done(self) -> np.ndarray:

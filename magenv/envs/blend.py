@@ -16,7 +16,7 @@ reproduced exactly with one decision per sample. The env calls it once per step
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -402,7 +402,7 @@ class MagBlendEnv(TrustEnv):
         params = blend.make_params(1.0, beta, check_bool("stationary_hold", stationary_hold), th_acc_g, th_gyro_dps)
         stationary.make_state(1.0, t0)
         self.stationary_hold = params.hold
-        self.filter_kwargs = dict(
+        self.filter_kwargs: dict[str, Any] = dict(
             beta=params.beta,
             hold=params.hold,
             t0=float(t0),

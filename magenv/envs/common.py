@@ -55,8 +55,9 @@ def trial_source(scenario, world: str | None = None, require: Callable[[Trial], 
     if isinstance(scenario, (list, tuple)):
         if not scenario or not all(isinstance(t, Trial) for t in scenario):
             raise TypeError("scenario as a sequence must be a non-empty list of magenv.trial.Trial objects")
-        for trial in scenario if require is not None else ():
-            require(trial)
+        if require is not None:
+            for trial in scenario:
+                require(trial)
         return "trials", list(scenario)
     if not isinstance(scenario, str):
         what = "a scenario name, 'recording:PATH'" if world is None else f"a scenario name of the {world!r} world"
@@ -165,7 +166,7 @@ class TrialSource:
         self.prefetch = bool(prefetch) and self.kind == "scenario"
         self._pending: dict = {}  # key → Future of the trials being made ahead, oldest first
         self.max_pending = 1  # guesses kept; a vector env raises it to its number of envs
-        self._pool = None
+        self._pool: Any = None  # a ProcessPoolExecutor once prefetching starts
         self._generations: dict[int, list] = {}  # the pool's generations drawn so far (the latest few)
         self._cache: dict = {}  # key → pool trial, most recently used last
         self.cache_size = 0 if self.pool is None else self.pool.size  # pool trials kept (0: none)
@@ -178,9 +179,12 @@ class TrialSource:
     def generation(self, g: int) -> list:
         """The keys of the pool's generation ``g`` (:class:`TrialPool`)."""
         keys = self._generations.get(g)
+        pool = self.pool
         if keys is None:
-            rng = np.random.default_rng([self.pool.seed, g])
-            keys = self._generations[g] = [self._pick(rng) for _ in range(self.pool.size)]
+            if pool is None:
+                raise RuntimeError("generation() needs a trial_pool")
+            rng = np.random.default_rng([pool.seed, g])
+            keys = self._generations[g] = [self._pick(rng) for _ in range(pool.size)]
             while len(self._generations) > 8:
                 del self._generations[min(self._generations)]
         return keys
@@ -484,7 +488,7 @@ class TrustEnv(RenderMixin, gym.Env):
         self.features, self._idx, self._all, self.observation_space = select_features(features, names, low, high)
         self.action_space = gym.spaces.Box(0.0, 1.0, (action_dim,), dtype=np.float32)
         self.render_mode = render_mode
-        self._runner = None
+        self._runner: Any = None  # the env's TrialRunner subclass after reset
         self._steps = 0  # steps since the last reset, for the divergence message
         self.trial: Trial | None = None
 
@@ -547,16 +551,18 @@ class TrustEnv(RenderMixin, gym.Env):
             total = heading = incl = math.nan
             reward = 0.0
         last = runner.pos - 1
+        trial = self.trial
+        assert trial is not None  # set with the runner by reset()
         self._steps += 1
         obs, q_est = self._obs(), runner.est[last].copy()
         if not (math.isfinite(reward) and np.isfinite(q_est).all() and np.isfinite(obs).all()):
             raise FloatingPointError(
                 f"{type(self).__name__}: the filter diverged in step {self._steps} after reset (samples "
-                f"{runner.pos - runner.last_count}…{last} of trial {self.trial.name!r}): non-finite "
+                f"{runner.pos - runner.last_count}…{last} of trial {trial.name!r}): non-finite "
                 f"{'observation' if np.isfinite(q_est).all() else 'estimate'}; check the env's filter arguments"
             )
         info = {
-            "t": last / self.trial.rate,
+            "t": last / trial.rate,
             "sample": runner.pos,
             **action_info,
             "error_total": total,

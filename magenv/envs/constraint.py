@@ -12,7 +12,7 @@ decision per sample reproduces the paper's filter.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -274,13 +274,13 @@ class MagConstraintEnv(TrustEnv):
             trial_pool=trial_pool,
         )
         self.control_gain, self.gain_max = control_gain, gain_max
-        self.filter_kwargs = dict(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
+        self.filter_kwargs: dict[str, Any] = dict(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
 
     def _make_runner(self, trial: Trial) -> ConstraintRunner:
         return ConstraintRunner(trial, **self.filter_kwargs)  # checks link j's channels
 
     def _action(self, action) -> tuple[float, float | None, bool]:
-        dim = self.action_space.shape[0]
+        dim = 2 if self.control_gain else 1  # the action Box's length
         what = "[w, k/gain_max]" if self.control_gain else "w"
         a = action_array(action, f"{what} in [0, 1]")
         if a.shape != (dim,) and not (dim == 1 and a.shape == ()):

@@ -23,7 +23,7 @@ samples 0…j only (causal).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -463,14 +463,14 @@ class MagKalmanEnv(TrustEnv):
         # validate the noise model now, not at reset (ValueError / TypeError naming the argument)
         probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only)
         make_model_params(probe, model_c_a, model_c_b)
-        self.filter_kwargs = dict(
+        self.filter_kwargs: dict[str, Any] = dict(
             sigma_gyr=float(sigma_gyr),
             sigma_acc=float(sigma_acc),
             sigma_mag=float(sigma_mag),
             th_acc=float(th_acc),
             heading_only=bool(heading_only),
         )
-        self.model_kwargs = dict(model_c_a=float(model_c_a), model_c_b=float(model_c_b))
+        self.model_kwargs: dict[str, Any] = dict(model_c_a=float(model_c_a), model_c_b=float(model_c_b))
 
     def _make_runner(self, trial: Trial) -> KalmanRunner:
         params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **self.filter_kwargs)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from gymnasium import spaces
@@ -363,7 +363,7 @@ class MagQSFEnv(TrustEnv):
         elif detector is not None and not isinstance(detector, qsf.QSFDetector):
             raise TypeError(f"detector must be a QSFDetector or a mapping of its thresholds, got {detector!r}")
         self.detector = detector or qsf.QSFDetector()
-        self.filter_kwargs = filter_kwargs
+        self.filter_kwargs: dict[str, Any] = filter_kwargs
         qsf.make_params(50.0, 60.0, mode=variant, **self.filter_kwargs)  # bad keywords fail here, not at reset
 
     def _make_runner(self, trial: Trial) -> QSFRunner:

@@ -441,9 +441,9 @@ class EpisodeView:
         self.width, self.scene_height = width, scene_height
         self.backend = scene_backend()
         self.strip = Strip(width, strip_height)
-        self.scene = None
+        self.scene: Any = None  # MujocoScene or AxesScene, built at the first render()
         self._trial: Trial | None = None
-        self._window = None
+        self._window: Any = None  # (figure, image) of render_mode 'human'
         _LIVE.add(self)
 
     def _scene_for(self, trial: Trial):

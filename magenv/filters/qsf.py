@@ -98,7 +98,7 @@ from __future__ import annotations
 
 from collections import namedtuple
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -135,7 +135,7 @@ SIGNALS = (
     "mag_updated",  # 1 if a magnetic update ran
 )
 N_SIGNALS = len(SIGNALS)
-SIGNAL = namedtuple("SignalIndex", SIGNALS)(*range(N_SIGNALS))  # SIGNAL.nis == 2, … (columns of Outputs.sig)
+SIGNAL: Any = namedtuple("SignalIndex", SIGNALS)(*range(N_SIGNALS))  # SIGNAL.nis == 2, … (columns of Outputs.sig)
 
 SIGMA_GYR = np.deg2rad(0.3)  # rad/s per sample, a smartphone-grade default
 SIGMA_BIAS_WALK = np.deg2rad(0.01)  # rad/s per √s
@@ -234,7 +234,7 @@ def make_params(
     field_norm, field_dip = check_site(field_norm, field_dip)
     sigma_acc = 0.1 * GRAVITY if sigma_acc is None else sigma_acc
     sigma_mag = 0.1 * field_norm if sigma_mag is None else sigma_mag
-    vector = lambda v: tuple(float(c) for c in v)
+    vector = lambda v: (float(v[0]), float(v[1]), float(v[2]))
     return Params(
         MODES[mode],
         check_noise("sigma_gyr", sigma_gyr, "gyr"),

@@ -38,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -377,7 +378,7 @@ def _plan_stationary_magnet(cfg: StationaryMagnetConfig, rngs) -> Plan:
     ]
     path_rng_seed = int(r_magnet.integers(2**63))
     hand = lambda t: hand_path(t, apps, cfg.far, cfg.near, np.random.default_rng(path_rng_seed))
-    meta = {"approach_starts_s": [a.start for a in apps]}
+    meta: dict[str, Any] = {"approach_starts_s": [a.start for a in apps]}
     return Plan(prof, "hand", Tube(), hand, cfg.magnet.moment, (cfg.field_norm, cfg.field_dip), cfg.sensor, meta)
 
 
@@ -479,16 +480,17 @@ def _plan_random(cfg: RandomConfig, rngs) -> Plan:
     dip_dir[0] = 0.0  # the disc stands on edge in the tube: moment across the tube
     if np.linalg.norm(dip_dir) < 1e-6:
         dip_dir = np.array([0.0, 0.0, 1.0])
+    unit = dip_dir / np.linalg.norm(dip_dir)
     tube = Tube(
         start=start,
         length=length,
-        dipole=tuple(float(v) for v in dip_dir / np.linalg.norm(dip_dir)),
+        dipole=(float(unit[0]), float(unit[1]), float(unit[2])),
         friction=float(r_magnet.uniform(0.3, 1.5) * 0.3 * magnet.mass * 9.81),
         magnet=magnet,
         start_at=float(r_magnet.uniform()),
     )
     hand = None
-    meta = {"magnet": kind}
+    meta: dict[str, Any] = {"magnet": kind}
     if kind == "hand":
         near = float(r_magnet.uniform(*cfg.near_m))
         apps, t = [], float(r_magnet.uniform(2.0, 15.0))

@@ -47,6 +47,8 @@ Each trial draws from six independent streams spawned from
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -389,6 +391,6 @@ SCENARIOS: dict[str, ConstraintConfig] = {
 }
 
 #: The planner of each config class: (cfg, rngs) → _Plan.
-_PLANNERS = {ConstraintConfig: _plan_fixed, ConstraintRandomConfig: _plan_random}
+_PLANNERS: dict[type, Callable[..., Any]] = {ConstraintConfig: _plan_fixed, ConstraintRandomConfig: _plan_random}
 
 WORLD = World("twolink", "two-link", SCENARIOS, _simulate, n_streams=6)
