@@ -121,7 +121,7 @@ def _clip(x, i):
 
 
 @njit(cache=True, inline="always")
-def _dip_deg(q, m):
+def dip_deg(q, m):
     """Dip angle, degrees (positive down), of field m (3,) in the sensor frame seen with orientation q (eq. 18, ENU)."""
     w, x, y, z = q[0], q[1], q[2], q[3]
     mx, my, mz = m[0], m[1], m[2]
@@ -153,7 +153,7 @@ def advance(p, site, state, sensors, truth, out, lam_const, start, stop):
         if lam_const >= 0.0:
             lam[i] = lam_const
         m = mag[i]
-        dip[i] = _dip_deg(q, m)  # eq. 18 with the current estimate
+        dip[i] = dip_deg(q, m)  # eq. 18 with the current estimate
         cand_angle[i], still[i] = blend.step1(p, state, gyr[i], acc[i], m, lam[i])
         est[i, 0], est[i, 1], est[i, 2], est[i, 3] = q[0], q[1], q[2], q[3]
     error_sums(est, truth.q_true, truth.dist, start, stop, out.err)  # against truth, as magenv.metrics
@@ -170,7 +170,7 @@ def _features(p, site, state, sensors, out, start, stop):
     q = state.q
     mj = _norm3(mag[j])
     nd = (mj - m0) / m0
-    dd = (_dip_deg(q, mag[j]) - dip0) / DIP_SCALE_DEG
+    dd = (dip_deg(q, mag[j]) - dip0) / DIP_SCALE_DEG
     feat[F.norm_dev] = _clip(nd, F.norm_dev)
     feat[F.dip_dev] = _clip(dd, F.dip_dev)
     feat[F.gyro_norm] = _clip(_norm3(gyr[j]) / GYRO_SCALE, F.gyro_norm)
