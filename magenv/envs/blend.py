@@ -10,7 +10,10 @@ error sums against truth (``magenv.metrics.error_sums``) and computes the
 observation of the next sample j = ``stop`` — the one the next λ is applied to
 first — with the current estimate q_{j−1}, so the λ rule of eqs. 15–18 is
 reproduced exactly with one decision per sample. The env calls it once per step
-(k samples), :meth:`BlendRunner.run_all` once for a whole trial.
+(k samples), :meth:`BlendRunner.run_all` once for a whole trial. With the
+extended observation (``features="extended"``) :func:`advance_extended` wraps
+it: the extra causal features of ``magenv.envs.blend_memory`` and the memory
+(copies of the base and extra features ``LAGS`` decisions earlier).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from magenv.envs import BLEND_ID
+from magenv.envs import BLEND_ID, blend_memory
 from magenv.envs.common import LoopVectorEnv, TrialRunner, TrustEnv, scalar_action
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import blend, stationary
@@ -76,6 +79,24 @@ FEATURES = FeatureTable(
 )
 F = FEATURES.ix  # named kernel indices
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
+
+EXTENDED_OPTION = "extended"  # features="extended": the whole EXTENDED table
+LAGS = (8, 32)  # decisions: the memory of the extended observation
+_CURRENT = (*FEATURES.features, *blend_memory.EXTRA.features)
+EXTENDED = FeatureTable(
+    *_CURRENT,
+    *(
+        Feature(
+            f"{f.name}_lag{lag}",
+            f.low,
+            f.high,
+            f.unit,
+            f"`{f.name}` {lag} decisions earlier (before the start: the first observation)",
+        )
+        for lag in LAGS
+        for f in _CURRENT
+    ),
+)
 
 
 class Site(NamedTuple):
@@ -208,6 +229,28 @@ def _features(p, site, state, sensors, out, start, stop):
     feat[F.stationary_frac] = sfrac / (cnt + 1)
 
 
+@njit(cache=True)
+def advance_extended(p, site, state, sensors, truth, out, lam_const, start, stop, q0, memory, rows, count, feat):
+    """:func:`advance`, then the extended observation ``feat`` (len(EXTENDED)) of sample ``stop``.
+
+    ``memory``: ``magenv.envs.blend_memory.Memory`` (updated on the samples fused; ``q0`` the initial
+    estimate); ``rows`` (max(LAGS) + 1, len(FEATURES) + len(EXTRA)): ring of the current features by
+    decision; ``count`` (1,) int64: decisions so far (0 until the first step)."""
+    advance(p, site, state, sensors, truth, out, lam_const, start, stop)
+    if stop > start:
+        blend_memory.update(p, site, sensors, out.est, out.dip, out.stationary, q0, memory, start, stop)
+        count[0] += 1
+    d = count[0]
+    length, width = rows.shape
+    nb = out.feat.shape[0]
+    row = rows[d % length]
+    row[:nb] = out.feat
+    row[nb:] = memory.value
+    feat[:width] = row
+    for li in range(len(LAGS)):
+        feat[(li + 1) * width : (li + 2) * width] = rows[max(d - LAGS[li], 0) % length]
+
+
 class BlendRunner(TrialRunner):
     """One trial under the blend, stepped k samples at a time (``advance(k, λ)``) or replayed whole (``run_all``).
 
@@ -219,6 +262,7 @@ class BlendRunner(TrialRunner):
         hold: hold the estimate on stationary samples.
         t0, th_acc_g, th_gyro_dps: stationary detection (s, g, °/s).
         q0: initial orientation; None = ``ecompass1`` of the first sample (never truth).
+        extended: ``feat`` is the EXTENDED observation (base, extra causal features, their lagged copies).
     """
 
     def __init__(
@@ -230,6 +274,7 @@ class BlendRunner(TrialRunner):
         th_acc_g: float = stationary.TH_ACC_G,
         th_gyro_dps: float = stationary.TH_GYRO_DPS,
         q0=None,
+        extended: bool = False,
     ):
         super().__init__(trial)
         self.params = blend.make_params(trial.dt, beta, hold, th_acc_g, th_gyro_dps)
@@ -239,11 +284,20 @@ class BlendRunner(TrialRunner):
         self.out = Outputs.empty(trial.n)
         self.est, self.lam, self.err, self.feat = self.out.est, self.out.lam, self.out.err, self.out.feat
         self._args = (self.params, self.site, self.state, self.sensors, self.truth, self.out)
-        self._advance = self.compiled(advance, *self._args, 0.0, 0, 0)
+        self.extended = bool(extended)
+        if self.extended:
+            self.memory = blend_memory.Memory.start(self.q0)
+            rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
+            self.feat = np.zeros(len(EXTENDED))
+            self._more = (self.q0, self.memory, rows, np.zeros(1, np.int64), self.feat)
+            self._advance = self.compiled(advance_extended, *self._args, 0.0, 0, 0, *self._more)
+        else:
+            self._more = ()
+            self._advance = self.compiled(advance, *self._args, 0.0, 0, 0)
         self._fuse(0, 0, 0.0)  # the observation of sample 0, nothing fused
 
     def _fuse(self, start: int, stop: int, lam: float) -> None:
-        self._advance(*self._args, lam, start, stop)
+        self._advance(*self._args, lam, start, stop, *self._more)
 
     def run_all(self, lam) -> np.ndarray:
         """Fuse all remaining samples with λ a constant or an (N,) array; returns est (N, 4)."""
@@ -260,6 +314,19 @@ class BlendRunner(TrialRunner):
         return self.est
 
 
+def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
+    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
+    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
+    if isinstance(features, str):
+        if features != EXTENDED_OPTION:
+            raise ValueError(f"features must be None, {EXTENDED_OPTION!r} or a list of names, got {features!r}")
+        return None, EXTENDED
+    if features is not None and any(f not in FEATURES.names for f in features):
+        return features, EXTENDED
+    return features, FEATURES
+
+
+@document(blend_memory.EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagBlendEnv(TrustEnv):
     """
@@ -302,6 +369,15 @@ class MagBlendEnv(TrustEnv):
 
     {observation_table}
 
+    With ``features="extended"`` (``EXTENDED``, 126 features) the observation
+    is the 13 above, then these 29 extra causal features
+    (``magenv.envs.blend_memory``, where the conventions are defined: "mag
+    heading", EMAs, the parallel filters, clean samples), then the 42 of
+    both groups 8 decisions earlier (``NAME_lag8``) and 32 decisions earlier
+    (``NAME_lag32``; before the start, the first observation):
+
+    {extended_table}
+
     Physical values are recoverable: ‖m_j‖ = m0·(1 + obs[0]), dip deviation in
     degrees = 90·obs[1] (``magenv.baselines.rules.FanLambda`` relies on this).
 
@@ -336,7 +412,8 @@ class MagBlendEnv(TrustEnv):
     - `decision_every` (default 8): samples fused per step (k); 1 = a λ per sample.
     - `episode_seconds` (default None): use only the first seconds of each trial; None = whole trial.
     - `stationary_hold` (default True): hold the estimate on stationary samples (eqs. 11–13).
-    - `features` (default None = all): names of the observation features to keep, in the given order.
+    - `features` (default None = the 13 base features): names of the observation features to keep, in the
+      given order, or `"extended"` for the extended observation (all 126; today's 13 stay the default).
     - `beta` (default 0.1 rad/s): Madgwick gain β (eq. 10).
     - `t0`, `th_acc_g`, `th_gyro_dps` (defaults 0.5 s, 0.04 g, 0.5 °/s): stationary detection (eqs. 11–13).
     - `scenario_kwargs` (default None): overrides passed to ``magenv.scenarios.make_trial``.
@@ -377,6 +454,7 @@ class MagBlendEnv(TrustEnv):
         prefetch: bool = False,
         render_mode: str | None = None,
     ):
+        features, table = observation_table(features)
         self._setup(
             scenario,
             decision_every,
@@ -384,9 +462,9 @@ class MagBlendEnv(TrustEnv):
             render_mode,
             scenario_kwargs,
             features,
-            FEATURES.names,
-            FEATURES.low,
-            FEATURES.high,
+            table.names,
+            table.low,
+            table.high,
             prefetch=prefetch,
         )
         self.stationary_hold = bool(stationary_hold)
@@ -396,6 +474,7 @@ class MagBlendEnv(TrustEnv):
             t0=float(t0),
             th_acc_g=float(th_acc_g),
             th_gyro_dps=float(th_gyro_dps),
+            extended=table is EXTENDED,
         )
 
     def _make_runner(self, trial: Trial) -> BlendRunner:
