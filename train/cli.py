@@ -15,6 +15,7 @@ COMMANDS = {
     "plot": ("magenv.train.plot", "draw a trial file: orientation, rates, field norm and dip, magnet distance"),
     "compare": ("magenv.train.compare", "run every method on the same trials and print the RMSE table"),
     "train": ("magenv.train.train", "train a learning agent on an environment"),
+    "agents": ("magenv.train.agents", "list the trained agents shipped with magenv (--agent pretrained:ENV_ID)"),
     "evaluate": ("magenv.train.evaluate", "score a trained agent on scenarios or recordings"),
     "tune": ("magenv.train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
     "report": ("magenv.train.report", "write a Markdown report with tables and plots"),
