@@ -114,7 +114,7 @@ class BlendOracle:
 
     @classmethod
     def from_fan_params(cls, params: dict) -> BlendOracle:
-        """The oracle continuing with the Fan rule of ``params`` (``norm_tol``, ``th_dip_deg``)."""
+        """Privileged λ search (reads truth: an upper bound) continuing with the Fan rule of ``params``."""
         return cls(params["norm_tol"], params["th_dip_deg"])
 
     def candidate_costs(self, runner: BlendRunner) -> np.ndarray:

@@ -146,7 +146,9 @@ def _tuned() -> dict[str, tuple[Callable[[], Any], str]]:
         if path is not None:
             out[name] = (
                 lambda rule=rule, build=build, name=name: _named(build(tuned_params(rule)), name),
-                f"{rule} with the parameters tuned by magenv tune ({path})",
+                f"{rule} with the parameters tuned by magenv tune ({path})"
+                if name == rule + TUNED_SUFFIX
+                else f"{(build.__doc__ or name).strip().splitlines()[0]} (tuned {rule}: {path})",
             )
     return out
 
