@@ -13,6 +13,10 @@ Run folder layout (written by ``magenv train``)::
       evaluations.csv      held-out RMSE at each evaluation
       tb/                  TensorBoard logs
 
+A DAgger run folder (``magenv train --teacher oracle``, ``magenv.agents.dagger``) has
+``run.yaml`` (algo ``dagger``) and ``best.safetensors``; ``load_agent`` loads it the same way.
+``pretrained:ENV_ID`` names the agent shipped with magenv for that env (:func:`pretrained_agents`).
+
 Loading reads YAML (``yaml.safe_load``), JSON and safetensors arrays only
 (``magenv.agents.weights``): the policy is rebuilt from ``run.yaml`` and the
 weights are loaded into it, so a run folder from someone else cannot run
@@ -22,6 +26,7 @@ pickles, which can; they are read only with ``trust_pickle=True``.
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +36,31 @@ from magenv.agents.hyperparams import SEED_RANGE, ConfigError, algorithm_class, 
 from magenv.agents.weights import RunError, load_policy
 
 RUN_FILE = "run.yaml"
+PRETRAINED_PREFIX = "pretrained:"
 WEIGHTS = {"best": "best.safetensors", "last": "last.safetensors"}
 NO_ENV = "a loaded agent acts on observations; it has no env of its own to step"
 SB3_EXPORTS = {"best": "best_model.zip", "last": "last_model.zip"}
 
-__all__ = ["RUN_FILE", "AgentPolicy", "RunError", "build_model", "load_agent", "read_run"]
+__all__ = ["RUN_FILE", "AgentPolicy", "RunError", "build_model", "load_agent", "pretrained_agents", "read_run"]
+
+
+def pretrained_agents() -> dict[str, Path]:
+    """Env id → run folder of the agents shipped in the package (``magenv/agents/pretrained/ENV``)."""
+    root = Path(str(resources.files("magenv.agents") / "pretrained"))
+    found = sorted(p for p in root.iterdir() if (p / RUN_FILE).is_file()) if root.is_dir() else []
+    return {f"magenv/{p.name}": p for p in found}
+
+
+def _resolve(run_dir: str | Path) -> Path:
+    """A run folder, or the shipped one for ``pretrained:ENV_ID`` (RunError naming the ones there are)."""
+    text = str(run_dir)
+    if not text.startswith(PRETRAINED_PREFIX):
+        return Path(run_dir)
+    env_id = text[len(PRETRAINED_PREFIX) :]
+    shipped = pretrained_agents()
+    if env_id not in shipped:
+        raise RunError(f"no pretrained agent for {env_id!r}; shipped: {', '.join(shipped) or 'none'}")
+    return shipped[env_id]
 
 
 def read_run(run_dir: str | Path) -> dict:
@@ -176,7 +201,15 @@ def load_agent(
     Raises RunError if the folder is missing, corrupt or pickle-only, or if
     ``env_id`` is given and differs from the env the agent was trained on.
     """
-    run_dir = Path(run_dir)
+    from magenv.agents import dagger
+
+    name = f"agent:{run_dir}" if str(run_dir).startswith(PRETRAINED_PREFIX) else None
+    run_dir = _resolve(run_dir)
+    if dagger.is_run(run_dir):
+        policy = dagger.load_policy(run_dir, name)
+        if env_id is not None and env_id != policy.env_id:
+            raise RunError(f"{run_dir}: agent was trained on {policy.env_id}, cannot act in {env_id}")
+        return policy
     run = read_run(run_dir)
     if env_id is not None and env_id != run["env_id"]:
         raise RunError(f"{run_dir}: agent was trained on {run['env_id']}, cannot act in {env_id}")
@@ -207,7 +240,7 @@ def load_agent(
         model,
         run["env_id"],
         run["env_kwargs"],
-        name=f"agent:{run_dir.name}",
+        name=name or f"agent:{run_dir.name}",
         action_bounds=run.get("action_bounds"),
         source=str(path),
         which=found,

@@ -14,6 +14,10 @@ a fresh one. ``names()`` lists them all:
   ``RULE.json`` (written by ``magenv tune``): looked up first in the user's
   data directory (:func:`user_tuned_dir`), then among the files shipped in
   the package (``magenv/baselines/tuned``);
+* ``oracle`` — the privileged receding-horizon search of MagBlend-v0
+  (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
+  reads truth, so it is an upper bound (compare's headroom row), never a
+  baseline;
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
 """
@@ -29,7 +33,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from magenv.baselines import constraint, kalman, kalman_policies, qsf, reference, rules
+from magenv.baselines import constraint, kalman, kalman_policies, oracle, qsf, reference, rules
 from magenv.protocols import Tunable
 
 AGENT_PREFIX = "agent:"
@@ -39,6 +43,8 @@ METHOD_MODULES = (rules, kalman, kalman_policies, constraint, qsf, reference)
 #: methods that act with another rule's tuned parameters: name → (the rule whose file, factory(params))
 TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "qsf_detector_tuned": ("delay_magyq", qsf.tuned_detector_policy),
+    # privileged (reads truth): an upper bound shown as the headroom row, never a baseline
+    "oracle": ("fan_lambda", oracle.BlendOracle.from_fan_params),
 }
 
 _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}
@@ -149,7 +155,9 @@ def _tuned() -> dict[str, tuple[Callable[[], Any], str]]:
         if path is not None:
             out[name] = (
                 functools.partial(_build_tuned, rule, build, name),
-                f"{rule} with the parameters tuned by magenv tune ({path})",
+                f"{rule} with the parameters tuned by magenv tune ({path})"
+                if name == rule + TUNED_SUFFIX
+                else f"{(build.__doc__ or name).strip().splitlines()[0]} (tuned {rule}: {path})",
             )
     return out
 

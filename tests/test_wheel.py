@@ -47,6 +47,8 @@ def test_wheel_has_one_top_level_name_and_its_data(wheel):
         "magenv/sim/gimbal.xml",
         "magenv/sim/twolink.xml",
         "magenv/agents/configs/ppo.yaml",
+        "magenv/agents/configs/dagger.yaml",
+        "magenv/agents/pretrained/MagBlend-v0/best.safetensors",
         "magenv/baselines/tuned/fan_lambda.json",
         "magenv/py.typed",
     ):

@@ -16,6 +16,7 @@ COMMANDS = {
     "compare": ("magenv.train.compare", "run every method on the same trials and print the RMSE table"),
     "train": ("magenv.train.train", "train a learning agent on an environment"),
     "sweep": ("magenv.train.sweep", "train many runs (envs × algorithms × seeds × hyperparameters) on Ray Tune"),
+    "agents": ("magenv.train.agents", "list the trained agents shipped with magenv (--agent pretrained:ENV_ID)"),
     "evaluate": ("magenv.train.evaluate", "score a trained agent on scenarios or recordings"),
     "tune": ("magenv.train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
     "pictures": ("magenv.train.pictures", "draw the README's pictures: a rendered frame and trust over time"),

@@ -141,13 +141,34 @@ def select_methods(names: list[str], trust_pickle: bool = False) -> dict:
         raise CommandError(str(exc)) from None
 
 
+HEADROOM_NOTE = "headroom: reads truth, an upper bound"
+
+
+def headroom_names(methods: dict) -> set[str]:
+    """Names of the privileged methods (``privileged = True``: they read truth, e.g. ``oracle``)."""
+    return {name for name, m in methods.items() if getattr(m, "privileged", False)}
+
+
+def mark_headroom(rows: list[dict], names: set[str]) -> list[dict]:
+    """Flag the rows of privileged methods (``row["headroom"]``): tables list them last, as upper bounds."""
+    for r in rows:
+        if r["method"] in names:
+            r["headroom"] = True
+    return rows
+
+
+def method_label(row: dict) -> str:
+    """The method cell of a table row: a privileged method's name carries the headroom note."""
+    return f"{row['method']} ({HEADROOM_NOTE})" if row.get("headroom") else row["method"]
+
+
 def _fmt(x: float) -> str:
     return "–" if math.isnan(x) else f"{x:.2f}"
 
 
 def table_order(rows: list[dict]) -> list[dict]:
-    """Rows by scenario, best total RMSE first, n/a rows last."""
-    return sorted(rows, key=lambda r: (r["scenario"], "error" in r, r["total_rmse_mean"]))
+    """Rows by scenario, best total RMSE first, then the headroom rows (privileged methods), n/a rows last."""
+    return sorted(rows, key=lambda r: (r["scenario"], "error" in r, bool(r.get("headroom")), r["total_rmse_mean"]))
 
 
 def failure_notes(rows: list[dict]) -> list[str]:
@@ -247,7 +268,7 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
                 _fmt(r[c]) for c in ("total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")
             ]
         )
-        table.add_row(r["method"], r["scenario"], str(r["n"]), *cells)
+        table.add_row(method_label(r), r["scenario"], str(r["n"]), *cells)
     console.print(table)
 
 
@@ -293,7 +314,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         trials, labels = make_trials(scenarios, args.seeds, args.recordings)
         runs = run_comparison(methods, trials, labels, env_kwargs, progress=not args.no_progress)
-    status = finish(evaluation.summarize(runs), "orientation RMSE (°), mean over trials", args.csv)
+    rows = mark_headroom(evaluation.summarize(runs), headroom_names(methods))
+    status = finish(rows, "orientation RMSE (°), mean over trials", args.csv)
     if args.plot:  # runs are trial by trial, every method once per trial
         print(f"wrote {evaluation.plot_runs(runs[: len(methods)], args.plot)}")
     return status

@@ -87,7 +87,7 @@ def _plot_bars(rows: list[dict], path: Path) -> Path:
 def markdown_table(rows: list[dict]) -> str:
     """The comparison rows as a Markdown table, best total RMSE first within each scenario; an n/a cell's
     reason follows the table."""
-    from magenv.train.compare import failure_notes, table_order
+    from magenv.train.compare import failure_notes, method_label, table_order
 
     fmt = lambda x: "–" if isinstance(x, float) and math.isnan(x) else f"{x:.2f}"
     lines = [
@@ -102,17 +102,21 @@ def markdown_table(rows: list[dict]) -> str:
                 fmt(r[c]) for c in ("total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")
             ]
         )
-        lines.append(f"| {r['scenario']} | {r['method']} | {r['n']} | " + " | ".join(cells) + " |")
+        lines.append(f"| {r['scenario']} | {method_label(r)} | {r['n']} | " + " | ".join(cells) + " |")
     notes = failure_notes(rows)
     return "\n".join(lines + ([""] + [f"* {n}" for n in notes] if notes else []))
 
 
-def write_report(runs: list, out: Path, title: str = "magenv comparison report") -> Path:
-    """Write ``out/report.md`` and its PNGs from evaluation runs; returns the Markdown path."""
+def write_report(
+    runs: list, out: Path, title: str = "magenv comparison report", headroom: set[str] = frozenset()
+) -> Path:
+    """Write ``out/report.md`` and its PNGs from evaluation runs; returns the Markdown path. ``headroom``:
+    names of privileged methods (upper bounds), listed last in each scenario."""
     from magenv import evaluation
+    from magenv.train.compare import mark_headroom
 
     out.mkdir(parents=True, exist_ok=True)
-    rows = evaluation.summarize(runs)
+    rows = mark_headroom(evaluation.summarize(runs), set(headroom))
     evaluation.write_csv(rows, out / "comparison.csv")
     parts = [
         f"# {title}",
@@ -151,14 +155,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from magenv import evaluation, registry
     from magenv.train.cli import PARTIAL
-    from magenv.train.compare import failure_notes, make_trials, run_comparison, select_methods
+    from magenv.train.compare import failure_notes, headroom_names, make_trials, run_comparison, select_methods
 
     methods = select_methods(
         args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent], args.trust_pickle
     )
     trials, labels = make_trials(args.scenario, args.seeds, args.recordings)
     runs = run_comparison(methods, trials, labels)
-    print(f"wrote {write_report(runs, args.out)}")
+    print(f"wrote {write_report(runs, args.out, headroom=headroom_names(methods))}")
     notes = failure_notes(evaluation.summarize(runs))
     for line in notes:
         print(line)

@@ -3,6 +3,11 @@
     magenv train --env magenv/MagBlend-v0 --algo ppo --steps 100000 --out runs/NAME \
         [--config FILE] [--seed S] [--eval-every N] [--eval-scenarios A,B] [--eval-seeds 0:3] [--force]
 
+With ``--teacher oracle`` it runs DAgger instead (``magenv.agents.dagger``: an MLP student imitating the
+privileged oracle on the extended observation; ``--config`` a YAML file of the DAgger keys, default
+``agents/configs/dagger.yaml``; ``--iters`` overrides its iterations); the run folder is loadable with
+``--agent RUN`` like any other.
+
 Progress bar, TensorBoard logs (``runs/NAME/tb``), periodic evaluation on
 held-out trials with the best model kept, checkpoints, and resume: running
 the same command again on an existing run folder continues from its last
@@ -91,6 +96,43 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "only for folders whose author you trust",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--teacher",
+        default=None,
+        help="train a DAgger student imitating this privileged method (oracle) instead of an SB3 agent",
+    )
+    p.add_argument("--iters", type=rule_arg(POSITIVE_INT), default=None, help="DAgger iterations (default: config's)")
+
+
+def run_dagger(args: argparse.Namespace) -> int:
+    """``--teacher``: DAgger into ``--out`` (config: ``--config`` or the packaged dagger.yaml)."""
+    from importlib import resources
+
+    import yaml
+
+    from magenv import registry
+    from magenv.agents import dagger
+
+    if args.env != BLEND_ID:
+        raise CommandError(f"--teacher trains MagBlend-v0 students only, got --env {args.env}")
+    path = args.config or str(resources.files("magenv.agents") / "configs" / "dagger.yaml")
+    try:
+        config = (yaml.safe_load(Path(path).read_text()) or {}).get(BLEND_ID, {})
+    except (OSError, yaml.YAMLError, AttributeError) as exc:
+        raise CommandError(f"cannot read the DAgger config {path}: {exc}") from None
+    if args.iters is not None:
+        config["iterations"] = args.iters
+    if args.eval_seeds is not None:
+        config["val_seeds"] = [args.eval_seeds[0], args.eval_seeds[-1] + 1]
+    if args.eval_scenarios is not None:
+        config["scenarios"] = args.eval_scenarios.split(",")
+    try:
+        teacher = registry.make(args.teacher)
+        out = dagger.train(args.out, teacher, config, log=lambda line: print(line, flush=True))
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    print(f"DAgger run in {out}; best student {out / dagger.BEST}")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -99,6 +141,8 @@ def run(args: argparse.Namespace) -> int:
     from magenv.agents.loading import WEIGHTS, RunError
     from magenv.agents.training import STATE_FILE, train
 
+    if args.teacher is not None:
+        return run_dagger(args)
     if args.env not in gym.registry:
         known = ", ".join(k for k in gym.registry if k.startswith("magenv/"))
         raise CommandError(f"unknown env {args.env!r}; magenv envs: {known}")

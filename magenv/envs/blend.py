@@ -10,7 +10,10 @@ error sums against truth (``magenv.metrics.error_sums``) and computes the
 observation of the next sample j = ``stop`` — the one the next λ is applied to
 first — with the current estimate q_{j−1}, so the λ rule of eqs. 15–18 is
 reproduced exactly with one decision per sample. The env calls it once per step
-(k samples), :meth:`BlendRunner.run_all` once for a whole trial.
+(k samples), :meth:`BlendRunner.run_all` once for a whole trial. With the
+extended observation (``features="extended"``) :func:`advance_extended` wraps
+it: the extra causal features of ``magenv.envs.blend_memory`` and the memory
+(copies of the base and extra features ``LAGS`` decisions earlier).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 from numba import njit, prange
 
 from magenv.checks import check_bool
-from magenv.envs import BLEND_ID
+from magenv.envs import BLEND_ID, blend_memory
 from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
@@ -80,6 +83,24 @@ FEATURES = FeatureTable(
 F = FEATURES.ix  # named kernel indices
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
+EXTENDED_OPTION = "extended"  # features="extended": the whole EXTENDED table
+LAGS = (8, 32)  # decisions: the memory of the extended observation
+_CURRENT = (*FEATURES.features, *blend_memory.EXTRA.features)
+EXTENDED = FeatureTable(
+    *_CURRENT,
+    *(
+        Feature(
+            f"{f.name}_lag{lag}",
+            f.low,
+            f.high,
+            f.unit,
+            f"`{f.name}` {lag} decisions earlier (before the start: the first observation)",
+        )
+        for lag in LAGS
+        for f in _CURRENT
+    ),
+)
+
 
 class Site(NamedTuple):
     """The trial's undisturbed field, the reference of the field features (``Trial.field_norm``/``field_dip``)."""
@@ -124,7 +145,7 @@ def _clip(x, i):
 
 
 @njit(cache=True, inline="always")
-def _dip_deg(q, m):
+def dip_deg(q, m):
     """Dip angle, degrees (positive down), of field m (3,) in the sensor frame seen with orientation q (eq. 18, ENU)."""
     w, x, y, z = q[0], q[1], q[2], q[3]
     mx, my, mz = m[0], m[1], m[2]
@@ -156,7 +177,7 @@ def advance(p, site, state, sensors, truth, out, lam_const, start, stop):
         if lam_const >= 0.0:
             lam[i] = lam_const
         m = mag[i]
-        dip[i] = _dip_deg(q, m)  # eq. 18 with the current estimate
+        dip[i] = dip_deg(q, m)  # eq. 18 with the current estimate
         cand_angle[i], still[i] = blend.step1(p, state, gyr[i], acc[i], m, lam[i])
         est[i, 0], est[i, 1], est[i, 2], est[i, 3] = q[0], q[1], q[2], q[3]
     error_sums(est, truth.q_true, truth.dist, start, stop, out.err)  # against truth, as magenv.metrics
@@ -173,7 +194,7 @@ def _features(p, site, state, sensors, out, start, stop):
     q = state.q
     mj = _norm3(mag[j])
     nd = (mj - m0) / m0
-    dd = (_dip_deg(q, mag[j]) - dip0) / DIP_SCALE_DEG
+    dd = (dip_deg(q, mag[j]) - dip0) / DIP_SCALE_DEG
     feat[F.norm_dev] = _clip(nd, F.norm_dev)
     feat[F.dip_dev] = _clip(dd, F.dip_dev)
     feat[F.gyro_norm] = _clip(_norm3(gyr[j]) / GYRO_SCALE, F.gyro_norm)
@@ -211,6 +232,28 @@ def _features(p, site, state, sensors, out, start, stop):
     feat[F.stationary_frac] = sfrac / (cnt + 1)
 
 
+@njit(cache=True)
+def advance_extended(p, site, state, sensors, truth, out, lam_const, start, stop, q0, memory, rows, count, feat):
+    """:func:`advance`, then the extended observation ``feat`` (len(EXTENDED)) of sample ``stop``.
+
+    ``memory``: ``magenv.envs.blend_memory.Memory`` (updated on the samples fused; ``q0`` the initial
+    estimate); ``rows`` (max(LAGS) + 1, len(FEATURES) + len(EXTRA)): ring of the current features by
+    decision; ``count`` (1,) int64: decisions so far (0 until the first step)."""
+    advance(p, site, state, sensors, truth, out, lam_const, start, stop)
+    if stop > start:
+        blend_memory.update(p, site, sensors, out.est, out.dip, out.stationary, q0, memory, start, stop)
+        count[0] += 1
+    d = count[0]
+    length, width = rows.shape
+    nb = out.feat.shape[0]
+    row = rows[d % length]
+    row[:nb] = out.feat
+    row[nb:] = memory.value
+    feat[:width] = row
+    for li in range(len(LAGS)):
+        feat[(li + 1) * width : (li + 2) * width] = rows[max(d - LAGS[li], 0) % length]
+
+
 class BlendRunner(TrialRunner):
     """One trial under the blend, stepped k samples at a time (``advance(k, λ)``) or replayed whole (``run_all``).
 
@@ -222,6 +265,7 @@ class BlendRunner(TrialRunner):
         hold: hold the estimate on stationary samples.
         t0, th_acc_g, th_gyro_dps: stationary detection (s, g, °/s).
         q0: initial orientation; None = ``ecompass1`` of the first sample (never truth).
+        extended: ``feat`` is the EXTENDED observation (base, extra causal features, their lagged copies).
     """
 
     def __init__(
@@ -233,6 +277,7 @@ class BlendRunner(TrialRunner):
         th_acc_g: float = stationary.TH_ACC_G,
         th_gyro_dps: float = stationary.TH_GYRO_DPS,
         q0=None,
+        extended: bool = False,
     ):
         super().__init__(trial)
         self.params = blend.make_params(trial.dt, beta, hold, th_acc_g, th_gyro_dps)
@@ -242,11 +287,20 @@ class BlendRunner(TrialRunner):
         self.out = Outputs.empty(trial.n)
         self.est, self.lam, self.err, self.feat = self.out.est, self.out.lam, self.out.err, self.out.feat
         self._args = (self.params, self.site, self.state, self.sensors, self.truth, self.out)
-        self._advance = self.compiled(advance, *self._args, 0.0, 0, 0)
+        self.extended = bool(extended)
+        if self.extended:
+            self.memory = blend_memory.Memory.start(self.q0)
+            rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
+            self.feat = np.zeros(len(EXTENDED))
+            self._more = (self.q0, self.memory, rows, np.zeros(1, np.int64), self.feat)
+            self._advance = self.compiled(advance_extended, *self._args, 0.0, 0, 0, *self._more)
+        else:
+            self._more = ()
+            self._advance = self.compiled(advance, *self._args, 0.0, 0, 0)
         self._fuse(0, 0, 0.0)  # the observation of sample 0, nothing fused
 
     def _fuse(self, start: int, stop: int, lam: float) -> None:
-        self._advance(*self._args, lam, start, stop)
+        self._advance(*self._args, lam, start, stop, *self._more)
 
     def run_all(self, lam) -> np.ndarray:
         """Fuse all remaining samples with λ a constant or an (N,) array; returns est (N, 4)."""
@@ -263,6 +317,19 @@ class BlendRunner(TrialRunner):
         return self.est
 
 
+def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
+    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
+    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
+    if isinstance(features, str):
+        if features != EXTENDED_OPTION:
+            raise ValueError(f"features must be None, {EXTENDED_OPTION!r} or a list of names, got {features!r}")
+        return None, EXTENDED
+    if features is not None and any(f not in FEATURES.names for f in features):
+        return features, EXTENDED
+    return features, FEATURES
+
+
+@document(blend_memory.EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagBlendEnv(TrustEnv):
     """
@@ -305,6 +372,15 @@ class MagBlendEnv(TrustEnv):
 
     {observation_table}
 
+    With ``features="extended"`` (``EXTENDED``, 126 features) the observation
+    is the 13 above, then these 29 extra causal features
+    (``magenv.envs.blend_memory``, where the conventions are defined: "mag
+    heading", EMAs, the parallel filters, clean samples), then the 42 of
+    both groups 8 decisions earlier (``NAME_lag8``) and 32 decisions earlier
+    (``NAME_lag32``; before the start, the first observation):
+
+    {extended_table}
+
     Physical values are recoverable: ‖m_j‖ = m0·(1 + obs[0]), dip deviation in
     degrees = 90·obs[1] (``magenv.baselines.rules.FanLambda`` relies on this).
 
@@ -339,7 +415,8 @@ class MagBlendEnv(TrustEnv):
     - `decision_every` (default 8): samples fused per step (k); 1 = a λ per sample.
     - `episode_seconds` (default None): use only the first seconds of each trial; None = whole trial.
     - `stationary_hold` (default True): hold the estimate on stationary samples (eqs. 11–13).
-    - `features` (default None = all): names of the observation features to keep, in the given order.
+    - `features` (default None = the 13 base features): names of the observation features to keep, in the
+      given order, or `"extended"` for the extended observation (all 126; today's 13 stay the default).
     - `beta` (default 0.1 rad/s): Madgwick gain β (eq. 10), finite in [0, 10].
     - `t0`, `th_acc_g`, `th_gyro_dps` (defaults 0.5 s, 0.04 g, 0.5 °/s): stationary detection (eqs. 11–13);
       t0 in [0, 60] s, thresholds finite ≥ 0.
@@ -385,6 +462,7 @@ class MagBlendEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
+        features, table = observation_table(features)
         self._setup(
             scenario,
             decision_every,
@@ -392,9 +470,9 @@ class MagBlendEnv(TrustEnv):
             render_mode,
             scenario_kwargs,
             features,
-            FEATURES.names,
-            FEATURES.low,
-            FEATURES.high,
+            table.names,
+            table.low,
+            table.high,
             prefetch=prefetch,
             trial_pool=trial_pool,
         )
@@ -408,6 +486,7 @@ class MagBlendEnv(TrustEnv):
             t0=float(t0),
             th_acc_g=float(th_acc_g),
             th_gyro_dps=float(th_gyro_dps),
+            extended=table is EXTENDED,
         )
 
     def _make_runner(self, trial: Trial) -> BlendRunner:
@@ -517,6 +596,11 @@ class MagBlendVectorEnv(BatchVectorEnv):
 
     def _alloc(self, n: int) -> None:
         kw = self.template.filter_kwargs
+        if kw["extended"]:
+            raise ValueError(
+                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
+                'vectorization_mode="sync")'
+            )
         self.params = blend.make_params(1.0, kw["beta"], kw["hold"], kw["th_acc_g"], kw["th_gyro_dps"])
         rows = self.k_steps + 2
         self.dt, self.m0, self.dip0 = np.ones(n), np.ones(n), np.zeros(n)

@@ -1,0 +1,387 @@
+"""DAgger: an observation-only student for ``magenv/MagBlend-v0`` that imitates a privileged teacher.
+
+The teacher (``magenv.baselines.oracle.BlendOracle``, handed in by the caller:
+this layer does not import baselines) gives, at any env state, the cost of
+each candidate λ (Σ squared total error over its look-ahead). The student is
+an MLP over the extended observation (``features="extended"``: base and extra
+causal features, and their copies 8 and 32 decisions earlier) plus, per block,
+the teacher's continuation-rule λ recomputed from that block's ``norm_dev`` and
+``dip_dev`` (the Fan rule of eqs. 15–17 with the teacher's parameters); its
+logits score the candidates, and it acts with the probability-weighted mean λ.
+
+Training (Ross et al. 2011, with β = 0 after the first iteration):
+
+1. iteration 0's data: the teacher's own trajectories on ``trials_per_scenario``
+   training trials (seeds ≥ ``train_seed`` ≥ 10000) per scenario, every
+   visited state labelled with the candidate costs;
+2. each iteration: fit a fresh student on all data so far, with the
+   cost-sensitive "regret" loss Σ_c softmax(logits)_c · r_c, where
+   r_c = 100 · (cost_c − min cost) / (H · MSE of the continuation rule on that
+   trial) (H = look-ahead samples: a unit of r is 1 % of the trial's rule MSE);
+   score it closed loop on the validation seeds (5000–5999) by the mean over
+   scenarios of its RMSE ratio of means to the continuation rule; keep the best;
+3. roll the student (with probability β per decision the teacher) on new
+   training trials, label every state it visits, add them, repeat.
+
+The run folder holds weights only (``magenv.agents.weights`` format)::
+
+    run.yaml             env id, env kwargs, algo "dagger", the config, the student's shape and rule
+    best.safetensors     the student with the best validation score
+    checkpoints/it_N.safetensors   the student of each iteration
+    iterations.csv       validation RMSE (°) and ratio to the rule per scenario and iteration
+
+``load_policy(run_dir)`` rebuilds the student as a Policy.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from magenv.agents.weights import RunError, _write, read
+from magenv.envs import BLEND_ID
+from magenv.envs.features import DIP_SCALE_DEG
+from magenv.seeding import HELD_OUT_BELOW
+
+ALGO = "dagger"
+RUN_FILE, BEST, CHECKPOINTS, LOG = "run.yaml", "best.safetensors", "checkpoints", "iterations.csv"
+ENV_KWARGS = {"features": "extended"}
+DEFAULTS: dict[str, Any] = {
+    "iterations": 6,
+    "trials_per_scenario": 20,
+    "scenarios": ["dynamic_magnet", "stationary_magnet", "dynamic_clean"],
+    "train_seed": 10000,
+    "val_seeds": [5000, 5020],
+    "beta": 0.0,
+    "decision_every": 8,
+    "fit_steps": 12000,
+    "batch_size": 1024,
+    "learning_rate": 1.0e-3,
+    "hidden": [128, 128],
+    "seed": 0,
+}
+REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
+
+
+def check_config(config: dict | None) -> dict:
+    """DEFAULTS updated by ``config``; unknown keys and bad values raise ValueError naming them."""
+    config = dict(config or {})
+    unknown = sorted(set(config) - set(DEFAULTS))
+    if unknown:
+        raise ValueError(f"unknown DAgger config key(s) {unknown}; known: {sorted(DEFAULTS)}")
+    cfg = {**DEFAULTS, **config}
+    for key in ("iterations", "trials_per_scenario", "decision_every", "fit_steps", "batch_size"):
+        if isinstance(cfg[key], bool) or not isinstance(cfg[key], int) or cfg[key] < 1:
+            raise ValueError(f"DAgger config {key!r} must be a positive integer, got {cfg[key]!r}")
+    if not isinstance(cfg["train_seed"], int) or cfg["train_seed"] < HELD_OUT_BELOW:
+        raise ValueError(f"train_seed must be an integer ≥ {HELD_OUT_BELOW}, got {cfg['train_seed']!r}")
+    lo, hi = cfg["val_seeds"]
+    if not (5000 <= lo < hi <= 6000):
+        raise ValueError(f"val_seeds must be [start, stop) within the validation seeds 5000–5999, got {[lo, hi]}")
+    if not 0.0 <= cfg["beta"] <= 1.0 or not cfg["learning_rate"] > 0:
+        raise ValueError("beta must lie in [0, 1] and learning_rate be positive")
+    if not cfg["hidden"] or any(int(h) != h or h < 1 for h in cfg["hidden"]):
+        raise ValueError(f"hidden must be a list of positive layer widths, got {cfg['hidden']!r}")
+    return cfg
+
+
+# ----------------------------------------------------------------- the student
+
+
+class Student:
+    """The MLP (tanh hidden layers) over the standardised inputs; numpy inference.
+
+    Args:
+        layers: [(W (out, in), b (out,)), …] float32, the last one the logits over ``candidates``.
+        mu, sd: (n_in,) input standardisation. candidates: (C,) λ levels.
+        rule: (norm_tol, th_dip_deg) of the continuation rule. block: features per observation block.
+    """
+
+    def __init__(self, layers, mu, sd, candidates, rule, block: int):
+        self.layers = [(np.asarray(w, np.float32), np.asarray(b, np.float32)) for w, b in layers]
+        self.mu, self.sd = np.asarray(mu, np.float32), np.asarray(sd, np.float32)
+        self.candidates = np.asarray(candidates, np.float64)
+        self.rule = (float(rule[0]), float(rule[1]))
+        self.block = int(block)
+
+    def inputs(self, obs: np.ndarray) -> np.ndarray:
+        """(D, n_obs) extended observations → (D, n_in): each block followed by its rule λ."""
+        obs = np.atleast_2d(np.asarray(obs, np.float32))
+        norm_tol, th_dip = self.rule
+        parts = []
+        for start in range(0, obs.shape[1], self.block):
+            blk = obs[:, start : start + self.block]
+            lam1 = np.minimum(np.abs(blk[:, 0]) / norm_tol, 1.0)  # eq. 15 (norm_dev is column 0)
+            lam2 = np.minimum(np.abs(DIP_SCALE_DEG * blk[:, 1]) / th_dip, 1.0)  # eq. 16 (dip_dev, column 1)
+            parts += [blk, (0.5 * (lam1 + lam2))[:, None].astype(np.float32)]
+        return np.concatenate(parts, 1)
+
+    def probabilities(self, x: np.ndarray) -> np.ndarray:
+        """Softmax over the candidates for inputs ``x`` (D, n_in)."""
+        z = (x - self.mu) / self.sd
+        for i, (w, b) in enumerate(self.layers):
+            z = z @ w.T + b
+            if i < len(self.layers) - 1:
+                z = np.tanh(z)
+        z = z - z.max(1, keepdims=True)
+        p = np.exp(z)
+        return p / p.sum(1, keepdims=True)
+
+    def lam(self, obs: np.ndarray) -> float:
+        """λ for one observation: the probability-weighted mean of the candidates."""
+        return float(self.probabilities(self.inputs(obs))[0] @ self.candidates)
+
+    def tensors(self) -> dict:
+        import torch
+
+        out = {"mu": torch.as_tensor(self.mu), "sd": torch.as_tensor(self.sd)}
+        for i, (w, b) in enumerate(self.layers):
+            out[f"layer{i}/weight"], out[f"layer{i}/bias"] = torch.as_tensor(w), torch.as_tensor(b)
+        return out
+
+    def save(self, path: Path, meta: dict) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _write(path, self.tensors(), {"algo": ALGO, **meta})
+
+    @classmethod
+    def load(cls, path: Path, student: dict) -> Student:
+        """The student in ``path`` with the shape of run.yaml's ``student`` section (RunError if they differ)."""
+        tensors, _ = read(path, ALGO)
+        try:
+            layers = [
+                (tensors[f"layer{i}/weight"].numpy(), tensors[f"layer{i}/bias"].numpy())
+                for i in range(len(student["hidden"]) + 1)
+            ]
+            mu, sd = tensors["mu"].numpy(), tensors["sd"].numpy()
+        except KeyError as exc:
+            raise RunError(f"{path}: missing tensor {exc}") from None
+        n_in = student["n_inputs"]
+        widths = [*student["hidden"], len(student["candidates"])]
+        if mu.shape != (n_in,) or [w.shape[0] for w, _ in layers] != widths or layers[0][0].shape[1] != n_in:
+            raise RunError(f"{path}: the weights do not fit the student of run.yaml ({n_in} inputs, {widths})")
+        return cls(layers, mu, sd, student["candidates"], student["rule"], student["block"])
+
+
+class StudentPolicy:
+    """A DAgger student acting in MagBlend-v0 (``magenv.protocols.Policy``; memoryless: its memory is the
+    observation's lagged features)."""
+
+    env_id = BLEND_ID
+
+    def __init__(self, student: Student, name: str = "dagger", env_kwargs: dict | None = None, source: str = ""):
+        self.student, self.name, self.source, self.which = student, name, source, "best"
+        self.env_kwargs = dict(ENV_KWARGS if env_kwargs is None else env_kwargs)
+
+    def reset(self) -> None:
+        """Nothing to forget."""
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return np.array([self.student.lam(obs)], np.float32)
+
+
+def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, rule, block: int) -> Student:
+    """A fresh student fitted to minimise the expected regret Σ_c softmax_c · r_c (Adam, cosine schedule,
+    ``fit_steps`` mini-batches of ``batch_size`` rounded to whole epochs)."""
+    import torch
+
+    torch.set_num_threads(1)  # one core: the fits are small, and deterministic on one thread
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    mu = x.mean(0).astype(np.float32)
+    sd = (x.std(0) + 1e-6).astype(np.float32)
+    xt = torch.as_tensor((x - mu) / sd, dtype=torch.float32)
+    rt = torch.as_tensor(regret, dtype=torch.float32)
+    layers, width = [], x.shape[1]
+    for h in cfg["hidden"]:
+        layers += [torch.nn.Linear(width, int(h)), torch.nn.Tanh()]
+        width = int(h)
+    layers.append(torch.nn.Linear(width, regret.shape[1]))
+    net = torch.nn.Sequential(*layers)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg["learning_rate"])
+    n, batch = len(xt), min(cfg["batch_size"], len(xt))
+    epochs = max(1, int(round(cfg["fit_steps"] * batch / n)))
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs * max(1, n // batch))
+    for _ in range(epochs):
+        perm = torch.randperm(n, generator=gen)
+        for b in range(0, n - batch + 1, batch):
+            ix = perm[b : b + batch]
+            loss = (torch.softmax(net(xt[ix]), 1) * rt[ix]).sum(1).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+    linear = [m for m in net if isinstance(m, torch.nn.Linear)]
+    weights = [(m.weight.detach().numpy().copy(), m.bias.detach().numpy().copy()) for m in linear]
+    return Student(weights, mu, sd, candidates, rule, block)
+
+
+# ----------------------------------------------------------------- episodes
+
+
+def episode(trial, teacher, act: Callable[[np.ndarray, Any], float], k: int, label: bool = True):
+    """Run ``trial`` in the env's runner with the extended observation; ``act(obs, runner)`` → λ each step.
+
+    Returns (observations (D, n_obs) float32, teacher candidate costs (D, C) or None, RMSE °)."""
+    from magenv import metrics
+    from magenv.envs.blend import BlendRunner
+
+    runner = BlendRunner(trial, extended=True)
+    obs, costs = [], []
+    while not runner.done:
+        o = runner.feat.astype(np.float32)
+        obs.append(o)
+        if label:
+            costs.append(teacher.candidate_costs(runner))
+        runner.advance(k, float(np.clip(act(o, runner), 0.0, 1.0)))
+    rmse = metrics.score(runner.est, trial.q_true, trial.score_mask).total
+    return np.array(obs), (np.array(costs) if label else None), rmse
+
+
+def check_teacher(teacher) -> None:
+    need = ("candidate_costs", "continuation_lambda", "candidates", "horizon_s", "norm_tol", "th_dip_deg")
+    missing = [a for a in need if not hasattr(teacher, a)]
+    if missing or getattr(teacher, "env_id", BLEND_ID) != BLEND_ID:
+        raise ValueError(
+            f"teacher {getattr(teacher, 'name', teacher)!r} cannot teach a MagBlend-v0 student (lacks {missing}); "
+            "use the oracle"
+        )
+
+
+def train(out: Path, teacher, config: dict | None = None, log: Callable[[str], None] = print) -> Path:
+    """Run DAgger from ``teacher`` into the new run folder ``out`` (see the module docstring); returns ``out``."""
+    from magenv.scenarios import make_trial
+
+    check_teacher(teacher)
+    cfg = check_config(config)
+    out = Path(out)
+    if (out / RUN_FILE).exists():
+        raise ValueError(f"{out} already holds a run; choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    k, n_per = cfg["decision_every"], cfg["trials_per_scenario"]
+    cands, rule = np.asarray(teacher.candidates, float), (teacher.norm_tol, teacher.th_dip_deg)
+    from magenv.envs.blend import EXTENDED, FEATURES, LAGS
+
+    block = len(EXTENDED) // (1 + len(LAGS))
+    student_meta = {
+        "hidden": [int(h) for h in cfg["hidden"]],
+        "candidates": cands.tolist(),
+        "rule": list(rule),
+        "block": block,
+        "n_inputs": len(EXTENDED) + 1 + len(LAGS),
+        "base_features": len(FEATURES),
+    }
+    env_kwargs = {**ENV_KWARGS, "decision_every": k}
+    run = {"env_id": BLEND_ID, "algo": ALGO, "env_kwargs": env_kwargs, "teacher": getattr(teacher, "name", "")}
+    run.update({"config": cfg, "student": student_meta})
+    (out / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
+    rule_act = lambda o, runner: teacher.continuation_lambda(runner)
+
+    def rule_mse(trial) -> float:
+        return episode(trial, teacher, rule_act, k, label=False)[2] ** 2
+
+    horizon = None
+    data_x, data_r = [], []
+
+    def add(trial, act):
+        nonlocal horizon
+        obs, costs, rmse = episode(trial, teacher, act, k)
+        horizon = int(round(teacher.horizon_s * trial.rate))
+        regret = REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rule_mse(trial))
+        data_x.append(probe.inputs(obs))
+        data_r.append(regret.astype(np.float32))
+        return rmse
+
+    probe = Student([(np.zeros((1, 1)), np.zeros(1))], [0], [1], cands, rule, block)  # inputs() only
+    val = [(sc, make_trial(sc, s)) for sc in cfg["scenarios"] for s in range(*cfg["val_seeds"])]
+    val_rule = {sc: [] for sc in cfg["scenarios"]}
+    for sc, trial in val:
+        val_rule[sc].append(rule_mse(trial) ** 0.5)
+    log(f"rule on validation: {_fmt({sc: np.mean(v) for sc, v in val_rule.items()})}")
+    t0 = time.time()
+    oracle_act = lambda o, runner: teacher.best_lambda(runner)
+    for sc in cfg["scenarios"]:
+        for s in range(cfg["train_seed"], cfg["train_seed"] + n_per):
+            add(make_trial(sc, s), oracle_act)
+    log(f"iteration 0 data: {len(data_x)} teacher episodes, {time.time() - t0:.0f} s")
+    rng = np.random.default_rng(cfg["seed"])
+    rows, best = [], None
+    for it in range(cfg["iterations"]):
+        t = time.time()
+        x, r = np.concatenate(data_x), np.concatenate(data_r)
+        student = fit(x, r, cfg, cfg["seed"] + it, cands, rule, block)
+        t_fit = time.time() - t
+        rmse = {sc: [] for sc in cfg["scenarios"]}
+        for sc, trial in val:
+            rmse[sc].append(episode(trial, teacher, lambda o, runner, st=student: st.lam(o), k, label=False)[2])
+        ratio = {sc: float(np.mean(rmse[sc]) / np.mean(val_rule[sc])) for sc in cfg["scenarios"]}
+        score = float(np.mean(list(ratio.values())))
+        meta = {"iteration": it, "val_ratio": score, "samples": len(x)}
+        student.save(out / CHECKPOINTS / f"it_{it}.safetensors", meta)
+        if best is None or score < best:
+            best = score
+            student.save(out / BEST, meta)
+        rows.append({"iteration": it, "samples": len(x), "fit_s": round(t_fit, 1), "score": score, "best": best})
+        rows[-1].update({f"{sc}_rmse": float(np.mean(v)) for sc, v in rmse.items()})
+        rows[-1].update({f"{sc}_ratio": v for sc, v in ratio.items()})
+        _write_log(out / LOG, rows)
+        log(f"iteration {it}: {len(x)} samples, fit {t_fit:.0f} s, val ratio {score:.3f} {_fmt(ratio)}")
+        if it == cfg["iterations"] - 1:
+            break
+        t = time.time()
+        first = cfg["train_seed"] + n_per * (it + 1)
+
+        def mixture(o, runner, student=student):
+            lam = student.lam(o)
+            return teacher.best_lambda(runner) if cfg["beta"] > 0 and rng.random() < cfg["beta"] else lam
+
+        for sc in cfg["scenarios"]:
+            for s in range(first, first + n_per):
+                add(make_trial(sc, s), mixture)
+        log(f"   collected {len(cfg['scenarios']) * n_per} student episodes, {time.time() - t:.0f} s")
+    return out
+
+
+def _fmt(d: dict) -> str:
+    return " ".join(f"{k}={v:.3f}" for k, v in d.items())
+
+
+def _write_log(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+# ----------------------------------------------------------------- loading
+
+
+def is_run(run_dir: Path) -> bool:
+    """True if ``run_dir`` holds a DAgger run (its run.yaml says algo: dagger)."""
+    path = Path(run_dir) / RUN_FILE
+    if not path.is_file():
+        return False
+    try:
+        run = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError):
+        return False
+    return isinstance(run, dict) and run.get("algo") == ALGO
+
+
+def load_policy(run_dir: str | Path, name: str | None = None) -> StudentPolicy:
+    """The best student of a DAgger run folder as a Policy (arrays only; RunError if the folder is corrupt)."""
+    run_dir = Path(run_dir)
+    path = run_dir / RUN_FILE
+    try:
+        run = yaml.safe_load(path.read_text())
+        student_meta, env_kwargs = run["student"], dict(run["env_kwargs"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
+        raise RunError(f"{path}: not a DAgger run ({type(exc).__name__}: {exc})") from None
+    weights = run_dir / BEST
+    student = Student.load(weights, student_meta)
+    return StudentPolicy(student, name or f"agent:{run_dir.name}", env_kwargs, str(weights))

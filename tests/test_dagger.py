@@ -1,0 +1,95 @@
+"""DAgger from the oracle (``magenv train --teacher oracle``): a weights-only run folder that loads as an agent."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from magenv import evaluation, registry
+from magenv.agents import dagger
+from magenv.agents.loading import RunError, load_agent
+from magenv.baselines.rules import FanLambda
+from magenv.envs.blend import BlendRunner
+from magenv.train.cli import main
+
+TINY = {
+    "iterations": 2,
+    "trials_per_scenario": 1,
+    "scenarios": ["dynamic_clean"],
+    "val_seeds": [5000, 5001],
+    "fit_steps": 20,
+    "hidden": [8],
+}
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("dagger") / "run"
+    config = tmp_path_factory.mktemp("cfg") / "dagger.yaml"
+    config.write_text(yaml.safe_dump({"magenv/MagBlend-v0": TINY}))
+    assert main(["train", "--teacher", "oracle", "--out", str(out), "--config", str(config)]) == 0
+    return out
+
+
+def test_run_folder_holds_weights_only(run_dir):
+    files = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.rglob("*") if p.is_file())
+    assert files == ["best.safetensors", "checkpoints/it_0.safetensors", "checkpoints/it_1.safetensors",
+                     "iterations.csv", "run.yaml"]  # fmt: skip
+    run = yaml.safe_load((run_dir / "run.yaml").read_text())
+    assert run["algo"] == "dagger" and run["env_kwargs"]["features"] == "extended"
+    assert run["config"]["train_seed"] >= 10000 and run["teacher"] == "oracle"
+    assert len((run_dir / "iterations.csv").read_text().splitlines()) == 3
+
+
+def test_loads_as_an_agent_in_compare(run_dir, make_kinematic_trial):
+    agent = registry.make(f"agent:{run_dir}")
+    assert agent.env_id == "magenv/MagBlend-v0" and agent.which == "best"
+    trial = make_kinematic_trial(seed=1, duration=3.0)
+    a = evaluation.run_method("a", agent, trial)
+    b = evaluation.run_method("b", load_agent(run_dir), trial)
+    np.testing.assert_array_equal(a.q, b.q)  # deterministic
+    assert np.all((a.lam >= 0) & (a.lam <= 1))
+    with pytest.raises(RunError, match="cannot act in"):
+        load_agent(run_dir, env_id="magenv/MagKalman-v0")
+
+
+def test_refuses_an_existing_run_and_bad_configs(run_dir):
+    oracle = registry.make("oracle")
+    with pytest.raises(ValueError, match="already holds a run"):
+        dagger.train(run_dir, oracle, TINY)
+    for bad, match in (
+        ({"train_seed": 42}, "train_seed"),
+        ({"val_seeds": [0, 20]}, "validation seeds"),
+        ({"bogus": 1}, "unknown DAgger config"),
+        ({"iterations": 0}, "iterations"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            dagger.check_config(bad)
+    with pytest.raises(ValueError, match="cannot teach"):
+        dagger.train(run_dir.parent / "other", registry.make("fan_lambda"), TINY)
+
+
+def test_weights_that_do_not_fit_are_refused(run_dir, tmp_path):
+    run = yaml.safe_load((run_dir / "run.yaml").read_text())
+    run["student"]["hidden"] = [16]
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(run))
+    (tmp_path / "best.safetensors").write_bytes((run_dir / "best.safetensors").read_bytes())
+    with pytest.raises(RunError, match="do not fit"):
+        load_agent(tmp_path)
+
+
+def test_rule_inputs_are_the_continuation_rule(make_kinematic_trial):
+    """The λ column after each block of the student's input is the Fan rule on that block's observation."""
+    oracle = registry.make("oracle")
+    rule = FanLambda(oracle.norm_tol, oracle.th_dip_deg)
+    runner = BlendRunner(make_kinematic_trial(seed=2, duration=2.0, disturbance_ut=30.0), extended=True)
+    for _ in range(40):
+        runner.advance(8, 0.5)
+    probe = dagger.Student([(np.zeros((1, 1)), np.zeros(1))], [0], [1], oracle.candidates, (rule.norm_tol,
+                           rule.th_dip_deg), 42)  # fmt: skip
+    x = probe.inputs(runner.feat)[0]
+    obs = runner.feat.astype(np.float32)
+    for b in range(3):
+        assert x[43 * b + 42] == pytest.approx(rule.weight(obs[42 * b : 42 * b + 13]), abs=1e-6)
+        np.testing.assert_array_equal(x[43 * b : 43 * b + 42], obs[42 * b : 42 * (b + 1)])

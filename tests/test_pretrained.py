@@ -1,0 +1,38 @@
+"""The agent shipped with magenv: ``--agent pretrained:magenv/MagBlend-v0``, listed by ``magenv agents``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magenv import evaluation, registry
+from magenv.agents.loading import RunError, load_agent, pretrained_agents
+from magenv.train.cli import main
+
+NAME = "pretrained:magenv/MagBlend-v0"
+
+
+def test_shipped_folder_is_small_and_pickle_free():
+    folder = pretrained_agents()["magenv/MagBlend-v0"]
+    files = {p.name: p.stat().st_size for p in folder.iterdir()}
+    assert {"run.yaml", "best.safetensors", "card.md"} <= set(files)
+    assert not [n for n in files if n.endswith((".zip", ".pkl", ".pt"))]
+    assert sum(files.values()) < 1_000_000
+    assert "held-out" in (folder / "card.md").read_text()
+
+
+def test_pretrained_agent_acts_in_compare(make_kinematic_trial):
+    agent = registry.make("agent:" + NAME)
+    assert agent.name == "agent:" + NAME and agent.env_kwargs["features"] == "extended"
+    run = evaluation.run_method(agent.name, agent, make_kinematic_trial(seed=3, duration=3.0, disturbance_ut=20.0))
+    assert np.isfinite(run.score.total) and np.all((run.lam >= 0) & (run.lam <= 1))
+
+
+def test_unknown_pretrained_env_names_the_shipped_ones():
+    with pytest.raises(RunError, match="magenv/MagBlend-v0"):
+        load_agent("pretrained:magenv/MagKalman-v0")
+
+
+def test_magenv_agents_lists_it(capsys):
+    assert main(["agents"]) == 0
+    assert NAME in capsys.readouterr().out
