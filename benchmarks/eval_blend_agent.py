@@ -24,8 +24,8 @@ import numpy as np
 
 import magenv  # noqa: F401
 from magenv import evaluation, registry
-from magenv.stats import paired_ratio
 from magenv.scenarios import make_trial
+from magenv.stats import paired_ratio
 from magenv.train.seeds import seeds_arg
 
 RULE, BASE, ORACLE = "fan_lambda_tuned", "mimu", "oracle"
