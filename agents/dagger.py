@@ -299,12 +299,15 @@ def train(out: Path, teacher, config: dict | None = None, log: Callable[[str], N
 
     probe = Student([(np.zeros((1, 1)), np.zeros(1))], [0], [1], cands, rule, block)  # inputs() only
     val = [(sc, make_trial(sc, s)) for sc in cfg["scenarios"] for s in range(*cfg["val_seeds"])]
-    val_rule = {sc: [] for sc in cfg["scenarios"]}
+    val_rule: dict[str, list[float]] = {sc: [] for sc in cfg["scenarios"]}
     for sc, trial in val:
         val_rule[sc].append(rule_mse(trial) ** 0.5)
     log(f"rule on validation: {_fmt({sc: np.mean(v) for sc, v in val_rule.items()})}")
     t0 = time.time()
-    oracle_act = lambda o, runner: teacher.best_lambda(runner)
+
+    def oracle_act(o, runner):
+        return teacher.best_lambda(runner)
+
     for sc in cfg["scenarios"]:
         for s in range(cfg["train_seed"], cfg["train_seed"] + n_per):
             add(make_trial(sc, s), oracle_act)
@@ -316,9 +319,13 @@ def train(out: Path, teacher, config: dict | None = None, log: Callable[[str], N
         x, r = np.concatenate(data_x), np.concatenate(data_r)
         student = fit(x, r, cfg, cfg["seed"] + it, cands, rule, block)
         t_fit = time.time() - t
-        rmse = {sc: [] for sc in cfg["scenarios"]}
+        rmse: dict[str, list[float]] = {sc: [] for sc in cfg["scenarios"]}
+
+        def student_act(o, runner, st=student):
+            return st.lam(o)
+
         for sc, trial in val:
-            rmse[sc].append(episode(trial, teacher, lambda o, runner, st=student: st.lam(o), k, label=False)[2])
+            rmse[sc].append(episode(trial, teacher, student_act, k, label=False)[2])
         ratio = {sc: float(np.mean(rmse[sc]) / np.mean(val_rule[sc])) for sc in cfg["scenarios"]}
         score = float(np.mean(list(ratio.values())))
         meta = {"iteration": it, "val_ratio": score, "samples": len(x)}

@@ -28,12 +28,16 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
 
 from magenv.agents.hyperparams import SEED_RANGE, ConfigError, algorithm_class, check_section, constructor_kwargs
 from magenv.agents.weights import RunError, load_policy
+
+if TYPE_CHECKING:  # a run folder of either kind; dagger imports this module
+    from magenv.agents.dagger import StudentPolicy
 
 RUN_FILE = "run.yaml"
 PRETRAINED_PREFIX = "pretrained:"
@@ -189,7 +193,7 @@ def build_model(run: dict, env=None, where: str = "", **extra):
 
 def load_agent(
     run_dir: str | Path, env_id: str | None = None, which: str = "best", trust_pickle: bool = False
-) -> AgentPolicy:
+) -> AgentPolicy | StudentPolicy:
     """Load the ``best`` (lowest held-out RMSE) or ``last`` model of a run folder.
 
     ``best`` falls back to ``last`` when the run has not been evaluated yet

@@ -108,7 +108,7 @@ def markdown_table(rows: list[dict]) -> str:
 
 
 def write_report(
-    runs: list, out: Path, title: str = "magenv comparison report", headroom: set[str] = frozenset()
+    runs: list, out: Path, title: str = "magenv comparison report", headroom: frozenset[str] | set[str] = frozenset()
 ) -> Path:
     """Write ``out/report.md`` and its PNGs from evaluation runs; returns the Markdown path. ``headroom``:
     names of privileged methods (upper bounds), listed last in each scenario."""

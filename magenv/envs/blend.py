@@ -292,7 +292,7 @@ class BlendRunner(TrialRunner):
             self.memory = blend_memory.Memory.start(self.q0)
             rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
             self.feat = np.zeros(len(EXTENDED))
-            self._more = (self.q0, self.memory, rows, np.zeros(1, np.int64), self.feat)
+            self._more: tuple = (self.q0, self.memory, rows, np.zeros(1, np.int64), self.feat)
             self._advance = self.compiled(advance_extended, *self._args, 0.0, 0, 0, *self._more)
         else:
             self._more = ()

@@ -118,7 +118,7 @@ class Memory(NamedTuple):
 
     state: np.ndarray  # (N_STATE,) see the layout constants
     d_imu: np.ndarray  # (D_IMU_HISTORY,) ring of d_imu per decision
-    count: np.ndarray  # (1,) int64: decisions written to d_imu
+    decisions: np.ndarray  # (1,) int64: decisions written to d_imu
     value: np.ndarray  # (len(EXTRA),) the features of the next decision (zeros before any sample is fused)
 
     @classmethod
@@ -284,9 +284,9 @@ def update(p, site, sensors, est, dip, still_flags, q0, mem, start, stop):
     d_imu = _heading_of(s, Q_IMU, qw, qx, qy, qz)
     hist = mem.d_imu
     length = hist.shape[0]
-    c = mem.count[0]
+    c = mem.decisions[0]
     hist[c % length] = d_imu
-    mem.count[0] = c + 1
+    mem.decisions[0] = c + 1
     lag1 = LAG_1S if c >= LAG_1S else c
     lag4 = length - 1 if c >= length - 1 else c
     scale = np.rad2deg(beta * dt)
