@@ -1,6 +1,6 @@
 """Property tests (hypothesis): the quaternion kernels, one Madgwick step, the error measures and sums, and the
-four envs under any finite action sequence (unit-norm estimates, finite observations and rewards, the same
-episode for the same seed, every refusal naming the action).
+four envs under any finite action sequence and any sequence of API calls (unit-norm estimates, finite
+observations and rewards, the same episode for the same seed, every refusal naming the action or argument).
 
 Examples are drawn by hypothesis with ``derandomize=True``: the same examples on every run.
 """
@@ -237,6 +237,61 @@ def test_a_refused_action_names_the_action_and_leaves_the_episode_as_it_was(env_
             assert got[0].tobytes() == want[0].tobytes() and got[1] == want[1]
             if got[3]:
                 break
+
+    check()
+
+
+BAD_RESETS = st.sampled_from(
+    [
+        ("seed", {"seed": -1}),
+        ("seed", {"seed": 1.5}),
+        ("seed", {"seed": "0"}),
+        ("options", {"options": "abc"}),
+        ("options", {"options": {"trail": None}}),
+    ]
+)
+API_CALLS = st.one_of(
+    st.tuples(st.just("reset"), st.one_of(st.none(), st.integers(0, 2**31 - 1))),
+    st.tuples(st.just("bad_reset"), BAD_RESETS),
+    st.tuples(st.just("step"), st.none()),
+    st.tuples(st.just("bad_step"), BAD_ACTIONS),
+)
+
+
+@pytest.mark.parametrize("env_id", list(ENVS))
+def test_random_api_call_sequences_give_finite_outputs_or_named_refusals(env_id, env_trials):
+    """Seeded random sequences of calls on a fresh env — reset (seeded or not), step with a finite action, reset
+    with a bad seed or options, step with a bad action — in any order: everything returned is finite with
+    rewards ≤ 0; a step before the first reset or after truncation is refused (Gymnasium's ResetNeeded or our
+    RuntimeError), a bad argument is a ValueError/TypeError naming it, and a refused call changes nothing."""
+    good = ENVS[env_id][1]
+
+    @ENV_SETTINGS
+    @given(st.lists(API_CALLS, min_size=1, max_size=14), st.data())
+    def check(calls, data):
+        env = _make(env_id, env_trials[env_id])
+        started = done = False
+        for kind, arg in calls:
+            if kind == "reset":
+                obs, _ = env.reset(seed=arg)
+                assert np.all(np.isfinite(obs))
+                started, done = True, False
+            elif kind == "bad_reset":
+                name, kwargs = arg
+                with pytest.raises((ValueError, TypeError), match=name):
+                    env.reset(**kwargs)
+            elif kind == "step" and started and not done:
+                obs, reward, terminated, truncated, info = env.step(data.draw(good))
+                assert np.all(np.isfinite(obs)) and math.isfinite(reward) and reward <= 0.0
+                assert unit(info["q_est"], 1e-9)
+                done = terminated or truncated
+            elif kind == "step":
+                with pytest.raises((RuntimeError, gym.error.ResetNeeded)):
+                    env.step(data.draw(good))
+            elif started and not done:
+                with pytest.raises((ValueError, TypeError), match="action"):
+                    env.step(arg)
+        env.close()
 
     check()
 
