@@ -5,9 +5,11 @@
 1. trains PPO on ``magenv/MagBlend-v0`` (training family ``random``, trial
    seeds at or above 10 000), with a progress bar; an existing ``--out`` run
    is resumed, or reused when it is complete;
-2. runs the agent, the rules at their published and CMA-tuned values
-   (``baselines/tuned``) and the original filters on held-out
-   ``dynamic_magnet`` and ``dynamic_clean`` seeds (below 10 000);
+2. runs the agent, the shipped DAgger agent (``pretrained:magenv/MagBlend-v0``),
+   the rules at their published and CMA-tuned values (``baselines/tuned``),
+   the original filters and the privileged ``oracle`` (the headroom row: it
+   reads truth, an upper bound) on held-out ``dynamic_magnet`` and
+   ``dynamic_clean`` seeds (below 10 000);
 3. prints the table and writes it as CSV.
 """
 
@@ -21,7 +23,8 @@ from magenv.envs import BLEND_ID as ENV_ID
 from magenv.train.cli import CommandError, rule_arg
 from magenv.train.seeds import seeds_arg
 
-RULES = ["mimu", "imu", "fan_lambda", "fan_lambda_tuned", "threshold", "threshold_tuned"]
+RULES = ["mimu", "imu", "fan_lambda", "fan_lambda_tuned", "threshold", "threshold_tuned", "oracle"]
+PRETRAINED = "pretrained:magenv/MagBlend-v0"  # the shipped agent, printed beside the one trained here
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -39,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from magenv.agents.hyperparams import ConfigError
     from magenv.agents.loading import RunError
     from magenv.agents.training import train
-    from magenv.train.compare import finish, make_trials, run_comparison, select_methods
+    from magenv.train.compare import finish, headroom_names, make_trials, mark_headroom, run_comparison, select_methods
 
     print(f"[1/2] training PPO on {ENV_ID} for {args.steps} steps -> {args.out}")
     try:
@@ -60,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         print(f"note: {', '.join(missing)} not available (run `magenv tune --rule ...` to make tuned rules)")
     print(f"[2/2] comparing on held-out dynamic_magnet and dynamic_clean seeds {args.seeds}")
-    methods = select_methods(rules + [registry.AGENT_PREFIX + str(args.out)])
+    methods = select_methods(rules + [registry.AGENT_PREFIX + str(args.out), registry.AGENT_PREFIX + PRETRAINED])
     trials, labels = make_trials("dynamic_magnet,dynamic_clean", args.seeds, [])
-    rows = evaluation.summarize(run_comparison(methods, trials, labels, progress=not args.no_progress))
+    runs = run_comparison(methods, trials, labels, progress=not args.no_progress)
+    rows = mark_headroom(evaluation.summarize(runs), headroom_names(methods))
     return finish(rows, "learned vs hand-tuned magnetometer trust: orientation RMSE (°), held-out seeds", args.csv)

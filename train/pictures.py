@@ -5,8 +5,8 @@
 
 Writes ``OUT/frame.png``, a rendered frame of ``MagBlend-v0`` (``render_mode="rgb_array"``) at the sample of
 the largest magnetic disturbance with ``--method`` choosing the trust, and ``OUT/trust.png``, the total
-error and the magnetometer trust over the trial of ``mimu``, ``imu``, ``--method`` (and the agent of
-``--agent``, if given), against the true disturbance. PNGs are saved with a 64-colour palette (small files).
+error and the magnetometer trust over the trial of ``mimu``, ``imu``, ``--method``, the privileged ``oracle``
+(an upper bound: it reads truth) and the agent of ``--agent``, if given, against the true disturbance. PNGs are saved with a 64-colour palette (small files).
 """
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     frame = frame_at_peak(rule, trial)
     print(f"wrote {save_small_png(frame, args.out / 'frame.png')}")
 
-    methods = {n: registry.make(n) for n in ("mimu", "imu", args.method)}
+    methods = {n: registry.make(n) for n in ("mimu", "imu", args.method, "oracle")}
     if args.agent:
         methods["agent"] = registry.make(f"{registry.AGENT_PREFIX}{args.agent}")
     runs = evaluation.evaluate(methods, [trial])
