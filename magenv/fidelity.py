@@ -37,6 +37,12 @@ DEFAULT_METHODS = (
     "kf_gate_tuned,kf_adaptive,kf_adaptive_tuned,kf_model,kf_model_tuned,th_triad,th_quest,mod_triad,"
     "mod_quest,aekf,magyq,delay_magyq,delay_magyq_tuned,qsf_detector_tuned"
 )
+#: The trust rules (policies acting on features): the λ rules, the Kalman-trust rules and the QSF detector,
+#: at published and tuned values; the target band of their real / twin ratio is ``RATIO_BAND``.
+RULES = (
+    "fan_lambda,fan_lambda_tuned,threshold,threshold_tuned,kf_nominal,kf_gate,kf_gate_tuned,kf_adaptive,"
+    "kf_adaptive_tuned,kf_model,kf_model_tuned,qsf_detector_tuned"
+).split(",")
 #: The target band of the real / twin ratio (issue 17).
 RATIO_BAND = (0.67, 1.5)
 

@@ -29,12 +29,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", default=None, metavar="FILE", help="draw real against twin RMSE (PNG)")
 
 
-def rule_names() -> set[str]:
-    """The hand-crafted rules at published and tuned values (their real / twin ratio has a target)."""
-    from magenv import registry
+def is_rule(method: str) -> bool:
+    """Whether ``method`` is a trust rule (``magenv.fidelity.RULES`` or a Kalman-trust rule's ``_hand`` variant)."""
+    from magenv.fidelity import RULES
 
-    rules = set(registry.tunable_rules())
-    return rules | {f"{r}_tuned" for r in rules} | {"qsf_detector_tuned"}
+    return method in RULES or (method.startswith("kf_") and method.endswith("_hand"))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     rows = fidelity.measure(
         args.recordings, methods, registry.make, list(range(args.seeds)), progress=lambda s: print(s, flush=True)
     )
-    print(fidelity.markdown(rows, sorted(rule_names() & set(methods))))
+    print(fidelity.markdown(rows, [m for m in methods if is_rule(m)]))
     if args.csv:
         print(f"wrote {fidelity.write_csv(rows, args.csv)}")
     if args.plot:

@@ -46,6 +46,7 @@ from scipy.signal import medfilt
 
 from magenv import quaternion as quat
 from magenv.recordings import initial_rest
+from magenv.sensor_stats import rest_autocorr
 from magenv.sim import truth_motion as tm
 from magenv.sim.magnet import dipole_field
 from magenv.trial import Trial
@@ -421,8 +422,7 @@ def fit_recording(rec: Trial, mo: Motion | None = None, disturbance: str = "auto
         p_m, mu = fit_dipole(rE, p, ~held_mask(rec.mag) & ~mo.bridged, rec.rate)
     held = held_mask(rec.mag)
     rest_new = rec.mag[mo.rest][~held[mo.rest]]
-    rest_new = rest_new - rest_new.mean(0)
-    rho1 = float(np.sum(rest_new[1:] * rest_new[:-1]) / np.sum(rest_new * rest_new))
+    rho1 = rest_autocorr(rec, "mag", 1, distinct=True)
     lever, acc_bias, acc_lag = fit_acc(rec, mo)
     return TwinFit(
         n=n,
