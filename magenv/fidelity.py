@@ -209,10 +209,10 @@ def plot(rows: Sequence[Row], path: str | Path, title: str = "real vs twin RMSE 
     vals = [v for r in rows for v in (r.real_total, r.twin_total) if math.isfinite(v) and v > 0]
     lo, hi = (min(vals) / 1.5, max(vals) * 1.5) if vals else (0.1, 100.0)
     for g, rs in by_group.items():
-        ax.scatter([r.twin_total for r in rs], [r.real_total for r in rs], s=14, alpha=0.75, label=g)
+        ax.scatter([r.twin_total for r in rs], [r.real_total for r in rs], s=14, alpha=0.8, label=g, zorder=3)
     xs = np.geomspace(lo, hi, 50)
-    ax.plot(xs, xs, "k-", lw=0.8)
-    ax.fill_between(xs, xs * RATIO_BAND[0], xs * RATIO_BAND[1], color="0.85", alpha=0.6, lw=0)
+    ax.plot(xs, xs, "k-", lw=0.8, zorder=2)
+    ax.fill_between(xs, xs * RATIO_BAND[0], xs * RATIO_BAND[1], color="0.88", lw=0, zorder=1)
     ax.set(xscale="log", yscale="log", xlim=(lo, hi), ylim=(lo, hi), xlabel="twin RMSE (°)", ylabel="real RMSE (°)")
     s = summarize(rows)
     ax.set_title(f"{title}\nSpearman ρ overall {s.rho_overall:+.2f}", fontsize=10)
