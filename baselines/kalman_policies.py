@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -63,6 +63,8 @@ class KalmanRule(RulePolicy):
 
     env_id = ENV_ID
     name = "kf_rule"
+    #: run on ``prepare_trial(trial)`` instead of the trial (``magenv.evaluation.run_method``); see hand_moved
+    prepare_trial: Callable[[Trial], Trial] | None = None
 
     def __init__(self, features: Sequence[str] | None = None):
         super().__init__(tuple(FEATURES.names if features is None else features))

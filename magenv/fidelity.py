@@ -90,7 +90,7 @@ def group_of(recording: str) -> str:
 
 def _score(name: str, make_method: Callable[[str], Any], trial) -> tuple[float, float, str]:
     try:
-        s = evaluation.run_method(name, make_method(name), trial).score
+        s = evaluation.run_method(name, make_method(name), trial).scored
         return float(s.total), float(s.heading), ""
     except Exception as exc:  # one method failing on one trial is a result, not the end of the measurement
         return math.nan, math.nan, f"{type(exc).__name__}: {exc}"

@@ -30,6 +30,7 @@ import functools
 import hashlib
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -150,7 +151,8 @@ def save_fit(fit: twin_fit.TwinFit, file: Path) -> Path:
     """Write ``fit`` as an ``.npz`` of plain arrays (atomically: a temporary file, then renamed)."""
     file.parent.mkdir(parents=True, exist_ok=True)
     tmp = file.with_name(f"{file.stem}.{os.getpid()}.tmp.npz")
-    np.savez(tmp, **fit.to_arrays())
+    arrays: dict[str, Any] = fit.to_arrays()
+    np.savez(tmp, **arrays)
     os.replace(tmp, file)
     return file
 
@@ -252,7 +254,7 @@ def make_twin(
         q_true=rec.q_true.copy(),
         field_norm=rec.field_norm,
         field_dip=rec.field_dip,
-        score_mask=rec.score_mask.copy(),
+        score_mask=np.array(rec.score_mask, bool, copy=True),
         truth={k: np.array(v, copy=True) for k, v in rec.truth.items()},
         meta=meta,
     )

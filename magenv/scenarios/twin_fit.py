@@ -39,6 +39,7 @@ frame, m, from the optical marker to the IMU) and bias b_a by linear least squar
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -127,7 +128,7 @@ class TwinFit:
     @classmethod
     def from_arrays(cls, arrays) -> TwinFit:
         """Inverse of :meth:`to_arrays`; ValueError naming a missing field."""
-        out = {}
+        out: dict[str, Any] = {}
         for f in dataclasses.fields(cls):
             if f.name not in arrays:
                 raise ValueError(f"twin fit file lacks the field {f.name!r}")
@@ -372,7 +373,7 @@ def acc_model(mo: Motion, lever, bias, lag: float) -> np.ndarray:
 def fit_acc(rec: Trial, mo: Motion, lags=(0.0, 0.5, 1.0, 1.5, 2.0)):
     """(lever (3,) m, bias (3,) m/s², lag samples) of :func:`acc_model` by linear least squares per lag."""
     use = ~mo.bridged & rec.score_mask
-    best = None
+    best: tuple[float, float, np.ndarray] | None = None
     for lag in lags:
         q, la, w = tm.delay_quat(mo.qs, lag), tm.delay(mo.lin_acc, lag), tm.delay(mo.w, lag)
         alpha = np.gradient(w, 1.0 / mo.rate, axis=0)
@@ -384,6 +385,8 @@ def fit_acc(rec: Trial, mo: Motion, lags=(0.0, 0.5, 1.0, 1.5, 2.0)):
         c = float(np.mean((y - A @ cf) ** 2))
         if best is None or c < best[0]:
             best = (c, float(lag), cf)
+    if best is None:
+        raise ValueError("fit_acc needs at least one lag")
     _, lag, cf = best
     return cf[:3].copy(), cf[3:6].copy(), lag
 
