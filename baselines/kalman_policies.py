@@ -43,7 +43,9 @@ observation, so rules in µT are exact at any site).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -52,6 +54,8 @@ from magenv.envs import KALMAN_ID as ENV_ID
 from magenv.envs.features import DIP_SCALE_DEG
 from magenv.envs.kalman import FEATURES, FIELD_SCALE_UT
 from magenv.filters.kalman_threshold import TH_DIP, TH_MAG
+from magenv.recordings import initial_rest
+from magenv.trial import Trial
 
 
 class KalmanRule(RulePolicy):
@@ -59,6 +63,8 @@ class KalmanRule(RulePolicy):
 
     env_id = ENV_ID
     name = "kf_rule"
+    #: run on ``prepare_trial(trial)`` instead of the trial (``magenv.evaluation.run_method``); see hand_moved
+    prepare_trial: Callable[[Trial], Trial] | None = None
 
     def __init__(self, features: Sequence[str] | None = None):
         super().__init__(tuple(FEATURES.names if features is None else features))
@@ -158,6 +164,35 @@ RULES: dict[str, type[KalmanRule]] = {
     "kf_adaptive": AdaptiveTrust,
     "kf_model": ModelTrust,
 }
+
+
+#: MagKalman-v0 options for a hand-moved board, found on the BROAD recordings (issue 17's probe): the
+#: survey's σ_acc = 0.02 m/s² with the 0.08 m/s² accelerometer gate suits a gimbal turning about its centre,
+#: but a board moved by hand has 1–3 m/s² RMS of linear and centripetal acceleration; the gate then passes
+#: samples with |a| ≈ g pointing the wrong way, and the tiny σ_acc gives them a gain near 1, tilting the
+#: estimate, and the magnetometer update (which needs the tilt) follows it. With σ_acc = 0.5 m/s² and no
+#: gate, the accelerometer corrects only the slow tilt drift.
+HAND_MOVED_OPTIONS = {"sigma_acc": 0.5, "th_acc": math.inf}
+#: The suffix of the rules run with :data:`HAND_MOVED_OPTIONS` and the gyro de-biased at rest.
+HAND_SUFFIX = "_hand"
+
+
+def debias_at_rest(trial: Trial) -> Trial:
+    """``trial`` with the gyro's mean over its initial rest (``magenv.recordings.initial_rest``, rad/s)
+    subtracted — the bias initialisation at rest that MagKalman-v0's filter (no bias state) lacks. A trial
+    with under 1 s of initial rest is returned as it is. The rest lies before any scored sample of BROAD."""
+    rest = initial_rest(trial.gyr, trial.rate)
+    if rest.stop - rest.start < trial.rate:
+        return trial
+    return dataclasses.replace(trial, gyr=trial.gyr - trial.gyr[rest].mean(0), meta=dict(trial.meta))
+
+
+def hand_moved(rule: KalmanRule) -> KalmanRule:
+    """``rule`` set up for a hand-moved board: env options :data:`HAND_MOVED_OPTIONS` and its trials
+    de-biased at rest (:func:`debias_at_rest`, applied by ``magenv.evaluation`` through ``prepare_trial``)."""
+    rule.env_kwargs = {**rule.env_kwargs, **HAND_MOVED_OPTIONS}
+    rule.prepare_trial = debias_at_rest
+    return rule
 
 
 def methods() -> dict:

@@ -136,11 +136,14 @@ class PolicyRunner:
 
 
 def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = None, label: str | None = None) -> Run:
-    """Run one Policy or Estimator on one trial and score it."""
+    """Run one Policy or Estimator on one trial and score it. A method with a ``prepare_trial(trial)``
+    attribute runs on what it returns (e.g. the gyro de-biased at rest), scored against ``trial``'s truth."""
+    prepare = getattr(method, "prepare_trial", None)
+    seen = trial if prepare is None else prepare(trial)
     if is_policy(method):
-        q, lam, trust = (runner or PolicyRunner()).run(method, trial)
+        q, lam, trust = (runner or PolicyRunner()).run(method, seen)
     else:
-        est = method.run(trial)
+        est = method.run(seen)
         q, lam, trust = np.asarray(est.q, float), None, est.trust
     if q.shape != (trial.n, 4):
         raise ValueError(

@@ -167,12 +167,29 @@ def _named(method, name: str):
     return method
 
 
+def _hand_moved(base: Callable[[], Any], name: str) -> Any:
+    return _named(kalman_policies.hand_moved(base()), name)
+
+
+def _hand(table: dict[str, tuple[Callable[[], Any], str]]) -> dict[str, tuple[Callable[[], Any], str]]:
+    """``NAME_hand`` for every Kalman-trust rule ``NAME`` of ``table`` (``kalman_policies.hand_moved``)."""
+    return {
+        name + kalman_policies.HAND_SUFFIX: (
+            functools.partial(_hand_moved, factory, name + kalman_policies.HAND_SUFFIX),
+            f"{name} for a hand-moved board: sigma_acc 0.5 m/s², no accelerometer gate, gyro de-biased at rest",
+        )
+        for name, (factory, _) in table.items()
+        if name.startswith("kf_") and name.split("_")[1] in ("nominal", "gate", "adaptive", "model")
+    }
+
+
 def _all() -> dict[str, tuple[Callable[[], Any], str]]:
     table: dict[str, tuple[Callable[[], Any], str]] = {}
     for module in METHOD_MODULES:
         for name, factory in module.methods().items():
             table[name] = (factory, (factory.__doc__ or module.__name__).strip().splitlines()[0])
     table.update(_tuned())
+    table.update(_hand(table))
     table.update(_REGISTERED)
     return table
 

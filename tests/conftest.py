@@ -27,18 +27,23 @@ BROAD_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "br
 
 @pytest.fixture(autouse=True, scope="session")
 def _own_user_data_dir(tmp_path_factory):
-    """Tests never read or write the user's magenv data (tuned rules): they get an empty folder of their own."""
+    """Tests never read or write the user's magenv data (tuned rules) or cache (fitted twins): they get empty
+    folders of their own."""
     import os
 
     from magenv import registry
+    from magenv.scenarios import twin
 
-    old = os.environ.get(registry.DATA_DIR_ENV)
-    os.environ[registry.DATA_DIR_ENV] = str(tmp_path_factory.mktemp("magenv-data"))
+    keys = (registry.DATA_DIR_ENV, twin.CACHE_DIR_ENV)
+    old = {k: os.environ.get(k) for k in keys}
+    for k in keys:
+        os.environ[k] = str(tmp_path_factory.mktemp(k.lower()))
     yield
-    if old is None:
-        os.environ.pop(registry.DATA_DIR_ENV, None)
-    else:
-        os.environ[registry.DATA_DIR_ENV] = old
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
 
 
 @pytest.fixture(scope="module")

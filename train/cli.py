@@ -14,6 +14,7 @@ COMMANDS = {
     "simulate": ("magenv.train.simulate", "make one simulated trial and write it to HDF5"),
     "plot": ("magenv.train.plot", "draw a trial file: orientation, rates, field norm and dip, magnet distance"),
     "compare": ("magenv.train.compare", "run every method on the same trials and print the RMSE table"),
+    "fidelity": ("magenv.train.fidelity", "each method on real recordings beside their twins: RMSEs, Spearman rho"),
     "train": ("magenv.train.train", "train a learning agent on an environment"),
     "sweep": ("magenv.train.sweep", "train many runs (envs × algorithms × seeds × hyperparameters) on Ray Tune"),
     "agents": ("magenv.train.agents", "list the trained agents shipped with magenv (--agent pretrained:ENV_ID)"),

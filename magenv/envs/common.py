@@ -1,7 +1,7 @@
 """Pieces every magenv trust environment shares: where trials come from, argument and action checks, a loop VectorEnv.
 
 * :class:`TrialSource` — the ``scenario`` argument (a scenario name or a comma
-  list of names, ``"recording:PATH"``, a Trial or a list of Trials; or only
+  list of names, each possibly ``"twin:PATH"``; ``"recording:PATH"``, a Trial or a list of Trials; or only
   one world's scenarios and Trials with the channels an env needs) and the
   draw of one trial per ``reset`` from the env's ``np_random``.
 * :func:`cut_trial` — the ``episode_seconds`` option.
@@ -41,6 +41,7 @@ from magenv.trial import Trial
 
 RECORDING_PREFIX = "recording:"
 RESET_OPTIONS = ("trial",)  # the keys ``reset(options=…)`` takes
+TWIN_PREFIX = "twin:"  # a twin scenario, "twin:PATH" (magenv.scenarios.twin): made by make_trial like any scenario
 
 
 def trial_source(scenario, world: str | None = None, require: Callable[[Trial], None] | None = None) -> tuple[str, Any]:
@@ -73,7 +74,7 @@ def trial_source(scenario, world: str | None = None, require: Callable[[Trial], 
         ) from None
     known = scenarios.scenario_names(world)
     names = [s.strip() for s in scenario.split(",")]
-    bad = [n for n in names if n not in known]
+    bad = [n for n in names if n not in known and not (world is None and n.startswith(TWIN_PREFIX))]
     if bad:
         kind = "" if world is None else f"{scenarios.WORLDS[world].label} "
         only = "" if world is None else f" (this env takes only {kind}trials)"

@@ -17,7 +17,10 @@ The worlds, one module each (configs, planning, simulation; physics in ``magenv.
   each, a magnetised tool (``constraint_test1/2/3``, ``constraint_random``);
 * ``handheld`` — Combettes & Renaudin 2016: a walker's hand-held MIMU in a
   static indoor field (``handheld_texting/swinging/free/corridor``,
-  ``handheld_random``).
+  ``handheld_random``);
+* ``twin:PATH`` — the twin of a real recording: its own true motion through a
+  sensor and disturbance model fitted to it (``magenv.scenarios.twin``;
+  overrides are ``TwinConfig`` fields). Not listed by ``scenario_names``.
 
 Overrides are field names of the scenario's config or of its
 :class:`~magenv.sim.sensors.SensorConfig` (e.g. ``duration=5.0``,
@@ -27,7 +30,7 @@ Overrides are field names of the scenario's config or of its
 
 from __future__ import annotations
 
-from magenv.scenarios import gimbal, handheld, twolink
+from magenv.scenarios import gimbal, handheld, twin, twolink
 from magenv.scenarios.world import World
 from magenv.trial import Trial
 
@@ -63,20 +66,22 @@ def _world(name: str) -> World:
 
 
 def world_of(name: str) -> str:
-    """The name of the world scenario ``name`` belongs to (a key of ``WORLDS``)."""
-    return _world(name).name
+    """The name of the world scenario ``name`` belongs to (a key of ``WORLDS``; ``"twin"`` for ``twin:PATH``)."""
+    return "twin" if twin.is_twin(name) else _world(name).name
 
 
 def get_scenario(name: str):
     """The default config of scenario ``name``; ValueError lists the known names."""
-    return _world(name).get(name)
+    return twin.configure(name) if twin.is_twin(name) else _world(name).get(name)
 
 
 def configure(name: str, **overrides):
     """Scenario ``name``'s config with ``overrides`` applied (config or sensor fields)."""
-    return _world(name).configure(name, **overrides)
+    return twin.configure(name, **overrides) if twin.is_twin(name) else _world(name).configure(name, **overrides)
 
 
 def make_trial(name: str, seed: int, **overrides) -> Trial:
     """Simulate scenario ``name`` with ``seed`` (int ≥ 0): the same Trial bit for bit every time."""
+    if twin.is_twin(name):
+        return twin.make_trial(name, seed, **overrides)
     return _world(name).make_trial(name, seed, **overrides)

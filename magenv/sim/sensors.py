@@ -173,3 +173,34 @@ def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, lag, f_ratio, ph
         for j in range(3):
             mag_m[i, j] = held[j]
     return gyr_m, acc_m, mag_m
+
+
+def noise_121(z: np.ndarray) -> np.ndarray:
+    """Low-pass coloured noise of unit std from white ``z`` (K, 3): ν_k = (w_k + 2w_{k−1} + w_{k−2})/√6.
+
+    The magnetometer noise of the BROAD unit, over its conversions (held repeats left out), has lag-1 and
+    lag-2 autocorrelations of ~0.66 and ~0.16; the [1, 2, 1] kernel gives 4/6 and 1/6. The first two rows
+    (no full history) are scaled white, so every row has unit variance.
+    """
+    z = np.asarray(z, float)
+    out = z.copy()
+    out[1:] += 2.0 * z[:-1]
+    out[2:] += z[:-2]
+    out[:2] = z[:2] * np.sqrt(6.0)
+    return out / np.sqrt(6.0)
+
+
+def hold_samples(values: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """Sample-and-hold: row i of ``values`` (N, k) where ``held[i]`` is False, else the last such row before
+    it (the first row is never held)."""
+    held = np.asarray(held, bool).copy()
+    held[0] = False
+    last = np.maximum.accumulate(np.where(held, 0, np.arange(len(held))))
+    return np.asarray(values)[last]
+
+
+def hold_pattern(n: int, hold_fraction: float, phase: float) -> np.ndarray:
+    """(N,) True where the magnetometer repeats its previous reading: sample i reports conversion
+    ⌊i·(1 − hold_fraction) + phase⌋ (the pattern :func:`apply_sensor_model` uses), phase in [0, 1)."""
+    k = np.floor(np.arange(n) * (1.0 - hold_fraction) + phase).astype(np.int64)
+    return np.r_[False, k[1:] == k[:-1]]
