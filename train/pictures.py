@@ -6,7 +6,8 @@
 Writes ``OUT/frame.png``, a rendered frame of ``MagBlend-v0`` (``render_mode="rgb_array"``) at the sample of
 the largest magnetic disturbance with ``--method`` choosing the trust, and ``OUT/trust.png``, the total
 error and the magnetometer trust over the trial of ``mimu``, ``imu``, ``--method``, the privileged ``oracle``
-(an upper bound: it reads truth) and the agent of ``--agent``, if given, against the true disturbance. PNGs are saved with a 64-colour palette (small files).
+(an upper bound: it reads truth) and the agent of ``--agent``, if given, against the true disturbance. PNGs are
+saved with a 64-colour palette (small files).
 """
 
 from __future__ import annotations
