@@ -47,6 +47,29 @@ def test_policy_and_estimator_paths_agree(trials):
     assert runs[1].score == s
 
 
+def test_each_method_is_paired_with_the_reference_trial_by_trial(trials):
+    """``add_paired``: the paired ratio of a method's per-trial totals to the reference's (``magenv.stats``), none for
+    the reference itself; a method that failed on a trial of the group gets none."""
+    from magenv.stats import paired_ratio
+
+    methods = {n: registry.make(n) for n in ["mimu", "imu", "fan_lambda"]}
+    runs = evaluation.evaluate(methods, trials)
+    rows = evaluation.add_paired(evaluation.summarize(runs), runs, "fan_lambda")
+    total = {n: [r.scored.total for r in runs if r.method == n] for n in methods}
+    by = {r["method"]: r for r in rows}
+    assert "paired" not in by["fan_lambda"]
+    for n in ("mimu", "imu"):
+        assert by[n]["paired"] == paired_ratio(total[n], total["fan_lambda"])
+    runs[0] = evaluation.Run(runs[0].method, runs[0].trial, runs[0].label, None, None, None, None, "failed")
+    rows = evaluation.add_paired(evaluation.summarize(runs), runs, "fan_lambda")
+    assert "paired" not in next(r for r in rows if r["method"] == runs[0].method)
+
+
+def test_an_unknown_reference_is_a_clear_error(capsys):
+    code = main(["compare", "--methods", "mimu,imu", "--reference", "fan", "--seeds", "0:1", "--no-progress"])
+    assert code == 2 and "--reference 'fan' is not among the methods: mimu, imu" in capsys.readouterr().err
+
+
 def test_unknown_method_is_a_clear_error(capsys):
     code = main(["compare", "--methods", "mimu,not_a_method", "--seeds", "0:1", "--no-progress"])
     err = capsys.readouterr().err

@@ -70,12 +70,13 @@ def test_bad_arguments_are_named():
         BlendOracle(decision_every=0)
 
 
-def test_registry_oracle_is_privileged_and_a_headroom_row(trials):
-    from magenv.train.compare import headroom_names, mark_headroom, method_label, table_order
+def test_registry_oracle_is_privileged_and_a_headroom_row(trials, capsys):
+    from magenv.train.compare import HEADROOM_FOOTNOTE, finish, headroom_names, mark_headroom, method_label, table_order
 
     methods = {"oracle": registry.make("oracle"), "mimu": registry.make("mimu")}
     assert methods["oracle"].privileged and headroom_names(methods) == {"oracle"}
     rows = mark_headroom(evaluation.compare(methods, trials[:1]), headroom_names(methods))
     ordered = table_order(rows)
-    assert ordered[-1]["method"] == "oracle" and "upper bound" in method_label(ordered[-1])
+    assert ordered[-1]["method"] == "oracle" and method_label(ordered[-1]) == "oracle (headroom)"
+    assert finish(rows, "t", None) == 0 and HEADROOM_FOOTNOTE in capsys.readouterr().out
     assert ordered[0]["total_rmse_mean"] >= ordered[-1]["total_rmse_mean"]

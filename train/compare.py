@@ -36,6 +36,7 @@ from magenv.train.cli import PARTIAL, TRUST_PICKLE_HELP, CommandError, rule_arg
 from magenv.train.seeds import seeds_arg
 
 DEFAULT_METHODS = "mimu,imu,fan_lambda,threshold"
+DEFAULT_REFERENCE = "fan_lambda_tuned"  # the paired column's reference when it is among the methods
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -70,6 +71,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", default=None, metavar="FILE", help="PNG of error and λ over time, first trial")
     p.add_argument("--trust-pickle", action="store_true", help=TRUST_PICKLE_HELP)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--reference",
+        default=DEFAULT_REFERENCE,
+        help="method every other is paired with, trial by trial (ratio, 95 %% interval, win rate; default %(default)s)",
+    )
     p.add_argument(
         "--workers",
         type=rule_arg(POSITIVE_INT),
@@ -141,7 +147,8 @@ def select_methods(names: list[str], trust_pickle: bool = False) -> dict:
         raise CommandError(str(exc)) from None
 
 
-HEADROOM_NOTE = "headroom: reads truth, an upper bound"
+HEADROOM_NOTE = "headroom"
+HEADROOM_FOOTNOTE = "headroom: a privileged method that reads truth, an upper bound, never a baseline"
 
 
 def headroom_names(methods: dict) -> set[str]:
@@ -254,12 +261,16 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
     from rich.console import Console
     from rich.table import Table
 
-    console = console or Console(width=None if sys.stdout.isatty() else 120)  # no squeezed columns in logs
+    console = console or Console(width=None if sys.stdout.isatty() else 160)  # no squeezed columns in logs
     table = Table(title=title)
     for col in ("method", "scenario"):
         table.add_column(col, justify="left", no_wrap=True)
     for col in ("n", "total", "± std", "heading", "inclination"):
         table.add_column(col, justify="right", no_wrap=True)
+    paired = any("paired" in r for r in rows)
+    if paired:
+        table.add_column("÷ ref [95 % CI]", justify="right", no_wrap=True)
+        table.add_column("win", justify="right", no_wrap=True)
     for r in table_order(rows):
         cells = (
             ["n/a"] * 4
@@ -268,6 +279,9 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
                 _fmt(r[c]) for c in ("total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")
             ]
         )
+        if paired:
+            p = r.get("paired")
+            cells += [f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}]", f"{p.win_rate:.2f}"] if p else ["", ""]
         table.add_row(method_label(r), r["scenario"], str(r["n"]), *cells)
     console.print(table)
 
@@ -278,6 +292,8 @@ def finish(rows: list[dict], title: str, csv_path: str | None) -> int:
     from magenv import evaluation
 
     print_table(rows, title=title)
+    if any(r.get("headroom") for r in rows):
+        print(HEADROOM_FOOTNOTE)
     notes = failure_notes(rows)
     for line in notes:
         print(line)
@@ -292,6 +308,8 @@ def run(args: argparse.Namespace) -> int:
     methods = select_methods(
         args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent], args.trust_pickle
     )
+    if args.reference not in methods and args.reference != DEFAULT_REFERENCE:
+        raise CommandError(f"--reference {args.reference!r} is not among the methods: {', '.join(methods)}")
     env_kwargs = {}
     if args.every is not None:
         env_kwargs["decision_every"] = args.every
@@ -315,7 +333,8 @@ def run(args: argparse.Namespace) -> int:
         trials, labels = make_trials(scenarios, args.seeds, args.recordings)
         runs = run_comparison(methods, trials, labels, env_kwargs, progress=not args.no_progress)
     rows = mark_headroom(evaluation.summarize(runs), headroom_names(methods))
-    status = finish(rows, "orientation RMSE (°), mean over trials", args.csv)
+    rows = evaluation.add_paired(rows, runs, args.reference)
+    status = finish(rows, f"orientation RMSE (°), mean over trials; ÷ {args.reference}: paired ratio", args.csv)
     if args.plot:  # runs are trial by trial, every method once per trial
         print(f"wrote {evaluation.plot_runs(runs[: len(methods)], args.plot)}")
     return status

@@ -42,7 +42,15 @@ def run(args: argparse.Namespace) -> int:
     from magenv.agents.hyperparams import ConfigError
     from magenv.agents.loading import RunError
     from magenv.agents.training import train
-    from magenv.train.compare import finish, headroom_names, make_trials, mark_headroom, run_comparison, select_methods
+    from magenv.train.compare import (
+        DEFAULT_REFERENCE,
+        finish,
+        headroom_names,
+        make_trials,
+        mark_headroom,
+        run_comparison,
+        select_methods,
+    )
 
     print(f"[1/2] training PPO on {ENV_ID} for {args.steps} steps -> {args.out}")
     try:
@@ -67,4 +75,5 @@ def run(args: argparse.Namespace) -> int:
     trials, labels = make_trials("dynamic_magnet,dynamic_clean", args.seeds, [])
     runs = run_comparison(methods, trials, labels, progress=not args.no_progress)
     rows = mark_headroom(evaluation.summarize(runs), headroom_names(methods))
+    rows = evaluation.add_paired(rows, runs, DEFAULT_REFERENCE)
     return finish(rows, "learned vs hand-tuned magnetometer trust: orientation RMSE (°), held-out seeds", args.csv)
