@@ -256,6 +256,12 @@ def run_distributed(
         scale.stop(started)
 
 
+def paired_cells(row: dict) -> list[str]:
+    """The paired columns of a row (``evaluation.add_paired``): "ratio [low, high]" and the win rate; blank without."""
+    p = row.get("paired")
+    return [f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}]", f"{p.win_rate:.2f}"] if p else ["", ""]
+
+
 def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (°), mean over trials") -> None:
     """The comparison rows as a table, best total RMSE first within each scenario."""
     from rich.console import Console
@@ -280,8 +286,7 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
             ]
         )
         if paired:
-            p = r.get("paired")
-            cells += [f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}]", f"{p.win_rate:.2f}"] if p else ["", ""]
+            cells += paired_cells(r)
         table.add_row(method_label(r), r["scenario"], str(r["n"]), *cells)
     console.print(table)
 

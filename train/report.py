@@ -87,12 +87,14 @@ def _plot_bars(rows: list[dict], path: Path) -> Path:
 def markdown_table(rows: list[dict]) -> str:
     """The comparison rows as a Markdown table, best total RMSE first within each scenario; an n/a cell's
     reason follows the table."""
-    from magenv.train.compare import failure_notes, method_label, table_order
+    from magenv.train.compare import failure_notes, method_label, paired_cells, table_order
 
     fmt = lambda x: "–" if isinstance(x, float) and math.isnan(x) else f"{x:.2f}"
+    paired = any("paired" in r for r in rows)
     lines = [
-        "| scenario | method | n | total RMSE (°) | ± std | heading | inclination |",
-        "|---|---|---|---|---|---|---|",
+        "| scenario | method | n | total RMSE (°) | ± std | heading | inclination |"
+        + (" ÷ reference [95 % CI] | win |" if paired else ""),
+        "|---|---|---|---|---|---|---|" + ("---|---|" if paired else ""),
     ]
     for r in table_order(rows):
         cells = (
@@ -102,27 +104,42 @@ def markdown_table(rows: list[dict]) -> str:
                 fmt(r[c]) for c in ("total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")
             ]
         )
+        cells += paired_cells(r) if paired else []
         lines.append(f"| {r['scenario']} | {method_label(r)} | {r['n']} | " + " | ".join(cells) + " |")
     notes = failure_notes(rows)
     return "\n".join(lines + ([""] + [f"* {n}" for n in notes] if notes else []))
 
 
 def write_report(
-    runs: list, out: Path, title: str = "magenv comparison report", headroom: frozenset[str] | set[str] = frozenset()
+    runs: list,
+    out: Path,
+    title: str = "magenv comparison report",
+    headroom: frozenset[str] | set[str] = frozenset(),
+    reference: str | None = None,
 ) -> Path:
     """Write ``out/report.md`` and its PNGs from evaluation runs; returns the Markdown path. ``headroom``:
-    names of privileged methods (upper bounds), listed last in each scenario."""
+    names of privileged methods (upper bounds), listed last in each scenario; ``reference``: the method every
+    other is paired with, trial by trial (``evaluation.add_paired``)."""
     from magenv import evaluation
-    from magenv.train.compare import mark_headroom
+    from magenv.train.compare import HEADROOM_FOOTNOTE, mark_headroom
 
     out.mkdir(parents=True, exist_ok=True)
     rows = mark_headroom(evaluation.summarize(runs), set(headroom))
+    if reference is not None:
+        rows = evaluation.add_paired(rows, runs, reference)
     evaluation.write_csv(rows, out / "comparison.csv")
     parts = [
         f"# {title}",
         "",
         "Orientation RMSE in degrees over each trial's score mask, mean over trials "
-        "(`magenv.metrics`). Trust is the magnetometer weight each method used (1 − λ for blend policies).",
+        "(`magenv.metrics`). Trust is the magnetometer weight each method used (1 − λ for blend policies)."
+        + (
+            f" ÷ reference: the paired ratio to `{reference}` over the same trials (geometric mean of the per-trial "
+            "ratios, bootstrap 95 % interval; below 1 throughout = better), win: the share of trials it is better on."
+            if reference is not None
+            else ""
+        )
+        + (f" {HEADROOM_FOOTNOTE[0].upper()}{HEADROOM_FOOTNOTE[1:]}." if headroom else ""),
         "",
         markdown_table(rows),
         "",
@@ -155,14 +172,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from magenv import evaluation, registry
     from magenv.train.cli import PARTIAL
-    from magenv.train.compare import failure_notes, headroom_names, make_trials, run_comparison, select_methods
+    from magenv.train.compare import (
+        DEFAULT_REFERENCE,
+        failure_notes,
+        headroom_names,
+        make_trials,
+        run_comparison,
+        select_methods,
+    )
 
     methods = select_methods(
         args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent], args.trust_pickle
     )
     trials, labels = make_trials(args.scenario, args.seeds, args.recordings)
     runs = run_comparison(methods, trials, labels)
-    print(f"wrote {write_report(runs, args.out, headroom=headroom_names(methods))}")
+    reference = DEFAULT_REFERENCE if DEFAULT_REFERENCE in methods else None
+    print(f"wrote {write_report(runs, args.out, headroom=headroom_names(methods), reference=reference)}")
     notes = failure_notes(evaluation.summarize(runs))
     for line in notes:
         print(line)
