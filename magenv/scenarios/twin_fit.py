@@ -415,6 +415,7 @@ def fit_recording(rec: Trial, mo: Motion | None = None, disturbance: str = "auto
     kind = choose_disturbance(resid, interval, rec.rate) if disturbance == "auto" else disturbance
     if kind != "none" and interval is None:
         raise ValueError(f"recording {rec.name!r}: no magnetic disturbance found to fit a {kind!r} model to")
+    held = held_mask(rec.mag)
     offset, profile = np.zeros(3), np.zeros(n)
     p_m = mu = np.full(3, np.nan)
     if kind == "attached":
@@ -422,8 +423,7 @@ def fit_recording(rec: Trial, mo: Motion | None = None, disturbance: str = "auto
         profile = attached_profile(resid, offset, interval, rec.rate)
     elif kind == "dipole":
         rE, p = earth_residual(rec, mo, lag, h, M, o)
-        p_m, mu = fit_dipole(rE, p, ~held_mask(rec.mag) & ~mo.bridged, rec.rate)
-    held = held_mask(rec.mag)
+        p_m, mu = fit_dipole(rE, p, ~held & ~mo.bridged, rec.rate)
     rest_new = rec.mag[mo.rest][~held[mo.rest]]
     rho1 = rest_autocorr(rec, "mag", 1, distinct=True)
     lever, acc_bias, acc_lag = fit_acc(rec, mo)
