@@ -212,6 +212,24 @@ def test_missing_second_sensor_is_a_clear_error(short_trials):
     bc.ConstraintCF(lever_i=[0.512, 0.003, -0.025], lever_j=[0.506, 0.001, -0.029]).run(no_lever)  # given: fine
 
 
+@pytest.mark.parametrize(
+    ("weight", "gain", "error", "match"),
+    [
+        (1.5, None, ValueError, "weight"),
+        (-0.1, None, ValueError, "weight"),
+        (float("nan"), None, ValueError, "weight"),
+        (None, -1.0, ValueError, "gain"),
+        (None, float("inf"), ValueError, "gain"),
+        ("0.5", None, TypeError, "weight"),
+    ],
+)
+def test_offline_filter_names_a_bad_weight_or_gain(short_trials, weight, gain, error, match):
+    filt = cf.ConstraintFilter(short_trials[0])
+    with pytest.raises(error, match=match):
+        filt.run(weight, gain)
+    assert np.isfinite(filt.run(0.5, 0.2).est).all()  # the filter is still usable after the refusal
+
+
 def test_env_bad_actions_and_order(short_trials):
     env = MagConstraintEnv(scenario=short_trials)
     with pytest.raises(RuntimeError, match="before reset"):
