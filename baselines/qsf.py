@@ -41,7 +41,7 @@ class QSFEstimator:
     Attributes:
         mode: "aekf", "magyq" or "delay_magyq".
         detector: the QSF detector (ignored by the AEKF).
-        init: "auto" (default), "triad" (first sample, truth-free) or "truth" (paper's protocol); see
+        init: "auto" (default), "triad" (the still start, truth-free) or "truth" (paper's protocol); see
             ``magenv.filters.qsf.initial_orientation``.
         filter_kwargs: keyword arguments of ``magenv.filters.qsf.make_params`` (e.g. sigma_gyr, sigma_mag, th_acc).
     """
