@@ -76,6 +76,9 @@ def check_config(config: dict | None) -> dict:
     if unknown:
         raise ValueError(f"unknown DAgger config key(s) {unknown}; known: {sorted(DEFAULTS)}")
     cfg = {**DEFAULTS, **config}
+    from magenv.scenarios import expand_mixture
+
+    cfg["scenarios"] = expand_mixture(cfg["scenarios"])  # "twins:DIR" entries: the twins of DIR's recordings
     for key in ("iterations", "trials_per_scenario", "decision_every", "fit_steps", "batch_size"):
         if isinstance(cfg[key], bool) or not isinstance(cfg[key], int) or cfg[key] < 1:
             raise ValueError(f"DAgger config {key!r} must be a positive integer, got {cfg[key]!r}")

@@ -13,7 +13,8 @@ trial in ``last`` (a ``magenv.filters.qsf.QSFResult``).
 Initialisation (``init``, ``magenv.filters.qsf.initial_orientation``):
 ``"auto"`` (default) starts the hand-held scenarios from ``trial.q_true[0]``,
 as the paper did from its optical reference (§5.3), and every other trial
-(e.g. the real recordings) from TRIAD on the first sample (truth-free);
+(e.g. the real recordings) from TRIAD on the mean of the still samples at the start
+(``magenv.filters.qsf.still_start``, truth-free);
 ``"triad"`` and ``"truth"`` force one.
 """
 
@@ -27,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from magenv.envs import QSF_ID as ENV_ID
-from magenv.envs.qsf import FEATURES
+from magenv.envs.qsf import AGE_SCALE_S, FEATURES
 from magenv.filters import qsf
 from magenv.protocols import Estimate, Tunable
 from magenv.trial import Trial
@@ -40,7 +41,7 @@ class QSFEstimator:
     Attributes:
         mode: "aekf", "magyq" or "delay_magyq".
         detector: the QSF detector (ignored by the AEKF).
-        init: "auto" (default), "triad" (first sample, truth-free) or "truth" (paper's protocol); see
+        init: "auto" (default), "triad" (the still start, truth-free) or "truth" (paper's protocol); see
             ``magenv.filters.qsf.initial_orientation``.
         filter_kwargs: keyword arguments of ``magenv.filters.qsf.make_params`` (e.g. sigma_gyr, sigma_mag, th_acc).
     """
@@ -104,22 +105,30 @@ def delay_magyq(**kw) -> QSFEstimator:
 
 class DetectorPolicy:
     """The QSF detector as a policy of ``magenv/MagQSF-v0``: start where the detector starts, keep where it
-    keeps (start if no period is active), else no update; trust 1. With ``decision_every=1`` it reproduces
-    the ``delay_magyq`` estimator sample for sample. ``detector`` (thresholds, as the env's option) and
-    ``features`` become the env options it runs with (``env_kwargs``)."""
+    keeps (start if no period is active, or if the period has lasted the detector's ``max_period_s``), else
+    no update; trust 1. With ``decision_every=1`` it reproduces the ``delay_magyq`` estimator sample for
+    sample. ``detector`` (thresholds, as the env's option) and ``features`` become the env options it runs
+    with (``env_kwargs``).
+
+    The period-age restart is the detector's own rule seen at decision granularity: the detector restarts
+    a period of ``max_period_s`` at one sample, which a decision every 10 samples sees 9 times in 10 as a
+    plain "keep"; without this rule a period then lasts the whole trial on one reference sample (one
+    draw of the magnetometer noise fixing the heading for minutes: on BROAD 02, 130 s in one period)."""
 
     env_id = ENV_ID
 
     def __init__(self, features: Sequence[str] | None = None, detector: qsf.QSFDetector | dict | None = None):
         names = FEATURES.names if features is None else tuple(features)
-        for f in ("det_start", "det_keep", "active"):
+        for f in ("det_start", "det_keep", "active", "age"):
             if f not in names:
                 raise ValueError(f"DetectorPolicy needs the observation feature {f!r}")
-        self._i = {f: names.index(f) for f in ("det_start", "det_keep", "active")}
+        self._i = {f: names.index(f) for f in ("det_start", "det_keep", "active", "age")}
         self.env_kwargs: dict[str, Any] = {} if features is None else {"features": list(names)}
+        det = qsf.QSFDetector()
         if detector is not None:
             det = detector if isinstance(detector, qsf.QSFDetector) else qsf.QSFDetector(**detector)  # checked here
             self.env_kwargs["detector"] = dataclasses.asdict(det)
+        self._max_age = det.max_period_s / AGE_SCALE_S  # in the age feature's unit
 
     def reset(self) -> None:
         pass
@@ -129,7 +138,8 @@ class DetectorPolicy:
         if obs[self._i["det_start"]] > 0.5:
             d = 1.0
         elif obs[self._i["det_keep"]] > 0.5:
-            d = 0.0 if obs[self._i["active"]] > 0.5 else 1.0
+            active = obs[self._i["active"]] > 0.5
+            d = 0.0 if active and obs[self._i["age"]] < self._max_age else 1.0
         else:
             d = -1.0
         return np.array([d, 1.0], np.float32)

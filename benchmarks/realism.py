@@ -1,9 +1,12 @@
 """Realism check: the real sensor (BROAD recordings) against the simulator.
 
 Computes, per recording, the statistics of ``magenv.sensor_stats`` — noise at
-the initial rest, gyro bias, noise colour, field magnitude and dip, the
-magnetometer's lag (behind the gyro, and behind the true orientation) and its
-sample-and-hold share, the resolution of each channel — prints a table,
+the initial rest, gyro bias, noise colour (the magnetometer's lag-1 and lag-2
+autocorrelation over its distinct samples), field magnitude and dip, the
+magnetometer's lag (behind the gyro, and behind the true orientation), the
+gyro's lag behind the true orientation, the magnetometer's sample-and-hold
+share and how its holds group (run length), the resolution of each channel —
+prints a table,
 derives the sensor-model values the recordings support, and puts the same
 statistics of simulated data beside them: trials of ``magenv.scenarios``
 (when importable) and a trial made by the simulator's sensor model alone
@@ -42,6 +45,9 @@ def _sim_defaults() -> dict[str, float]:
             "mag_noise_ut": c.mag_noise_ut,
             "mag_lag_samples": float(c.mag_lag_samples),
             "mag_hold_fraction": c.mag_hold_fraction,
+            "mag_hold_run_mean": float(c.mag_hold_run),
+            "gyr_truth_lag_samples": float(c.gyr_lag_samples),
+            "mag_noise_taps": float(c.mag_noise_taps),
         }
     except Exception:
         return {
@@ -51,6 +57,9 @@ def _sim_defaults() -> dict[str, float]:
             "mag_noise_ut": 0.15,
             "mag_lag_samples": 4.0,
             "mag_hold_fraction": 0.29,
+            "mag_hold_run_mean": 1.0,
+            "gyr_truth_lag_samples": 0.0,
+            "mag_noise_taps": 1.0,
         }
 
 
@@ -68,7 +77,9 @@ COLUMNS = [  # (header, attribute, format)
     ("lag mag−true", "mag_truth_lag_samples", "{:.2f}"),
     ("lag gyr−true", "gyr_truth_lag_samples", "{:.2f}"),
     ("mag hold", "mag_hold_fraction", "{:.3f}"),
+    ("hold run", "mag_hold_run_mean", "{:.2f}"),
     ("mag ρ1 (distinct)", None, None),
+    ("ρ2 distinct", "mag_autocorr2_distinct", "{:.2f}"),
 ]
 
 
@@ -165,6 +176,9 @@ def recommend(real) -> dict[str, float]:
         "gyr_truth_lag_samples": med([s.gyr_truth_lag_samples for s in und]),
         "mag_hold_fraction": med([s.mag_hold_fraction for s in real]),
         "mag_autocorr1_distinct": med([s.mag_autocorr1_distinct for s in real]),
+        "mag_autocorr2_distinct": med([s.mag_autocorr2_distinct for s in real]),
+        "mag_hold_run_mean": med([s.mag_hold_run_mean for s in real]),
+        "mag_hold_run2_share": med([s.mag_hold_run2_share for s in real]),
         "gyr_quantum_dps": med([s.gyr_quantum_dps for s in real]),
         "acc_quantum_ms2": med([s.acc_quantum_ms2 for s in real]),
         "mag_quantum_ut": med([s.mag_quantum_ut for s in real]),
@@ -270,20 +284,31 @@ def main(argv=None) -> int:
         ("magnetometer noise σ, µT per axis", "mag_noise_ut", SIM_DEFAULTS["mag_noise_ut"], "{:.2f}"),
         ("mag lag behind gyro, samples", "mag_lag_samples", SIM_DEFAULTS["mag_lag_samples"], "{:.2f}"),
         ("mag lag behind truth, samples", "mag_truth_lag_samples", None, "{:.2f}"),
-        ("gyro lag behind truth, samples", "gyr_truth_lag_samples", None, "{:.2f}"),
+        ("gyro lag behind truth, samples", "gyr_truth_lag_samples", SIM_DEFAULTS["gyr_truth_lag_samples"], "{:.2f}"),
         ("mag sample-and-hold fraction", "mag_hold_fraction", SIM_DEFAULTS["mag_hold_fraction"], "{:.3f}"),
+        ("mag hold run length, samples", "mag_hold_run_mean", SIM_DEFAULTS["mag_hold_run_mean"], "{:.2f}"),
+        ("mag hold runs of exactly two", "mag_hold_run2_share", None, "{:.3f}"),
         ("mag noise ρ1 over distinct samples", "mag_autocorr1_distinct", None, "{:.2f}"),
+        ("mag noise ρ2 over distinct samples", "mag_autocorr2_distinct", None, "{:.2f}"),
         ("resolution gyro, °/s", "gyr_quantum_dps", None, "{:.4f}"),
         ("resolution accelerometer, m/s²", "acc_quantum_ms2", None, "{:.4f}"),
         ("resolution magnetometer, µT", "mag_quantum_ut", None, "{:.4f}"),
         ("sampling rate, Hz", "rate_hz", None, "{:.3f}"),
     ]
     w = max(len(r[0]) for r in rows)
-    print(f"{'quantity'.ljust(w)}  {'recordings':>10}  {'sim default':>11}")
+    # the same statistic measured on the sensor model's own trial (its default SensorConfig)
+    measured = next((st for (n, _), st in zip(sim_trials, sim) if n == "sensor_model"), None)
+    print(f"{'quantity'.ljust(w)}  {'recordings':>10}  {'sim default':>11}  {'sensor model (measured)':>23}")
     for label, key, default, fmt in rows:
-        print(f"{label.ljust(w)}  {fmt.format(rec[key]):>10}  {('' if default is None else str(default)):>11}")
-    print("\nLags are effective delays: sample-and-hold adds its mean age (≈ 0.3–0.4 sample) to a")
-    print("pure delay, so the simulator's whole-sample mag_lag_samples shows ≈ 0.3 sample larger behind its gyro.")
+        got = "" if measured is None or not hasattr(measured, key) else fmt.format(getattr(measured, key))
+        print(
+            f"{label.ljust(w)}  {fmt.format(rec[key]):>10}  {('' if default is None else str(default)):>11}  {got:>23}"
+        )
+    taps = SIM_DEFAULTS["mag_noise_taps"]
+    print(f"\n(sim default mag_noise_taps = {taps:g}: a binomial low-pass; 3 taps [1, 2, 1] give ρ1 4/6, ρ2 1/6)")
+    print("\nLags are effective delays: sample-and-hold adds its mean age (≈ 0.4 sample for pairs of holds")
+    print("6 or 8 samples apart) to a pure delay, so the simulator's whole-sample mag_lag_samples shows")
+    print("≈ 0.4 sample larger behind its gyro.")
     if args.out is not None:
         plot(real_trials, real, sim_trials, sim, rec, args.out)
     return 0

@@ -9,7 +9,9 @@ only ``truth_lag`` uses the true orientation.
 * ``rest_autocorr`` — lag-``k`` autocorrelation of the rest noise (0 for
   white noise); for the magnetometer also over its distinct (non-held) samples.
 * ``hold_fraction`` — share of samples that repeat the previous one exactly
-  (sample-and-hold).
+  (sample-and-hold); ``hold_runs`` — how those repeats group: the mean length
+  of a run of consecutive repeats and the share of runs that are exactly two
+  long (BROAD: every run is two samples, 6 or 8 samples apart).
 * ``mag_lag`` — delay of the magnetometer behind the gyroscope, samples. In a
   field that is constant in the earth frame the sensor-frame field obeys
   ``dm/dt = −ω × m`` (ω body rate, sensor frame). If the magnetometer is ``k``
@@ -92,6 +94,18 @@ def hold_fraction(x: np.ndarray) -> float:
     if len(x) < 2:
         return float("nan")
     return float(np.mean(np.all(x[1:] == x[:-1], axis=-1)))
+
+
+def hold_runs(x: np.ndarray) -> tuple[float, float]:
+    """(mean length, share of length-2 runs) of the runs of consecutive repeated samples of ``x`` (N, k)
+    (a run: samples i … i+L−1 each equal to the one before); (NaN, NaN) without repeats."""
+    x = np.asarray(x)
+    held = np.r_[False, np.all(x[1:] == x[:-1], axis=-1)] if len(x) >= 2 else np.zeros(len(x), bool)
+    edges = np.diff(np.r_[0, held.astype(np.int8), 0])
+    lengths = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+    if not lengths.size:
+        return float("nan"), float("nan")
+    return float(lengths.mean()), float(np.mean(lengths == 2))
 
 
 def mag_lag(
@@ -201,6 +215,7 @@ class SensorStats:
     acc_autocorr1: float
     mag_autocorr1: float
     mag_autocorr1_distinct: float  # over non-held samples only
+    mag_autocorr2_distinct: float  # lag 2, over non-held samples only
     field_norm_median_ut: float
     field_norm_p05_ut: float
     field_norm_p95_ut: float
@@ -214,6 +229,8 @@ class SensorStats:
     acc_quantum_ms2: float
     mag_quantum_ut: float
     mag_hold_fraction: float
+    mag_hold_run_mean: float  # mean length of a run of repeated samples
+    mag_hold_run2_share: float  # share of those runs exactly two samples long
     gyr_hold_fraction: float
     acc_hold_fraction: float
 
@@ -246,6 +263,7 @@ def sensor_stats(trial: Trial) -> SensorStats:
         acc_autocorr1=rest_autocorr(trial, "acc"),
         mag_autocorr1=rest_autocorr(trial, "mag"),
         mag_autocorr1_distinct=rest_autocorr(trial, "mag", distinct=True),
+        mag_autocorr2_distinct=rest_autocorr(trial, "mag", lag=2, distinct=True),
         field_norm_median_ut=pct(norm, 50),
         field_norm_p05_ut=pct(norm, 5),
         field_norm_p95_ut=pct(norm, 95),
@@ -259,6 +277,8 @@ def sensor_stats(trial: Trial) -> SensorStats:
         acc_quantum_ms2=quantum(trial.acc),
         mag_quantum_ut=quantum(trial.mag),
         mag_hold_fraction=hold_fraction(trial.mag),
+        mag_hold_run_mean=hold_runs(trial.mag)[0],
+        mag_hold_run2_share=hold_runs(trial.mag)[1],
         gyr_hold_fraction=hold_fraction(trial.gyr),
         acc_hold_fraction=hold_fraction(trial.acc),
     )

@@ -393,20 +393,36 @@ def test_detector_option_takes_a_mapping():
         MagQSFEnv(scenario=[_env_trial()], detector={"th_drift": -1.0})
 
 
-def test_detector_policy_with_thresholds_matches_the_tuned_estimator():
-    thresholds = {"window_s": 0.3, "th_spread": 4.0, "th_drift": 12.0, "max_period_s": 20.0}
-    tr = _env_trial()
+def _detector_episode(trial, thresholds, decision_every):
+    """The env after a whole episode of the detector policy with ``thresholds`` on ``trial``."""
     policy = DetectorPolicy(detector=thresholds)
-    env = MagQSFEnv(scenario=[tr], decision_every=1, **policy.env_kwargs)
+    env = MagQSFEnv(scenario=[trial], decision_every=decision_every, **policy.env_kwargs)
     obs, _ = env.reset(seed=0)
     done = False
     while not done:
         obs, _, _, done, _ = env.step(policy(obs))
+    return env
+
+
+def test_detector_policy_with_thresholds_matches_the_tuned_estimator():
+    thresholds = {"window_s": 0.3, "th_spread": 4.0, "th_drift": 12.0, "max_period_s": 20.0}
+    tr = _env_trial()
+    env = _detector_episode(tr, thresholds, decision_every=1)
     from magenv.registry import rule_class
 
     np.testing.assert_array_equal(env.estimate, rule_class("delay_magyq").from_params(thresholds).run(tr).q)
     with pytest.raises(ValueError, match="window_s must be a finite number > 0"):
         DetectorPolicy(detector={"window_s": 0.0})
+
+
+def test_detector_policy_restarts_a_period_at_the_detectors_max_period():
+    # A still trial: the detector keeps one period and restarts it every max_period_s at one sample, which a
+    # decision every 10 samples mostly misses; the policy restarts on the period's age instead.
+    tr = _static_trial(n=3000, disturbance=(0.0, 0.0, 0.0))
+    thresholds = {"window_s": 0.3, "th_spread": 4.0, "th_drift": 12.0, "max_period_s": 5.0}
+    env = _detector_episode(tr, thresholds, decision_every=10)
+    starts = np.flatnonzero(env._runner.inputs.action == qsf.MAG_START)
+    assert len(starts) >= 5 and np.all(np.diff(starts) <= 5.0 * tr.rate + 10)  # 30 s: a period per ≤ 5.1 s
 
 
 def test_last_observation_reports_the_last_step():
@@ -428,7 +444,7 @@ def test_feature_table_is_the_observation_and_the_docs():
 
     check_feature_table(MagQSFEnv(scenario=[_env_trial()]), eq.FEATURES)
     policy = DetectorPolicy()  # reads the layout from the env module
-    assert policy._i == {f: eq.FEATURES.index(f) for f in ("det_start", "det_keep", "active")}
+    assert policy._i == {f: eq.FEATURES.index(f) for f in ("det_start", "det_keep", "active", "age")}
 
 
 def test_filters_hold_estimators_only():

@@ -272,6 +272,18 @@ def test_sensor_stats_of_a_recording(trial02):
     assert 2.8 < s.mag_lag_samples < 3.6  # behind the gyro
     assert 4.0 < s.mag_truth_lag_samples < 4.8 and 0.9 < s.gyr_truth_lag_samples < 1.5
     assert s.gyr_quantum_dps == pytest.approx(0.061, abs=0.001)  # ±2000 °/s over 16 bit
+    assert s.mag_hold_run2_share > 0.99 and 1.99 < s.mag_hold_run_mean < 2.01  # holds come in pairs
+    assert 0.55 < s.mag_autocorr1_distinct < 0.75 and 0.08 < s.mag_autocorr2_distinct < 0.25  # low-pass noise
+
+
+def test_hold_runs_counts_runs_of_repeats():
+    from magenv.sensor_stats import hold_runs
+
+    x = np.arange(20.0)[:, None].repeat(3, 1)
+    x[3] = x[4] = x[2]  # a run of 2 repeats
+    x[10] = x[9]  # a run of 1
+    assert hold_runs(x) == (1.5, 0.5)
+    assert np.isnan(hold_runs(np.arange(5.0)[:, None])[0])
 
 
 def test_realism_benchmark_runs(tmp_path, capsys):

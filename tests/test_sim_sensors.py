@@ -64,9 +64,44 @@ def test_magnetometer_lags_by_the_configured_samples():
     cfg = SensorConfig(
         mag_noise_ut=0.0, mag_hard_iron_ut=0.0, mag_soft_iron=0.0, mag_hold_fraction=0.0, mag_lag_samples=4
     )
-    _, _, mag = _run(cfg)
+    _, _, mag = _run(dataclasses.replace(cfg, gyr_lag_samples=0))
     _, _, ideal = _ideal()
     np.testing.assert_array_equal(mag[4:], ideal[:-4])
+    _, _, mag = _run(dataclasses.replace(cfg, gyr_lag_samples=2))  # 4 behind the gyro, which is 2 behind
+    np.testing.assert_array_equal(mag[6:], ideal[:-6])
+
+
+def test_gyro_lags_the_true_motion_by_the_configured_samples():
+    cfg = SensorConfig(gyr_noise_dps=0.0, gyr_bias_dps=0.0, gyr_drift_dps=0.0, gyr_lag_samples=1)
+    g, a, m = _ideal()
+    g = np.stack([np.sin(np.arange(len(g)) / 50.0)] * 3, axis=1)
+    gyr, acc, _ = apply_sensor_model(g, a, m, RATE, cfg, np.random.default_rng(0))
+    np.testing.assert_array_equal(gyr[1:], g[:-1])
+    assert np.array_equal(gyr[0], g[0])
+
+
+def test_holds_come_in_runs_of_the_configured_length():
+    for run in (1, 2, 3):
+        _, _, mag = _run(SensorConfig(mag_hold_fraction=0.29, mag_hold_run=run))
+        held = np.r_[False, np.all(mag[1:] == mag[:-1], axis=1)]
+        edges = np.diff(np.r_[0, held.astype(int), 0])
+        lengths = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+        assert set(lengths.tolist()) == {run}
+        assert held.mean() == pytest.approx(0.29, abs=0.01)
+
+
+def test_magnetometer_noise_is_low_pass_over_its_conversions():
+    base = SensorConfig(mag_hard_iron_ut=0.0, mag_soft_iron=0.0, mag_lag_samples=0, gyr_lag_samples=0)
+    g, a, ideal = _ideal(n=60000)
+    for taps, rho1, rho2 in ((3, 4 / 6, 1 / 6), (1, 0.0, 0.0)):
+        cfg = dataclasses.replace(base, mag_noise_taps=taps)
+        _, _, mag = apply_sensor_model(g, a, ideal, RATE, cfg, np.random.default_rng(1))
+        new = np.r_[True, np.any(mag[1:] != mag[:-1], axis=1)]
+        e = (mag - ideal)[new]
+        e = e - e.mean(0)
+        ac = lambda k: np.mean([np.corrcoef(e[:-k, j], e[k:, j])[0, 1] for j in range(3)])
+        assert ac(1) == pytest.approx(rho1, abs=0.03) and ac(2) == pytest.approx(rho2, abs=0.03)
+        assert np.std(e) == pytest.approx(cfg.mag_noise_ut, rel=0.03)
 
 
 def test_sample_and_hold_repeats_the_configured_fraction():
@@ -109,6 +144,9 @@ def test_same_seed_same_readings_other_seed_differs():
         ("gyr_noise_dps", -1.0),
         ("mag_hold_fraction", 1.0),
         ("mag_lag_samples", 2.5),
+        ("gyr_lag_samples", 0.5),
+        ("mag_hold_run", 0),
+        ("mag_noise_taps", 1.5),
         ("acc_noise", float("nan")),
         ("mag_range_ut", 0.0),
     ],

@@ -125,3 +125,23 @@ def test_trial_source_takes_twin_scenarios(name07):
     assert src.kind == "scenario" and src.source[1] == name07
     with pytest.raises(ValueError, match="unknown"):
         TrialSource(name07, {}, world="twolink")
+
+
+def test_twins_entry_of_a_mixture_is_every_recording_of_the_folder(broad_dir, tmp_path):
+    files = sorted(broad_dir.glob("*.hdf5"))
+    names = scenarios.expand_mixture(f"dynamic_clean, twins:{broad_dir}")
+    assert names == ["dynamic_clean"] + [f"twin:{p.resolve()}" for p in files]
+    src = TrialSource(f"dynamic_clean,twins:{broad_dir}", {})
+    assert src.kind == "scenario" and list(src.source) == names
+    with pytest.raises(ValueError, match="no \\*.hdf5 recording"):
+        scenarios.expand_mixture([f"twins:{tmp_path}"])
+    with pytest.raises(ValueError, match="twins:"):
+        scenarios.expand_mixture(f"twins:{tmp_path / 'missing'}")
+
+
+def test_dagger_config_takes_a_twins_entry(broad_dir):
+    from magenv.agents import dagger
+
+    cfg = dagger.check_config({"scenarios": ["dynamic_magnet", f"twins:{broad_dir}"]})
+    assert cfg["scenarios"][0] == "dynamic_magnet" and len(cfg["scenarios"]) == 1 + len(list(broad_dir.glob("*.hdf5")))
+    assert all(s.startswith("twin:") for s in cfg["scenarios"][1:])

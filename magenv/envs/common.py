@@ -1,9 +1,9 @@
 """Pieces every magenv trust environment shares: where trials come from, argument and action checks, a loop VectorEnv.
 
 * :class:`TrialSource` — the ``scenario`` argument (a scenario name or a comma
-  list of names, each possibly ``"twin:PATH"``; ``"recording:PATH"``, a Trial or a list of Trials; or only
-  one world's scenarios and Trials with the channels an env needs) and the
-  draw of one trial per ``reset`` from the env's ``np_random``.
+  list of names, each possibly ``"twin:PATH"`` or ``"twins:DIR"``, the twins of DIR's recordings;
+  ``"recording:PATH"``, a Trial or a list of Trials; or only one world's scenarios and Trials with the
+  channels an env needs) and the draw of one trial per ``reset`` from the env's ``np_random``.
 * :func:`cut_trial` — the ``episode_seconds`` option.
 * :func:`check_env_args` — ``decision_every``, ``episode_seconds``, ``render_mode`` (rendering: ``magenv.envs.render``).
 * :func:`check_reset_args` — ``reset``'s ``seed`` and ``options``.
@@ -74,6 +74,8 @@ def trial_source(scenario, world: str | None = None, require: Callable[[Trial], 
         ) from None
     known = scenarios.scenario_names(world)
     names = [s.strip() for s in scenario.split(",")]
+    if world is None:
+        names = scenarios.expand_mixture(names)  # "twins:DIR": the twins of DIR's recordings
     bad = [n for n in names if n not in known and not (world is None and n.startswith(TWIN_PREFIX))]
     if bad:
         kind = "" if world is None else f"{scenarios.WORLDS[world].label} "

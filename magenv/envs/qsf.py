@@ -284,8 +284,9 @@ class MagQSFEnv(TrustEnv):
 
     A trial is drawn at ``reset`` (scenario + seed from ``self.np_random``,
     or from given Trials, or ``options={"trial": trial}``). The filter starts
-    from TRIAD on the first sample against the trial's Earth field
-    (``init="triad"``, truth-free) or, with ``init="truth"``, from the true
+    from TRIAD on the mean of the still samples at the start against the
+    trial's Earth field (``init="triad"``, truth-free,
+    ``magenv.filters.qsf.still_start``) or, with ``init="truth"``, from the true
     first orientation as the paper did (§5.3; truth only sets the start).
     The default ``init="auto"`` follows the trial: truth for the hand-held
     scenarios (their walk starts in a disturbed field), TRIAD otherwise.

@@ -7,6 +7,7 @@ Public API::
     get_scenario(name) -> config (a frozen dataclass)
     configure(name, **overrides) -> config
     world_of(name) -> str           # "gimbal", "twolink" or "handheld"
+    expand_mixture(names) -> list[str]  # "twins:DIR" → the twin:PATH of each recording in DIR
 
 The worlds, one module each (configs, planning, simulation; physics in ``magenv.sim``):
 
@@ -20,7 +21,10 @@ The worlds, one module each (configs, planning, simulation; physics in ``magenv.
   ``handheld_random``);
 * ``twin:PATH`` — the twin of a real recording: its own true motion through a
   sensor and disturbance model fitted to it (``magenv.scenarios.twin``;
-  overrides are ``TwinConfig`` fields). Not listed by ``scenario_names``.
+  overrides are ``TwinConfig`` fields). Not listed by ``scenario_names``. In
+  a mixture (``expand_mixture``: env ``scenario`` strings, the DAgger
+  config's ``scenarios``), ``twins:DIR`` stands for the twins of every
+  recording in DIR, ``twins:`` for those of the shared BROAD recordings.
 
 Overrides are field names of the scenario's config or of its
 :class:`~magenv.sim.sensors.SensorConfig` (e.g. ``duration=5.0``,
@@ -29,6 +33,8 @@ Overrides are field names of the scenario's config or of its
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 from magenv.scenarios import gimbal, handheld, twin, twolink
 from magenv.scenarios.world import World
@@ -46,6 +52,34 @@ _WORLD_OF: dict[str, World] = {name: w for w in WORLDS.values() for name in w.sc
 #: dominated by an initial heading offset no trust choice can remove, and
 #: their returns (up to ~20° per step) drown the protocols' (~1°).
 TRAINING_MIX = "dynamic_magnet,dynamic_clean,stationary_magnet"
+
+
+#: A mixture entry ``twins:DIR`` stands for the twins (``twin:PATH``) of every recording in DIR; ``twins:``
+#: alone, of the shared BROAD recordings (``magenv.recordings.broad_dir()``). See :func:`expand_mixture`.
+TWINS_PREFIX = "twins:"
+
+
+def expand_mixture(names: str | Sequence[str]) -> list[str]:
+    """The scenario names of a mixture (a comma string or a list of names), each ``twins:DIR`` entry replaced
+    by ``twin:PATH`` for every ``*.hdf5`` recording in DIR (sorted; ``twins:`` alone: the shared BROAD
+    folder); ValueError if DIR holds no recording. Other names are kept as they are (checked by their user)."""
+    from magenv.recordings import list_recordings
+
+    items = names.split(",") if isinstance(names, str) else list(names)
+    out: list[str] = []
+    for name in (str(n).strip() for n in items):
+        if not name.startswith(TWINS_PREFIX):
+            out.append(name)
+            continue
+        folder = name[len(TWINS_PREFIX) :] or None
+        try:
+            paths = list_recordings(folder)
+        except Exception as exc:
+            raise ValueError(f"mixture entry {name!r}: {exc}") from None
+        if not paths:
+            raise ValueError(f"mixture entry {name!r}: no *.hdf5 recording in {folder or 'the BROAD folder'}")
+        out.extend(f"{twin.PREFIX}{p.resolve()}" for p in paths)
+    return out
 
 
 def scenario_names(world: str | None = None) -> list[str]:

@@ -66,6 +66,8 @@ HANDHELD_SENSOR = SensorConfig(
     mag_noise_ut=0.3,
     mag_hard_iron_ut=0.5,
     mag_soft_iron=0.005,
+    mag_noise_taps=1,
+    gyr_lag_samples=0,
     mag_lag_samples=0,
     mag_hold_fraction=0.0,
 )

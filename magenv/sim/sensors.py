@@ -1,12 +1,13 @@
 """The MIMU sensor model: ideal readings → what a real unit reports (seeded).
 
 Gyroscope: constant bias (drawn per trial) + slow random-walk drift + white
-noise. Accelerometer: constant bias + white noise. Magnetometer: residual
-hard/soft iron after calibration, white noise, saturation, and the two timing
-artefacts seen in the real BROAD recordings (``shared/data/broad/README.md``):
-a lag of ~4 samples behind the gyroscope, and sample-and-hold (~29 % of the
-samples repeat the previous one, i.e. the magnetometer updates at ~71 % of
-the output rate). Frames: sensor frame throughout; units rad/s, m/s², µT.
+noise, one sample behind the true motion. Accelerometer: constant bias + white
+noise. Magnetometer: residual hard/soft iron after calibration, low-pass
+noise, saturation, and the timing artefacts seen in the real BROAD recordings
+(``shared/data/broad/README.md``, measured by ``benchmarks/realism.py``): a lag
+of ~3 samples behind the gyroscope, and sample-and-hold in runs of two (~29 %
+of the samples repeat the previous one, i.e. the magnetometer updates at ~71 %
+of the output rate). Frames: sensor frame throughout; units rad/s, m/s², µT.
 
 All parameters live in :class:`SensorConfig`; randomness comes only from the
 ``numpy.random.Generator`` passed in.
@@ -28,8 +29,11 @@ class SensorConfig:
     The defaults are those of a real sensor of this class, measured on the
     nine BROAD recordings (``benchmarks/realism.py``, medians at rest): gyro
     noise 0.094 °/s, gyro bias spread 0.18 °/s, accelerometer noise
-    0.052 m/s², magnetometer noise 0.70 µT, magnetometer 3.2 samples behind
-    the gyro, 29 % of magnetometer samples held. ``SensorConfig.papers()``
+    0.052 m/s², magnetometer noise 0.70 µT with lag-1/lag-2 autocorrelations
+    0.67/0.16 over its conversions, magnetometer 3.2 samples behind the gyro
+    (effective, hold age included), the gyro 1.2 samples behind the optical
+    truth, 29 % of magnetometer samples held, in runs of exactly two.
+    ``SensorConfig.papers()``
     gives the values the papers quote instead (gyro 0.5 °/s, accelerometer
     0.02 m/s², magnetometer 0.15 µT): with them the gyro noise equals Fan et
     al.'s stationary threshold (0.5 °/s), so their detector would rarely fire,
@@ -41,14 +45,18 @@ class SensorConfig:
         gyr_drift_dps: random-walk drift of the gyroscope bias, °/s per √s.
         acc_noise: accelerometer white noise, m/s².
         acc_bias: std of the constant accelerometer bias per axis, m/s².
-        mag_noise_ut: magnetometer white noise, µT.
+        mag_noise_ut: magnetometer noise std, µT (coloured by ``mag_noise_taps``).
+        mag_noise_taps: the noise over the conversions is white noise through a binomial low-pass of this
+            many taps (:func:`lowpass_noise`; 3: [1, 2, 1], lag-1/lag-2 autocorrelation 4/6, 1/6; 1: white).
         mag_hard_iron_ut: std of the residual hard-iron offset per axis, µT.
         mag_soft_iron: std of the residual soft-iron matrix entries (symmetric,
             added to the identity), dimensionless.
         mag_range_ut: magnetometer saturation, ±µT per axis.
-        mag_lag_samples: magnetometer delay behind the other channels, samples.
+        gyr_lag_samples: gyroscope delay behind the true motion (and the accelerometer), samples.
+        mag_lag_samples: magnetometer delay behind the gyroscope, samples.
         mag_hold_fraction: fraction of magnetometer samples that repeat the
             previous one (sample-and-hold), in [0, 1).
+        mag_hold_run: the held samples come in runs of this length (:func:`hold_pattern`).
     """
 
     gyr_noise_dps: float = 0.1
@@ -57,11 +65,14 @@ class SensorConfig:
     acc_noise: float = 0.05
     acc_bias: float = 0.02
     mag_noise_ut: float = 0.7
+    mag_noise_taps: int = 3
     mag_hard_iron_ut: float = 0.3
     mag_soft_iron: float = 0.005
     mag_range_ut: float = 800.0
+    gyr_lag_samples: int = 1
     mag_lag_samples: int = 3
     mag_hold_fraction: float = 0.29
+    mag_hold_run: int = 2
 
     @classmethod
     def papers(cls) -> SensorConfig:
@@ -78,10 +89,12 @@ class SensorConfig:
                 or v < 0
             ):
                 raise ValueError(f"SensorConfig.{f.name} must be a finite number ≥ 0, got {v!r}")
-        if int(self.mag_lag_samples) != self.mag_lag_samples:
-            raise ValueError(
-                f"SensorConfig.mag_lag_samples must be a whole number of samples, got {self.mag_lag_samples!r}"
-            )
+        for name in ("mag_lag_samples", "gyr_lag_samples"):
+            if int(getattr(self, name)) != getattr(self, name):
+                raise ValueError(f"SensorConfig.{name} must be a whole number of samples, got {getattr(self, name)!r}")
+        for name in ("mag_noise_taps", "mag_hold_run"):
+            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
+                raise ValueError(f"SensorConfig.{name} must be a whole number ≥ 1, got {getattr(self, name)!r}")
         if not self.mag_hold_fraction < 1.0:
             raise ValueError(f"SensorConfig.mag_hold_fraction must be < 1, got {self.mag_hold_fraction!r}")
         if self.mag_range_ut <= 0:
@@ -119,6 +132,9 @@ def apply_sensor_model(
     hard = rng.normal(0.0, cfg.mag_hard_iron_ut, 3)
     phase = rng.uniform(0.0, 1.0)
     z = rng.standard_normal((4, n, 3))  # walk, gyro, accelerometer, magnetometer
+    held = hold_pattern(n, cfg.mag_hold_fraction, phase, int(cfg.mag_hold_run))
+    new = np.flatnonzero(~held)
+    z[3, new] = lowpass_noise(z[3, new], int(cfg.mag_noise_taps))  # the noise over the conversions
     sig = np.array(
         [cfg.gyr_drift_dps * d2r * math.sqrt(1.0 / rate), cfg.gyr_noise_dps * d2r, cfg.acc_noise, cfg.mag_noise_ut]
     )
@@ -132,40 +148,37 @@ def apply_sensor_model(
         bias_a,
         soft,
         hard,
+        int(cfg.gyr_lag_samples),
         int(cfg.mag_lag_samples),
-        1.0 - cfg.mag_hold_fraction,
-        phase,
+        held,
         float(cfg.mag_range_ut),
     )
 
 
 @njit(cache=True)
-def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, lag, f_ratio, phase, mag_range):
+def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, gyr_lag, lag, held_mask, mag_range):
     """Kernel of :func:`apply_sensor_model`.
 
-    Gyro: ω + b + Σ walk + noise (walk std grows as drift·√t).
-    Magnetometer: the reading at sample i reports conversion k(i) =
-    ⌊i·f + phase⌋, f = 1 − hold fraction conversions per sample
-    (sample-and-hold, ~29 % repeats); conversion k is made at the first
-    sample i_k that reports it, of the field at sample i_k − lag, through
-    the residual iron (I + S)·B + h, plus noise; then clipped to ±range.
+    Gyro: ω(i − gyr_lag) + b + Σ walk + noise (walk std grows as drift·√t).
+    Magnetometer: a new conversion at each sample i not held (``held_mask``,
+    :func:`hold_pattern`), of the field at sample i − gyr_lag − lag, through
+    the residual iron (I + S)·B + h, plus noise (already coloured); held
+    samples repeat it; then clipped to ±range.
     """
     n = gyr.shape[0]
     gyr_m = np.empty((n, 3))
     acc_m = np.empty((n, 3))
     mag_m = np.empty((n, 3))
     walk = np.zeros(3)
-    last_k = -1
     held = np.zeros(3)
     for i in range(n):
+        gsrc = max(i - gyr_lag, 0)
         for j in range(3):
             walk[j] += sig[0] * z[0, i, j]
-            gyr_m[i, j] = gyr[i, j] + bias_g[j] + walk[j] + sig[1] * z[1, i, j]
+            gyr_m[i, j] = gyr[gsrc, j] + bias_g[j] + walk[j] + sig[1] * z[1, i, j]
             acc_m[i, j] = acc[i, j] + bias_a[j] + sig[2] * z[2, i, j]
-        k = int(np.floor(i * f_ratio + phase))
-        if k != last_k:  # a new conversion
-            last_k = k
-            src = max(i - lag, 0)
+        if i == 0 or not held_mask[i]:  # a new conversion
+            src = max(i - gyr_lag - lag, 0)
             for j in range(3):
                 b = hard[j] + soft[j, 0] * mag[src, 0] + soft[j, 1] * mag[src, 1] + soft[j, 2] * mag[src, 2]
                 b += sig[3] * z[3, i, j]
@@ -175,19 +188,25 @@ def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, lag, f_ratio, ph
     return gyr_m, acc_m, mag_m
 
 
-def noise_121(z: np.ndarray) -> np.ndarray:
-    """Low-pass coloured noise of unit std from white ``z`` (K, 3): ν_k = (w_k + 2w_{k−1} + w_{k−2})/√6.
-
-    The magnetometer noise of the BROAD unit, over its conversions (held repeats left out), has lag-1 and
-    lag-2 autocorrelations of ~0.66 and ~0.16; the [1, 2, 1] kernel gives 4/6 and 1/6. The first two rows
-    (no full history) are scaled white, so every row has unit variance.
-    """
+def lowpass_noise(z: np.ndarray, taps: int) -> np.ndarray:
+    """Low-pass coloured noise of unit std from white ``z`` (K, 3) through the binomial kernel of ``taps``
+    taps: ν_k = Σ_m C(taps − 1, m)·w_{k−m} / √(Σ_m C(taps − 1, m)²); 1 tap: white, 3 taps: [1, 2, 1]/√6
+    (lag-1 and lag-2 autocorrelations 4/6 and 1/6). The first ``taps − 1`` rows (no full history) are scaled
+    white, so every row has unit variance."""
     z = np.asarray(z, float)
+    c = [math.comb(taps - 1, m) for m in range(taps)]
+    norm = math.sqrt(sum(x * x for x in c))
     out = z.copy()
-    out[1:] += 2.0 * z[:-1]
-    out[2:] += z[:-2]
-    out[:2] = z[:2] * np.sqrt(6.0)
-    return out / np.sqrt(6.0)
+    for m in range(1, min(taps, len(z) + 1)):
+        out[m:] += c[m] * z[:-m]
+    out[: taps - 1] = z[: taps - 1] * norm
+    return out / norm
+
+
+def noise_121(z: np.ndarray) -> np.ndarray:
+    """:func:`lowpass_noise` with 3 taps: the magnetometer noise of the BROAD unit, over its conversions (held
+    repeats left out), has lag-1 and lag-2 autocorrelations of ~0.66 and ~0.16; [1, 2, 1] gives 4/6 and 1/6."""
+    return lowpass_noise(z, 3)
 
 
 def hold_samples(values: np.ndarray, held: np.ndarray) -> np.ndarray:
@@ -199,8 +218,14 @@ def hold_samples(values: np.ndarray, held: np.ndarray) -> np.ndarray:
     return np.asarray(values)[last]
 
 
-def hold_pattern(n: int, hold_fraction: float, phase: float) -> np.ndarray:
-    """(N,) True where the magnetometer repeats its previous reading: sample i reports conversion
-    ⌊i·(1 − hold_fraction) + phase⌋ (the pattern :func:`apply_sensor_model` uses), phase in [0, 1)."""
-    k = np.floor(np.arange(n) * (1.0 - hold_fraction) + phase).astype(np.int64)
-    return np.r_[False, k[1:] == k[:-1]]
+def hold_pattern(n: int, hold_fraction: float, phase: float, run: int = 1) -> np.ndarray:
+    """(N,) True where the magnetometer repeats its previous reading (the pattern :func:`apply_sensor_model`
+    uses), phase in [0, 1): the samples form slots of ``run`` samples, slot s reports conversion slot
+    ⌊s·(1 − hold_fraction) + phase⌋, and a slot that reports the same as the one before is held whole. So
+    holds come in runs of ``run`` samples, ``hold_fraction`` of the samples; BROAD's unit holds pairs, 6 or 8
+    samples apart (run 2, fraction 0.29)."""
+    if int(run) != run or run < 1:
+        raise ValueError(f"hold run must be a whole number ≥ 1, got {run!r}")
+    k = np.floor(np.arange(-(-n // run)) * (1.0 - hold_fraction) + phase).astype(np.int64)
+    slot_held = np.r_[False, k[1:] == k[:-1]]
+    return np.repeat(slot_held, run)[:n]
