@@ -63,3 +63,16 @@ def test_a_saved_student_loads_as_the_same_policy(disturbed, tmp_path):
     run_yaml.write_text(yaml.safe_dump(run_file))
     with pytest.raises(RunError, match="features"):
         registry.make(f"agent:{tmp_path}")
+
+
+def test_the_shipped_agent_loads_and_acts(disturbed):
+    from magenv.agents.loading import pretrained_agents
+
+    folder = pretrained_agents()["magenv/MagVQF-v0"]
+    files = {p.name: p.stat().st_size for p in folder.iterdir()}
+    assert {"run.yaml", "best.safetensors", "card.md"} <= set(files) and sum(files.values()) < 1_000_000
+    assert "held out" in (folder / "card.md").read_text()
+    agent = registry.make("agent:pretrained:magenv/MagVQF-v0")
+    assert agent.env_id == "magenv/MagVQF-v0" and agent.env_kwargs["rejection"] == "on"
+    run = evaluation.run_method(agent.name, agent, disturbed)
+    assert np.isfinite(run.scored.total) and np.all((run.trust >= 0) & (run.trust <= 1))

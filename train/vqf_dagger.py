@@ -33,7 +33,7 @@ class Config:
     horizon_s: float = 1.5  # s, the oracle's look-ahead
     iterations: int = 2  # DAgger rounds (round 0: the oracle's own trajectories)
     sim_scenarios: tuple = ("dynamic_magnet", "stationary_magnet")
-    sim_trials: int = 4  # simulated training trials per scenario and round (seeds ≥ 10000)
+    sim_trials: tuple = (4, 4)  # simulated training trials of each sim scenario (seeds ≥ 10000)
     eval_seeds: tuple = (0, 8)  # held-out simulated seeds for the figures
     hidden: tuple = (64, 64)
     fit_steps: int = 3000
@@ -76,7 +76,11 @@ class Labeller:
 def sim_training_trials(cfg: Config) -> list:
     from magenv.scenarios import make_trial
 
-    return [make_trial(s, 10000 + 100 * j + i) for j, s in enumerate(cfg.sim_scenarios) for i in range(cfg.sim_trials)]
+    return [
+        make_trial(s, 10000 + 100 * j + i)
+        for j, (s, count) in enumerate(zip(cfg.sim_scenarios, cfg.sim_trials))
+        for i in range(count)
+    ]
 
 
 def fit_on(cfg: Config, data: list, seed: int):
