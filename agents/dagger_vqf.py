@@ -81,8 +81,9 @@ class StudentPolicy:
 
     env_id = VQF_ID
 
-    def __init__(self, student: Student, env_kwargs: dict, name: str = "dagger_vqf"):
+    def __init__(self, student: Student, env_kwargs: dict, name: str = "dagger_vqf", source: str = ""):
         self.student, self.env_kwargs, self.name = student, dict(env_kwargs), name
+        self.source, self.which = source, "best"  # the weights file, and which model (as a loaded SB3 agent)
 
     def reset(self) -> None:
         self.student.reset()
@@ -172,22 +173,30 @@ def save(run_dir: str | Path, student: Student, env_kwargs: dict, meta: dict) ->
     return run_dir
 
 
-def is_run(run_dir: str | Path) -> bool:
-    """``run_dir`` holds a run of this module (``algo: dagger_vqf``)."""
+def _run_file(run_dir: str | Path) -> dict:
+    """The run.yaml of ``run_dir`` as a mapping (RunError if missing or corrupt)."""
     path = Path(run_dir) / RUN_FILE
-    if not path.is_file():
-        return False
     try:
         run = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError):
+    except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise RunError(f"{path}: unreadable ({type(exc).__name__})") from None
+    if not isinstance(run, dict):
+        raise RunError(f"{path}: not a mapping")
+    return run
+
+
+def is_run(run_dir: str | Path) -> bool:
+    """``run_dir`` holds a run of this module (``algo: dagger_vqf``)."""
+    try:
+        return _run_file(run_dir).get("algo") == ALGO
+    except RunError:
         return False
-    return isinstance(run, dict) and run.get("algo") == ALGO
 
 
 def load_policy(run_dir: str | Path, name: str | None = None) -> StudentPolicy:
     """The student of a run folder as a Policy (RunError naming the file and the problem)."""
     run_dir = Path(run_dir)
-    run = yaml.safe_load((run_dir / RUN_FILE).read_text())
+    run = _run_file(run_dir)
     if run.get("features") != list(FEATURES.names):
         raise RunError(f"{run_dir / RUN_FILE}: trained on other observation features than {VQF_ID}'s")
     tensors, _ = read(run_dir / BEST, ALGO)
@@ -200,4 +209,4 @@ def load_policy(run_dir: str | Path, name: str | None = None) -> StudentPolicy:
     student = Student(weights, arrays["mean"], arrays["std"], run["candidates"], run["lags"])
     if student.mean.shape[0] != len(FEATURES) * (1 + len(student.lags)):
         raise RunError(f"{run_dir / BEST}: input size {student.mean.shape[0]} does not fit the features and lags")
-    return StudentPolicy(student, run["env_kwargs"], name or f"agent:{run_dir.name}")
+    return StudentPolicy(student, run["env_kwargs"], name or f"agent:{run_dir.name}", str(run_dir / BEST))

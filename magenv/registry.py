@@ -18,7 +18,7 @@ a fresh one. ``names()`` lists them all:
 * ``oracle`` — the privileged receding-horizon search of MagBlend-v0
   (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
   reads truth, so it is an upper bound (compare's headroom row), never a
-  baseline;
+  baseline; likewise ``vqf_oracle`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
 """

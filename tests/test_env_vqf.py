@@ -24,6 +24,7 @@ from tests.conftest import (
     check_with_checkers,
     kinematic_trial,
 )
+from tests.test_env_kalman import _run  # one episode, the last action repeated: (obs, rewards, infos)
 
 ENV_ID = "magenv/MagVQF-v0"
 
@@ -38,20 +39,6 @@ def disturbed():
 def recording(broad_dir):
     """BROAD trial 29 (a magnet near the resting and moving sensor), first 60 s."""
     return load_recording(find_recording("29", broad_dir)).slice(0, 17143)
-
-
-def _run(env, actions, seed=0, options=None):
-    obs, _ = env.reset(seed=seed, options=options)
-    out_obs, rewards, infos = [obs], [], []
-    i, trunc = 0, False
-    while not trunc:
-        obs, r, term, trunc, info = env.step(np.array([actions[min(i, len(actions) - 1)]], np.float32))
-        assert not term
-        out_obs.append(obs)
-        rewards.append(r)
-        infos.append(info)
-        i += 1
-    return np.array(out_obs), np.array(rewards), infos
 
 
 # ------------------------------------------------------------------ the filter is VQF as shipped
