@@ -29,8 +29,9 @@ magnetometer-trust policy has to clear.
   unit works). ``trust`` is 0 where Fusion ignored the magnetometer
   (``magnetometer_ignored``), else 1.
 
-Both packages are an optional extra: ``pip install magenv[reference]``; they
-are imported only when an estimator is built.
+``vqf`` is a core dependency (it is also the filter of ``magenv/MagVQF-v0``);
+``imufusion`` is the optional extra ``pip install magenv[reference]``. Both are
+imported only when an estimator is built.
 """
 
 from __future__ import annotations

@@ -89,6 +89,31 @@ def find_recording(key: str, folder: str | Path | None = None) -> Path:
     return hits[0]
 
 
+GLOB_CHARS = "*?["
+
+
+def match_recordings(pattern: str, folder: str | Path | None = None) -> list[Path]:
+    """The recordings a ``recording:`` pattern names, sorted: an existing file itself; a glob with a folder
+    part (``data/*.hdf5``) matched as a path; a bare glob (``2*``, ``*magnet*``) matched against the file
+    names in ``folder`` (default ``broad_dir()``), ``.hdf5`` appended if the pattern has no suffix.
+    TrialError if nothing matches."""
+    import glob
+
+    path = Path(pattern)
+    if path.is_file():
+        return [path]
+    if not any(c in pattern for c in GLOB_CHARS):
+        raise TrialError(f"{pattern}: no such recording file")
+    if path.parent != Path("."):
+        hits = sorted(Path(p) for p in glob.glob(pattern) if Path(p).is_file())
+    else:
+        base = broad_dir() if folder is None else Path(folder)
+        hits = sorted(base.glob(pattern if Path(pattern).suffix else pattern + ".hdf5"))
+    if not hits:
+        raise TrialError(f"recording pattern {pattern!r} matches no file")
+    return hits
+
+
 def initial_rest(
     gyr: np.ndarray, rate: float, threshold: float = REST_GYR_THRESHOLD, max_seconds: float = REST_MAX_SECONDS
 ) -> slice:

@@ -7,8 +7,9 @@ a fresh one. ``names()`` lists them all:
 
 * every ``methods()`` table of the baseline modules in ``METHOD_MODULES``
   (``mimu``, ``imu``, ``fan_lambda``, ``threshold``, the survey Kalman
-  filters, the Kalman-trust rules, the constraint and QSF filters, and the
-  outside references ``vqf`` and ``fusion``) — adding a method is one line
+  filters, the Kalman-trust rules, the constraint and QSF filters, the
+  outside references ``vqf`` and ``fusion``, and the MagVQF-v0 policies
+  ``vqf_rejection``, ``vqf_no_rejection``, ``vqf_fan_lambda``, ``vqf_threshold``) — adding a method is one line
   in its module's table;
 * ``RULE_tuned`` for every tunable rule with a tuned-parameter file
   ``RULE.json`` (written by ``magenv tune``): looked up first in the user's
@@ -17,7 +18,7 @@ a fresh one. ``names()`` lists them all:
 * ``oracle`` — the privileged receding-horizon search of MagBlend-v0
   (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
   reads truth, so it is an upper bound (compare's headroom row), never a
-  baseline;
+  baseline; likewise ``vqf_oracle`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
 """
@@ -33,13 +34,13 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from magenv.baselines import constraint, kalman, kalman_policies, oracle, qsf, reference, rules
+from magenv.baselines import constraint, kalman, kalman_policies, oracle, qsf, reference, rules, vqf_rules
 from magenv.protocols import Tunable
 
 AGENT_PREFIX = "agent:"
 TUNED_SUFFIX = "_tuned"
 DATA_DIR_ENV = "MAGENV_DATA_DIR"
-METHOD_MODULES = (rules, kalman, kalman_policies, constraint, qsf, reference)
+METHOD_MODULES = (rules, kalman, kalman_policies, constraint, qsf, reference, vqf_rules)
 #: methods that act with another rule's tuned parameters: name → (the rule whose file, factory(params))
 TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "qsf_detector_tuned": ("delay_magyq", qsf.tuned_detector_policy),
@@ -87,6 +88,7 @@ def tunable_rules() -> dict[str, type[Tunable]]:
     return {
         **rules.RULES,
         **kalman_policies.RULES,
+        **vqf_rules.RULES,
         "cf_constraint": constraint.ConstraintCF,
         "delay_magyq": qsf.DetectedDelayMAGYQ,
     }

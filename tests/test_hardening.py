@@ -318,6 +318,8 @@ CASES = {
     "`MagKalman-v0` with `sigma_gyr=1e9`": lambda c: c.call(lambda: _env("MagKalman-v0", sigma_gyr=1e9)),
     "`MagKalman-v0` with `model_c_a=1.0`": lambda c: c.call(lambda: _env("MagKalman-v0", model_c_a=1.0)),
     '`MagKalman-v0` with `heading_only="yes"`': lambda c: c.call(lambda: _env("MagKalman-v0", heading_only="yes")),
+    '`MagVQF-v0` with `rejection="maybe"`': lambda c: c.call(lambda: _env("MagVQF-v0", rejection="maybe")),
+    "`MagVQF-v0` with `tau_mag=0`": lambda c: c.call(lambda: _env("MagVQF-v0", tau_mag=0)),
     "`MagConstraint-v0` with `th2=1.5`": lambda c: c.call(lambda: _env("MagConstraint-v0", th2=1.5)),
     "`MagConstraint-v0` with `k_min=2, k_max=1`": lambda c: c.call(lambda: _env("MagConstraint-v0", k_min=2, k_max=1)),
     '`MagQSF-v0` with `filter_kwargs={"max_age_s": math.inf}`': lambda c: c.call(

@@ -145,7 +145,13 @@ def env_trials():
     """name → the trials of one env's episodes (sensor trials; two-link ones for the constraint env)."""
     sensor = [kinematic_trial(seed=s, duration=1.0, disturbance_ut=30.0, disturbance_window=(0.3, 0.6)) for s in (0, 1)]
     twolink = [cs.make_trial("constraint_test2", s, duration=8.0, disturbances=((0.3, 0.3),)) for s in (0, 1)]
-    return {"MagBlend-v0": sensor, "MagKalman-v0": sensor, "MagQSF-v0": sensor, "MagConstraint-v0": twolink}
+    return {
+        "MagBlend-v0": sensor,
+        "MagKalman-v0": sensor,
+        "MagQSF-v0": sensor,
+        "MagConstraint-v0": twolink,
+        "MagVQF-v0": sensor,
+    }
 
 
 ENVS = {  # env → (decision_every, a strategy of one finite action, in range or not)
@@ -153,6 +159,7 @@ ENVS = {  # env → (decision_every, a strategy of one finite action, in range o
     "MagKalman-v0": (8, arrays(np.float32, 1, elements=st.floats(-2.0, 3.0, width=32))),
     "MagQSF-v0": (10, arrays(np.float32, 2, elements=st.floats(-3.0, 3.0, width=32))),
     "MagConstraint-v0": (8, arrays(np.float32, 1, elements=st.floats(-2.0, 3.0, width=32))),
+    "MagVQF-v0": (8, arrays(np.float32, 1, elements=st.floats(-2.0, 3.0, width=32))),
 }
 
 
@@ -189,7 +196,7 @@ def test_any_finite_actions_keep_the_estimate_unit_and_everything_finite(env_id,
     check()
 
 
-@pytest.mark.parametrize("env_id", ["MagBlend-v0", "MagQSF-v0"])
+@pytest.mark.parametrize("env_id", ["MagBlend-v0", "MagQSF-v0", "MagVQF-v0"])
 def test_the_same_seed_gives_the_same_episode_bit_for_bit(env_id, env_trials):
     @ENV_SETTINGS
     @given(st.integers(0, 2**31 - 1), st.lists(ENVS[env_id][1], min_size=1, max_size=6))

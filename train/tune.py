@@ -1,6 +1,7 @@
 """``magenv tune``: optimise a hand-crafted rule's (or filter's) parameters with CMA-ES.
 
     magenv tune --rule fan_lambda [--scenarios random] [--seeds 10000:10016] [--iterations 30]
+    magenv tune --rule vqf_fan_lambda --scenarios dynamic_magnet,recording:2*   # simulated and real trials
 
 The objective is the mean total-orientation RMSE (degrees) of the rule over
 fixed training trials (seeds at or above ``TRAIN_SEED_START``, so never the
@@ -26,7 +27,11 @@ from magenv.train.seeds import seeds_arg
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rule", required=True, help="rule to tune (e.g. fan_lambda, threshold)")
-    p.add_argument("--scenarios", default=TRAINING_MIX, help="comma list of training scenarios (default %(default)s)")
+    p.add_argument(
+        "--scenarios",
+        default=TRAINING_MIX,
+        help="comma list of training scenarios, recording:GLOB entries allowed (default %(default)s)",
+    )
     p.add_argument(
         "--seeds",
         type=seeds_arg,
@@ -45,16 +50,31 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
+def training_trials(scenarios: str, seeds) -> list:
+    """The trials of ``--scenarios``: each simulated scenario at every seed, each ``recording:GLOB`` entry's
+    recordings once (``magenv.recordings.match_recordings``; a recording tuned on is then no evaluation trial)."""
+    from magenv.envs.common import RECORDING_PREFIX
+    from magenv.recordings import load_recording, match_recordings
+    from magenv.scenarios import make_trial
+
+    trials = []
+    for name in (s.strip() for s in scenarios.split(",")):
+        if name.startswith(RECORDING_PREFIX):
+            trials += [load_recording(p) for p in match_recordings(name[len(RECORDING_PREFIX) :])]
+        else:
+            trials += [make_trial(name, seed) for seed in seeds]
+    return trials
+
+
 def run(args: argparse.Namespace) -> int:
     from magenv import registry
     from magenv.baselines.tuning import tune_rule
-    from magenv.scenarios import make_trial
 
     seeds = args.seeds
     if min(seeds) < TRAIN_SEED_START:
         raise CommandError(f"training seeds must be >= {TRAIN_SEED_START}; lower seeds are held out for evaluation")
     try:
-        trials = [make_trial(s, seed) for s in args.scenarios.split(",") for seed in seeds]
+        trials = training_trials(args.scenarios, seeds)
         cls = registry.rule_class(args.rule)
         record = tune_rule(args.rule, cls, trials, args.iterations, args.popsize, args.seed, not args.no_progress)
     except (KeyError, ValueError) as exc:

@@ -9,6 +9,8 @@
 * ``qsf.MagQSFEnv`` — ``magenv/MagQSF-v0``: when to start a quasi-static-field
   period, keep its reference or skip the magnetic update, and how much to trust it
   (Combettes & Renaudin 2016).
+* ``vqf.MagVQFEnv`` — ``magenv/MagVQF-v0``: the trust u of VQF's magnetometer correction (Laidig & Seel
+  2023), with VQF's own disturbance rejection off (replaced) or on.
 * ``common`` — pieces every env shares (trial sources, argument and action checks,
   the vector env).
 
@@ -20,6 +22,7 @@ BLEND_ID = "magenv/MagBlend-v0"
 KALMAN_ID = "magenv/MagKalman-v0"
 CONSTRAINT_ID = "magenv/MagConstraint-v0"
 QSF_ID = "magenv/MagQSF-v0"
+VQF_ID = "magenv/MagVQF-v0"
 
 #: env id → (entry point, vector entry point)
 ENVS = {
@@ -27,6 +30,7 @@ ENVS = {
     KALMAN_ID: ("magenv.envs.kalman:MagKalmanEnv", "magenv.envs.kalman:MagKalmanVectorEnv"),
     CONSTRAINT_ID: ("magenv.envs.constraint:MagConstraintEnv", "magenv.envs.constraint:MagConstraintVectorEnv"),
     QSF_ID: ("magenv.envs.qsf:MagQSFEnv", "magenv.envs.qsf:MagQSFVectorEnv"),
+    VQF_ID: ("magenv.envs.vqf:MagVQFEnv", "magenv.envs.vqf:MagVQFVectorEnv"),
 }
 
 

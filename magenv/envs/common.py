@@ -47,9 +47,12 @@ TWIN_PREFIX = "twin:"  # a twin scenario, "twin:PATH" (magenv.scenarios.twin): m
 def trial_source(scenario, world: str | None = None, require: Callable[[Trial], None] | None = None) -> tuple[str, Any]:
     """Classify the ``scenario`` argument: ("trials", [Trial…]), ("recording", path) or ("scenario", [names]).
 
-    A comma list of scenario names is a mixture: each reset picks one at random. ``world`` (a key of
-    ``magenv.scenarios.WORLDS``) admits only that world's scenario names (no recordings); ``require`` checks
-    each given Trial (raising, e.g., ValueError naming the channels it lacks).
+    A comma list of scenario names is a mixture: each reset picks one at random. An entry
+    ``"recording:GLOB"`` (``magenv.recordings.match_recordings``: ``recording:2*`` matches the shipped
+    recordings whose names start with 2) is one family of the mixture, held as the tuple of its paths: a
+    reset that picks it draws one of its recordings uniformly (``"recording:*"`` alone: every recording).
+    ``world`` (a key of ``magenv.scenarios.WORLDS``) admits only that world's scenario names (no
+    recordings); ``require`` checks each given Trial (raising, e.g., ValueError naming the channels it lacks).
     """
     if isinstance(scenario, Trial):
         scenario = [scenario]
@@ -63,8 +66,10 @@ def trial_source(scenario, world: str | None = None, require: Callable[[Trial], 
     if not isinstance(scenario, str):
         what = "a scenario name, 'recording:PATH'" if world is None else f"a scenario name of the {world!r} world"
         raise TypeError(f"scenario must be {what}, a Trial or a list of Trials, got {type(scenario).__name__}")
-    if world is None and scenario.startswith(RECORDING_PREFIX):
-        return "recording", scenario[len(RECORDING_PREFIX) :]
+    if world is None and scenario.startswith(RECORDING_PREFIX) and "," not in scenario:
+        pattern = scenario[len(RECORDING_PREFIX) :]
+        if not any(c in pattern for c in "*?["):
+            return "recording", pattern
     try:
         from magenv import scenarios
     except ImportError as exc:  # the simulator module is missing
@@ -73,10 +78,13 @@ def trial_source(scenario, world: str | None = None, require: Callable[[Trial], 
             "pass a list of Trials or 'recording:PATH' instead"
         ) from None
     known = scenarios.scenario_names(world)
-    names = [s.strip() for s in scenario.split(",")]
+    names: list = [s.strip() for s in scenario.split(",")]
     if world is None:
         names = scenarios.expand_mixture(names)  # "twins:DIR": the twins of DIR's recordings
-    bad = [n for n in names if n not in known and not (world is None and n.startswith(TWIN_PREFIX))]
+        names = [recording_family(n) if n.startswith(RECORDING_PREFIX) else n for n in names]
+    bad = [
+        n for n in names if isinstance(n, str) and n not in known and not (world is None and n.startswith(TWIN_PREFIX))
+    ]
     if bad:
         kind = "" if world is None else f"{scenarios.WORLDS[world].label} "
         only = "" if world is None else f" (this env takes only {kind}trials)"
@@ -84,6 +92,16 @@ def trial_source(scenario, world: str | None = None, require: Callable[[Trial], 
             f"unknown {kind}scenario(s) {', '.join(map(repr, bad))}; known {kind}scenarios: {', '.join(known)}{only}"
         )
     return "scenario", names
+
+
+def recording_family(entry: str) -> tuple[str, ...]:
+    """A ``"recording:GLOB"`` entry of a mixture: the paths it matches (``magenv.recordings.match_recordings``),
+    one family of the mixture whose reset draws one of them uniformly."""
+    try:
+        from magenv.recordings import match_recordings
+    except ImportError as exc:
+        raise RuntimeError(f"'recording:' needs magenv.recordings ({exc})") from None
+    return tuple(str(p) for p in match_recordings(entry[len(RECORDING_PREFIX) :]))
 
 
 class TrialPool(NamedTuple):
@@ -165,7 +183,7 @@ class TrialSource:
         self.label = scenario if isinstance(scenario, str) else "trials"
         self.scenario_kwargs = dict(scenario_kwargs or {})
         self.pool = TrialPool.of(trial_pool)
-        self._recording: Trial | None = None
+        self._recordings: dict[str, Trial] = {}  # path → recording, each loaded once
         self.prefetch = bool(prefetch) and self.kind == "scenario"
         self._pending: dict = {}  # key → Future of the trials being made ahead, oldest first
         self.max_pending = 1  # guesses kept; a vector env raises it to its number of envs
@@ -174,9 +192,11 @@ class TrialSource:
         self._cache: dict = {}  # key → pool trial, most recently used last
         self.cache_size = 0 if self.pool is None else self.pool.size  # pool trials kept (0: none)
 
-    def _pick(self, rng: np.random.Generator) -> tuple[str, str, int]:
+    def _pick(self, rng: np.random.Generator) -> tuple:
         names = self.source
         name = names[0] if len(names) == 1 else names[int(rng.integers(len(names)))]
+        if isinstance(name, tuple):  # a recording family ("recording:GLOB"): one of its files
+            return "recording", name[0] if len(name) == 1 else name[int(rng.integers(len(name)))]
         return "scenario", name, draw_training_seed(rng)  # never a held-out evaluation seed
 
     def generation(self, g: int) -> list:
@@ -233,13 +253,14 @@ class TrialSource:
         if key[0] == "trials":
             return self.source[key[1]]
         if key[0] == "recording":
-            if self._recording is None:
+            trial = self._recordings.get(key[1])
+            if trial is None:
                 try:
                     from magenv.recordings import load_recording
                 except ImportError as exc:
                     raise RuntimeError(f"'recording:' needs magenv.recordings ({exc})") from None
-                self._recording = load_recording(self.source)
-            return self._recording
+                trial = self._recordings[key[1]] = load_recording(key[1])
+            return trial
         trial = self._cache.pop(key, None)
         if trial is None:
             pending = self._pending.pop(key, None)
