@@ -14,6 +14,7 @@ All parameters live in :class:`SensorConfig`; randomness comes only from the
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -110,38 +111,96 @@ def apply_sensor_model(
         cfg: error model.
         rng: the trial's generator (draws in a fixed order: determinism).
     """
-    n = len(gyr)
-    d2r = np.pi / 180.0
-    bias_g = rng.normal(0.0, cfg.gyr_bias_dps * d2r, 3)
-    bias_a = rng.normal(0.0, cfg.acc_bias, 3)
-    s = rng.normal(0.0, cfg.mag_soft_iron, (3, 3))
-    soft = np.eye(3) + 0.5 * (s + s.T)  # residual soft iron: I + S, S symmetric
-    hard = rng.normal(0.0, cfg.mag_hard_iron_ut, 3)
-    phase = rng.uniform(0.0, 1.0)
-    z = rng.standard_normal((4, n, 3))  # walk, gyro, accelerometer, magnetometer
-    sig = np.array(
-        [cfg.gyr_drift_dps * d2r * math.sqrt(1.0 / rate), cfg.gyr_noise_dps * d2r, cfg.acc_noise, cfg.mag_noise_ut]
-    )
-    return _measure(
-        np.ascontiguousarray(gyr),
-        np.ascontiguousarray(acc),
-        np.ascontiguousarray(mag),
-        z,
-        sig,
-        bias_g,
-        bias_a,
-        soft,
-        hard,
-        int(cfg.mag_lag_samples),
-        1.0 - cfg.mag_hold_fraction,
-        phase,
-        float(cfg.mag_range_ut),
-    )
+    return SensorStream(len(gyr), rate, cfg, rng).measure(gyr, acc, mag)
+
+
+class SensorStream:
+    """:func:`apply_sensor_model` over N samples given in consecutive blocks (``measure``), the same numbers
+    bit for bit as all at once: a long trial need not hold its ideal readings and their noise whole.
+
+    The per-trial draws (biases, iron, hold phase) come first from ``rng``, then the four (N, 3) noise
+    streams (bias walk, gyro, accelerometer, magnetometer) in that order. All N at once, they are one draw;
+    in blocks, each stream reads from its own copy of ``rng`` advanced to where it starts (made at the first
+    block, so ``rng`` must not be drawn from meanwhile), and ``rng`` ends where the one draw would leave it.
+    """
+
+    def __init__(self, n: int, rate: float, cfg: SensorConfig, rng: np.random.Generator):
+        d2r = np.pi / 180.0
+        self.n, self.done, self.lag = int(n), 0, int(cfg.mag_lag_samples)
+        self.bias_g = rng.normal(0.0, cfg.gyr_bias_dps * d2r, 3)
+        self.bias_a = rng.normal(0.0, cfg.acc_bias, 3)
+        s = rng.normal(0.0, cfg.mag_soft_iron, (3, 3))
+        self.soft = np.eye(3) + 0.5 * (s + s.T)  # residual soft iron: I + S, S symmetric
+        self.hard = rng.normal(0.0, cfg.mag_hard_iron_ut, 3)
+        self.phase = rng.uniform(0.0, 1.0)
+        self.sig = np.array(
+            [cfg.gyr_drift_dps * d2r * math.sqrt(1.0 / rate), cfg.gyr_noise_dps * d2r, cfg.acc_noise, cfg.mag_noise_ut]
+        )
+        self.f_ratio, self.mag_range = 1.0 - cfg.mag_hold_fraction, float(cfg.mag_range_ut)
+        self.carry = np.zeros(7)  # the bias walk (3), the held reading (3), the last conversion (initially −1)
+        self.carry[6] = -1.0
+        self.mag_tail = np.zeros((0, 3))  # the last ``lag`` ideal fields before the next block
+        self.rng = rng
+        self.streams: list = []  # with blocks: a generator per noise stream (_split)
+
+    def _split(self) -> list:
+        """One generator per noise stream, each advanced to its start."""
+        streams = [copy.deepcopy(self.rng)]
+        for _ in range(3):
+            g = copy.deepcopy(streams[-1])
+            for c in range(0, self.n, _SKIP):
+                g.standard_normal((min(self.n - c, _SKIP), 3))
+            streams.append(g)
+        return streams
+
+    def measure(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The measured (gyr, acc, mag) of the next block of ideal readings (m, 3) each."""
+        m, i0 = len(gyr), self.done
+        if i0 + m > self.n:
+            raise ValueError(f"SensorStream of {self.n} samples given {i0 + m}")
+        if i0 == 0 and m == self.n:
+            z = self.rng.standard_normal((4, m, 3))  # walk, gyro, accelerometer, magnetometer
+        else:
+            if i0 == 0:
+                self.streams = self._split()
+            z = np.stack([g.standard_normal((m, 3)) for g in self.streams])
+        mag = np.ascontiguousarray(mag)
+        ext = np.concatenate([self.mag_tail, mag]) if len(self.mag_tail) else mag
+        out = _measure(
+            np.ascontiguousarray(gyr),
+            np.ascontiguousarray(acc),
+            ext,
+            z,
+            self.sig,
+            self.bias_g,
+            self.bias_a,
+            self.soft,
+            self.hard,
+            self.lag,
+            self.f_ratio,
+            self.phase,
+            self.mag_range,
+            i0,
+            i0 - len(self.mag_tail),
+            self.carry,
+        )
+        self.done = i0 + m
+        if self.lag:
+            self.mag_tail = ext[-self.lag :].copy()
+        if self.streams and self.done == self.n:
+            self.rng.bit_generator.state = self.streams[-1].bit_generator.state
+        return out
+
+
+#: Noise rows drawn at a time to advance a :class:`SensorStream`'s generators.
+_SKIP = 1 << 16
 
 
 @njit(cache=True)
-def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, lag, f_ratio, phase, mag_range):
-    """Kernel of :func:`apply_sensor_model`.
+def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, lag, f_ratio, phase, mag_range, i0, m0, carry):
+    """Kernel of :class:`SensorStream`: samples i0 … i0 + m − 1 (``gyr``, ``acc``, ``z`` rows), ``mag`` from
+    sample m0 ≤ i0 − lag on (the ``lag`` fields before the block); ``carry`` (7,): the bias walk, the held
+    reading and the last conversion, updated.
 
     Gyro: ω + b + Σ walk + noise (walk std grows as drift·√t).
     Magnetometer: the reading at sample i reports conversion k(i) =
@@ -154,24 +213,26 @@ def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, lag, f_ratio, ph
     gyr_m = np.empty((n, 3))
     acc_m = np.empty((n, 3))
     mag_m = np.empty((n, 3))
-    walk = np.zeros(3)
-    last_k = -1
-    held = np.zeros(3)
-    for i in range(n):
+    walk = carry[0:3]
+    held = carry[3:6]
+    last_k = int(carry[6])
+    for r in range(n):
+        i = i0 + r
         for j in range(3):
-            walk[j] += sig[0] * z[0, i, j]
-            gyr_m[i, j] = gyr[i, j] + bias_g[j] + walk[j] + sig[1] * z[1, i, j]
-            acc_m[i, j] = acc[i, j] + bias_a[j] + sig[2] * z[2, i, j]
+            walk[j] += sig[0] * z[0, r, j]
+            gyr_m[r, j] = gyr[r, j] + bias_g[j] + walk[j] + sig[1] * z[1, r, j]
+            acc_m[r, j] = acc[r, j] + bias_a[j] + sig[2] * z[2, r, j]
         k = int(np.floor(i * f_ratio + phase))
         if k != last_k:  # a new conversion
             last_k = k
-            src = max(i - lag, 0)
+            src = max(i - lag, 0) - m0
             for j in range(3):
                 b = hard[j] + soft[j, 0] * mag[src, 0] + soft[j, 1] * mag[src, 1] + soft[j, 2] * mag[src, 2]
-                b += sig[3] * z[3, i, j]
+                b += sig[3] * z[3, r, j]
                 held[j] = min(max(b, -mag_range), mag_range)
         for j in range(3):
-            mag_m[i, j] = held[j]
+            mag_m[r, j] = held[j]
+    carry[6] = last_k
     return gyr_m, acc_m, mag_m
 
 
