@@ -65,9 +65,11 @@ SETTLE_S = 0.6
 INITIAL_SETTLE_S = 0.6
 #: A settled state may not move more than this (rad or m) over the pause.
 SETTLE_TOL = 1e-4
-#: Physics steps simulated and post-processed at a time (:func:`gimbal_blocks`): bounds the memory of a long
-#: trial (~5 MB a block) without changing its numbers.
-BLOCK_ROWS = 16384
+#: Physics steps simulated and post-processed at a time in a long run (:func:`gimbal_blocks`): bounds its
+#: memory (a few MB a block) without changing its numbers.
+BLOCK_ROWS = 4096
+#: A run of at most this many physics steps is made in one block (the fastest: a reset's trial).
+WHOLE_RUN_ROWS = 16384
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
 
@@ -258,7 +260,7 @@ def gimbal_blocks(
     sample_rate: float,
     n_samples: int,
     base: np.ndarray | None = None,
-    block_rows: int = BLOCK_ROWS,
+    block_rows: int | None = None,
 ) -> Iterator[tuple[int, GimbalRun]]:
     """:func:`simulate_gimbal` in consecutive blocks of samples: yields (first sample, GimbalRun of the block's
     rows), each block's ``physics_steps`` the steps taken so far (the last one's: all).
@@ -266,7 +268,8 @@ def gimbal_blocks(
     The same numbers as one run, bit for bit, in memory bounded by ``block_rows`` physics steps (plus the
     profile): MuJoCo rolls out at most ``block_rows`` steps a call with its warm start carried over, and the
     gyro centring and the resampling read their few neighbouring rows across block edges. Consume the blocks
-    before simulating anything else with the model (it is shared). Arguments as :func:`simulate_gimbal`."""
+    before simulating anything else with the model (it is shared). Arguments as :func:`simulate_gimbal`;
+    ``block_rows`` None: one block for a run of up to ``WHOLE_RUN_ROWS`` steps, else ``BLOCK_ROWS``."""
     model, data, info = _model(base is not None)
     adr, qadr = info["adr"], info["qadr"]
     phys_rate = profile.rate
@@ -277,6 +280,8 @@ def gimbal_blocks(
         )
     if base is not None and base.shape != (profile.n, 6):
         raise ValueError(f"base motion must have shape ({profile.n}, 6), got {base.shape}")
+    if block_rows is None:
+        block_rows = profile.n if profile.n <= WHOLE_RUN_ROWS else BLOCK_ROWS
     _configure(model, info["ids"], tube, phys_rate)
     raw = _gathered(_physics_rows(model, data, qadr, profile, tube, base, block_rows), block_rows)
     rows = _centred_rows(_continuous_q(raw, adr["q_imu"]), adr, phys_rate, profile.n)
