@@ -397,6 +397,7 @@ def _continuous_q(blocks, q_cols: slice):
     for rows, steps in blocks:
         q = rows[:, q_cols]
         given = q.copy()
+        flip: np.ndarray
         if last is None:
             flip = np.cumprod(np.where(np.sum(given[1:] * given[:-1], axis=1) < 0, -1.0, 1.0))
             q[1:] *= flip[:, None]
