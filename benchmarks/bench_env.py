@@ -9,7 +9,8 @@ on the default ``random`` scenario (each reset simulates a new 60-s trial,
 which dominates), the same with ``prefetch=True`` (the next trial made in a
 worker process meanwhile), with ``trial_pool={"size": 4, "reuse": 16}`` (16 resets in a row draw from the same 4
 seeded trials, so at most 4 simulations per 16 episodes), and as the 8-env ``vector_entry_point`` VectorEnv.
-Target: at least half of CartPole's rate.
+Target: at least half of CartPole's rate. Beside it, what a ``random`` reset costs (and how much of
+that is MuJoCo's physics) against the time 0.5x CartPole allows a whole episode.
 MagKalman is measured on the same pre-made trial. Last, the env kernels alone (``BlendRunner``,
 ``KalmanRunner``) over that one trial, k samples per call and the whole trial in one call: the
 best of several runs in CPU time (robust on a shared machine).
@@ -60,6 +61,34 @@ def kernel_time(runner_class, trial, k: int, repeats: int) -> float:
     return best
 
 
+def reset_cost(every: int, resets: int = 20) -> tuple[float, float, int]:
+    """Mean wall time (s) of a ``random`` reset of ``MagBlend-v0``, the part of it in ``mujoco.rollout``
+    (the physics), and the steps of its episodes (a 60-s trial at k = ``every``)."""
+    from magenv.sim import gimbal
+
+    spent = [0.0]
+    rollout = gimbal.mj_rollout.rollout
+
+    def timed(*a, **kw):
+        t = time.perf_counter()
+        try:
+            return rollout(*a, **kw)
+        finally:
+            spent[0] += time.perf_counter() - t
+
+    env = gym.make("magenv/MagBlend-v0", decision_every=every)
+    env.reset(seed=1)
+    gimbal.mj_rollout.rollout = timed
+    try:
+        t0 = time.perf_counter()
+        for _ in range(resets):
+            _, info = env.reset()
+        total = time.perf_counter() - t0
+    finally:
+        gimbal.mj_rollout.rollout = rollout
+    return total / resets, spent[0] / resets, -(-info["n_samples"] // every)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--steps", type=int, default=50_000)
@@ -79,12 +108,19 @@ def main() -> None:
         args.steps,
     )
     rand = rate(gym.make("magenv/MagBlend-v0", decision_every=args.every), lam, args.steps)
+    reset_s, physics_s, episode_steps = reset_cost(args.every)
     print(f"CartPole-v1                                   {cart:10.0f} steps/s")
     print(
         f"MagBlend-v0 k={args.every}, one trial (step cost)      {fixed:10.0f} steps/s  "
         f"ratio {fixed / cart:.2f}  ({fixed * args.every:.0f} samples/s)"
     )
     print(f"MagBlend-v0 k={args.every}, scenario 'random' + resets {rand:10.0f} steps/s  ratio {rand / cart:.2f}")
+    budget = episode_steps / (0.5 * cart)
+    print(
+        f"  a 'random' reset: {reset_s * 1e3:.1f} ms, of which MuJoCo's rollouts {physics_s * 1e3:.1f} ms; its "
+        f"{episode_steps} steps at the one-trial step cost {episode_steps / fixed * 1e3:.1f} ms; 0.5x CartPole "
+        f"allows {budget * 1e3:.1f} ms per episode in all"
+    )
     env = gym.make("magenv/MagBlend-v0", decision_every=args.every, prefetch=True)
     ahead = rate(env, lam, args.steps)
     env.close()

@@ -54,7 +54,10 @@ def unit_truth(q: np.ndarray, what: str) -> np.ndarray:
     if inf_rows.size:
         raise TrialError(f"{what}: truth quaternion row {inf_rows[0]} is infinite ({q[inf_rows[0]].tolist()})")
     present = ~np.isnan(q).any(axis=1)
-    norm = np.where(present, np.linalg.norm(np.where(present[:, None], q, 0.0), axis=1), 1.0)
+    norm = np.ones(len(q))
+    for a in range(0, len(q), 1 << 16):  # in blocks: a long trial's temporaries stay small
+        b = a + (1 << 16)
+        norm[a:b] = np.where(present[a:b], np.linalg.norm(np.where(present[a:b, None], q[a:b], 0.0), axis=1), 1.0)
     dev = np.round(np.abs(norm - 1.0), 12)  # a truth scaled by exactly 1 + UNIT_TOL is within it
     worst = float(dev.max(initial=0.0))
     if worst > UNIT_TOL:

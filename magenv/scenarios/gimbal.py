@@ -46,11 +46,11 @@ from magenv import quaternion as quat
 from magenv.checks import check_instance, check_intervals, check_number, check_numbers, check_range
 from magenv.scenarios.world import STATIONARY_RATE, World, check_shared_fields, trial_meta, trial_name
 from magenv.sim import base_paths, earth, indoor, profiles
-from magenv.sim.gimbal import PHYSICS_RATE, Tube, simulate_gimbal
+from magenv.sim.gimbal import PHYSICS_RATE, Tube, gimbal_blocks
 from magenv.sim.hand import Approach, hand_path
 from magenv.sim.magnet import DiscMagnet, dipole_field
 from magenv.sim.rowops import norms, to_sensor
-from magenv.sim.sensors import SensorConfig, apply_sensor_model
+from magenv.sim.sensors import SensorConfig, SensorStream
 from magenv.trial import Trial
 
 #: A sample counts as stationary when the gimbal turns slower than ``STATIONARY_RATE`` (rad/s) and its sensor
@@ -606,35 +606,50 @@ def _plan_gait_field(cfg: GaitFieldConfig, rngs) -> Plan:
 
 def _simulate(scenario: str, cfg: ScenarioConfig, seed: int, rngs: list[np.random.Generator]) -> Trial:
     """Plan the trial, run the gimbal, add the fields (paper §2.5.3) and the sensor model (``rngs``: motion,
-    magnet, Earth field, sensor)."""
+    magnet, Earth field, sensor).
+
+    Block by block of the run (``magenv.sim.gimbal.gimbal_blocks``), into the trial's own arrays: a long
+    trial's memory is its arrays (the truth channels for display only, joint angles, magnet slide and
+    distance, in float32), not the simulation's; the numbers are those of one block."""
     plan = _PLANNERS[type(cfg)](cfg, rngs)
     n = int(round(cfg.duration * cfg.rate))
-    run = simulate_gimbal(plan.profile, plan.tube, cfg.rate, n, base=plan.base)
-    t = np.arange(n) / cfg.rate
-    b_earth = to_sensor(run.q, np.broadcast_to(quat.earth_field(*plan.field), (n, 3)))
-    if plan.magnet == "tube":
-        b_mag = dipole_field(-run.p_magnet, plan.moment * run.m_axis)
-        dist = norms(run.p_magnet)
-    elif plan.magnet == "hand":
-        offset, axis = plan.hand(t)
-        b_mag = to_sensor(run.q, dipole_field(-offset, plan.moment * axis))
-        dist = norms(offset)
-    elif plan.magnet == "world":
-        pos, mom = plan.sources
-        b_mag = to_sensor(run.q, indoor.sources_field(run.p_imu, pos, mom))
-        dist = indoor.nearest_distance(run.p_imu, pos)
-    else:
-        b_mag = np.zeros((n, 3))
-        dist = np.full(n, np.inf)
-    gyr, acc, mag = apply_sensor_model(run.gyr, run.acc, b_earth + b_mag, cfg.rate, plan.sensor, rngs[3])
-    # At rest: not turning and (on a moving base) not travelling.
-    step = np.diff(run.p_imu, axis=0, prepend=run.p_imu[:1])
-    stationary = (norms(run.gyr) < STATIONARY_RATE) & (norms(step) * cfg.rate < STATIONARY_SPEED)
+    earth_field = quat.earth_field(*plan.field)
+    hand = plan.hand(np.arange(n) / cfg.rate) if plan.magnet == "hand" else None
+    sensor = SensorStream(n, cfg.rate, plan.sensor, rngs[3])
+    gyr, acc, mag, q, b_mag = (np.empty((n, c)) for c in (3, 3, 3, 4, 3))
+    dist, slide = np.empty(n, np.float32), np.empty(n, np.float32)
+    joints, stationary = np.empty((n, 3), np.float32), np.empty(n, bool)
+    last_p = None  # the sensor's position at the sample before the block
+    steps = 0
+    for i0, run in gimbal_blocks(plan.profile, plan.tube, cfg.rate, n, base=plan.base):
+        rows = slice(i0, i0 + len(run.q))
+        b_earth = to_sensor(run.q, np.broadcast_to(earth_field, run.gyr.shape))
+        if plan.magnet == "tube":
+            b_mag[rows] = dipole_field(-run.p_magnet, plan.moment * run.m_axis)
+            dist[rows] = norms(run.p_magnet)
+        elif plan.magnet == "hand":
+            assert hand is not None
+            offset, axis = hand[0][rows], hand[1][rows]
+            b_mag[rows] = to_sensor(run.q, dipole_field(-offset, plan.moment * axis))
+            dist[rows] = norms(offset)
+        elif plan.magnet == "world":
+            pos, mom = plan.sources
+            b_mag[rows] = to_sensor(run.q, indoor.sources_field(run.p_imu, pos, mom))
+            dist[rows] = indoor.nearest_distance(run.p_imu, pos)
+        else:
+            b_mag[rows] = 0.0
+            dist[rows] = np.inf
+        gyr[rows], acc[rows], mag[rows] = sensor.measure(run.gyr, run.acc, b_earth + b_mag[rows])
+        # At rest: not turning and (on a moving base) not travelling.
+        step = np.diff(run.p_imu, axis=0, prepend=run.p_imu[:1] if last_p is None else last_p)
+        stationary[rows] = (norms(run.gyr) < STATIONARY_RATE) & (norms(step) * cfg.rate < STATIONARY_SPEED)
+        q[rows], joints[rows], slide[rows] = run.q, run.joints, run.slide
+        last_p, steps = run.p_imu[-1:], run.physics_steps
     meta = trial_meta(
         scenario,
         seed,
         cfg,
-        {"magnet": plan.magnet, "moment_am2": float(plan.moment), "physics_steps": run.physics_steps, **plan.meta},
+        {"magnet": plan.magnet, "moment_am2": float(plan.moment), "physics_steps": steps, **plan.meta},
     )
     return Trial(
         name=trial_name(scenario, seed),
@@ -642,15 +657,15 @@ def _simulate(scenario: str, cfg: ScenarioConfig, seed: int, rngs: list[np.rando
         gyr=gyr,
         acc=acc,
         mag=mag,
-        q_true=run.q,
+        q_true=q,
         field_norm=plan.field[0],
         field_dip=plan.field[1],
         truth={
             "mag_disturbance": b_mag,
             "stationary": stationary,
             "magnet_distance": dist,
-            "joint_angles": run.joints,
-            "magnet_slide": run.slide,
+            "joint_angles": joints,
+            "magnet_slide": slide,
         },
         meta=meta,
     )

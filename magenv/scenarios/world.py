@@ -9,6 +9,7 @@ exports ``WORLD = World(...)``; ``magenv.scenarios`` puts the worlds behind one 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -109,7 +110,21 @@ def trial_name(scenario: str, seed: int) -> str:
 def trial_meta(scenario: str, seed: int, cfg, drawn: dict) -> dict:
     """A simulated trial's ``meta``, in JSON types: the scenario and seed (under ``magenv.trial``'s keys),
     what the world drew or measured (``drawn``) and the whole config under ``"config"``."""
-    return {META_SCENARIO: scenario, META_SEED: seed, **config_json(drawn), "config": config_json(cfg)}
+    return {META_SCENARIO: scenario, META_SEED: seed, **config_json(drawn), "config": _config_copy(cfg)}
+
+
+def _config_copy(cfg) -> dict:
+    """``config_json(cfg)``, made once per config (by its repr: ``60`` and ``60.0`` stay apart) and copied."""
+    key = repr(cfg)
+    cached = _CONFIGS.get(key)
+    if cached is None:
+        cached = _CONFIGS[key] = config_json(cfg)
+        while len(_CONFIGS) > 64:
+            del _CONFIGS[next(iter(_CONFIGS))]
+    return copy.deepcopy(cached)
+
+
+_CONFIGS: dict[str, dict] = {}  # repr(config) → its config_json (a reset makes a trial of the same config)
 
 
 def config_json(value):

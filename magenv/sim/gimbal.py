@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterator
 from functools import lru_cache
 from pathlib import Path
 
@@ -64,6 +65,11 @@ SETTLE_S = 0.6
 INITIAL_SETTLE_S = 0.6
 #: A settled state may not move more than this (rad or m) over the pause.
 SETTLE_TOL = 1e-4
+#: Physics steps simulated and post-processed at a time in a long run (:func:`gimbal_blocks`): bounds its
+#: memory (a few MB a block) without changing its numbers.
+BLOCK_ROWS = 4096
+#: A run of at most this many physics steps is made in one block (the fastest: a reset's trial).
+WHOLE_RUN_ROWS = 16384
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
 
@@ -238,8 +244,32 @@ def simulate_gimbal(
             position (m, world) and velocity (m/s) of the gimbal's base; uses
             the mobile variant of the model.
 
-    Raises SimulationError if MuJoCo flags an instability.
+    The whole run at once: :func:`gimbal_blocks` joined. Raises SimulationError if MuJoCo flags an instability.
     """
+    parts = list(gimbal_blocks(profile, tube, sample_rate, n_samples, base))
+    if len(parts) == 1:
+        return parts[0][1]
+    join = lambda key: np.concatenate([getattr(run, key) for _, run in parts])
+    fields = [f.name for f in dataclasses.fields(GimbalRun) if f.name != "physics_steps"]
+    return GimbalRun(**{key: join(key) for key in fields}, physics_steps=parts[-1][1].physics_steps)
+
+
+def gimbal_blocks(
+    profile: DriveProfile,
+    tube: Tube,
+    sample_rate: float,
+    n_samples: int,
+    base: np.ndarray | None = None,
+    block_rows: int | None = None,
+) -> Iterator[tuple[int, GimbalRun]]:
+    """:func:`simulate_gimbal` in consecutive blocks of samples: yields (first sample, GimbalRun of the block's
+    rows), each block's ``physics_steps`` the steps taken so far (the last one's: all).
+
+    The same numbers as one run, bit for bit, in memory bounded by ``block_rows`` physics steps (plus the
+    profile): MuJoCo rolls out at most ``block_rows`` steps a call with its warm start carried over, and the
+    gyro centring and the resampling read their few neighbouring rows across block edges. Consume the blocks
+    before simulating anything else with the model (it is shared). Arguments as :func:`simulate_gimbal`;
+    ``block_rows`` None: one block for a run of up to ``WHOLE_RUN_ROWS`` steps, else ``BLOCK_ROWS``."""
     model, data, info = _model(base is not None)
     adr, qadr = info["adr"], info["qadr"]
     phys_rate = profile.rate
@@ -248,18 +278,59 @@ def simulate_gimbal(
         raise ValueError(
             f"drive profile has {profile.n} steps, needs {need} for {n_samples} samples at {sample_rate} Hz"
         )
+    if base is not None and base.shape != (profile.n, 6):
+        raise ValueError(f"base motion must have shape ({profile.n}, 6), got {base.shape}")
+    if block_rows is None:
+        block_rows = profile.n if profile.n <= WHOLE_RUN_ROWS else BLOCK_ROWS
     _configure(model, info["ids"], tube, phys_rate)
+    raw = _gathered(_physics_rows(model, data, qadr, profile, tube, base, block_rows), block_rows)
+    rows = _centred_rows(_continuous_q(raw, adr["q_imu"]), adr, phys_rate, profile.n)
+    steps = 0
+    for i0, out, steps in _resampled(rows, phys_rate, sample_rate, n_samples, profile.n):
+        yield i0, _run_of(out, adr, tube, steps)
+    bad = [mujoco.mjtWarning(int(i)).name for i in np.flatnonzero(data.warning.number)]
+    if bad:
+        raise SimulationError(f"MuJoCo instability in the gimbal model: warnings {bad}, finite=True")
 
-    angles = profile.angles
-    ctrl = np.concatenate([angles, profile.omega], axis=1)  # actuators: z,y,x position then z,y,x velocity
+
+class _Rollout:
+    """The model rolled out from ``state`` (FULLPHYSICS), call after call; ``state`` is the state reached."""
+
+    def __init__(self, model, data, state: np.ndarray, block_rows: int):
+        self.model, self.data, self.state, self.block_rows = model, data, state, block_rows
+
+    def rows(self, ctrl_of, a: int, b: int):
+        """Steps a … b−1 (ctrl rows ``ctrl_of(c, d)``) from a cold warm start, as one ``mujoco.rollout`` call
+        would, in calls of at most ``block_rows`` steps with the warm start carried over (the same numbers,
+        bit for bit). Yields each call's sensor rows and its last step's index + 1."""
+        warmstart = np.zeros(self.model.nv)
+        for c in range(a, b, self.block_rows):
+            d = min(b, c + self.block_rows)
+            st, sd = mj_rollout.rollout(
+                self.model, self.data, self.state[None], ctrl_of(c, d)[None], initial_warmstart=warmstart[None]
+            )
+            self.state = st[0, -1].copy()
+            warmstart = self.data.qacc_warmstart.copy()
+            if not np.all(np.isfinite(sd)):
+                raise SimulationError("MuJoCo instability in the gimbal model: non-finite sensor data")
+            yield sd[0], d
+
+
+def _physics_rows(model, data, qadr: dict, profile: DriveProfile, tube: Tube, base, block_rows: int):
+    """MuJoCo's sensor rows of physics steps 0 … n−1 in order, as (rows, steps taken so far) blocks.
+
+    The trial starts at rest in equilibrium (an initial settle holding the first command, discarded); settled
+    pauses repeat their resting row (module docstring). Raises SimulationError on a non-finite row."""
+    phys_rate = profile.rate
+    angles, omega = profile.angles, profile.omega
     still = profile.still()
     if base is not None:
-        if base.shape != (profile.n, 6):
-            raise ValueError(f"base motion must have shape ({profile.n}, 6), got {base.shape}")
-        ctrl = np.concatenate([ctrl, base], axis=1)  # then base x,y,z position, x,y,z velocity
         still &= ~np.any(base[:, 3:] != 0.0, axis=1)
-    n = profile.n
-    sens = np.empty((n, model.nsensordata))
+
+    def ctrl_of(a: int, b: int) -> np.ndarray:
+        """Actuators of steps a … b−1: z,y,x position, z,y,x velocity (then base x,y,z position, velocity)."""
+        parts = [angles[a:b], omega[a:b]] + ([] if base is None else [base[a:b]])
+        return np.concatenate(parts, axis=1)
 
     mujoco.mj_resetData(model, data)
     for k, name in enumerate(("z", "y", "x")):
@@ -271,54 +342,124 @@ def simulate_gimbal(
     mujoco.mj_forward(model, data)
     state = np.empty(mujoco.mj_stateSize(model, _STATE))
     mujoco.mj_getState(model, data, state, _STATE)
-    warmstart = np.zeros(model.nv)
     data.warning.number[:] = 0
     # Let the servos take up the load (gravity on the frames and the magnet)
     # holding the initial command, so the trial starts at rest in equilibrium.
     settle = int(round(INITIAL_SETTLE_S * phys_rate))
-    hold = ctrl[0].copy()
+    hold = ctrl_of(0, 1)[0]
     hold[3:6] = 0.0
     if base is not None:
         hold[9:12] = 0.0
-    st, _ = mj_rollout.rollout(
-        model, data, state[None], np.tile(hold, (1, settle, 1)), initial_warmstart=warmstart[None]
-    )
-    state = st[0, -1].copy()
-    state[0] = 0.0
+    sim = _Rollout(model, data, state, max(settle, block_rows))
+    for _ in sim.rows(lambda a, b: np.tile(hold, (b - a, 1)), 0, settle):
+        pass
+    sim.state[0] = 0.0
+    sim.block_rows = block_rows
     steps = settle
     settle = int(round(SETTLE_S * phys_rate))
-
     for a, b, skippable in _segments(still, settle + int(round(0.5 * phys_rate))):
         stop = a + settle if skippable else b
-        st, sd = mj_rollout.rollout(model, data, state[None], ctrl[None, a:stop], initial_warmstart=warmstart[None])
-        sens[a:stop] = sd[0]
-        state = st[0, -1].copy()
+        for sd, d in sim.rows(ctrl_of, a, stop):
+            yield sd, steps + d - a
         steps += stop - a
         if skippable:
-            qvel = state[1 + model.nq : 1 + model.nq + model.nv]
+            qvel = sim.state[1 + model.nq : 1 + model.nq + model.nv]
             if np.max(np.abs(qvel)) * (b - stop) / phys_rate < SETTLE_TOL:
-                sens[stop:b] = sd[0, -1]
-                state[0] = b / phys_rate
+                for c in range(stop, b, block_rows):
+                    yield np.tile(sd[-1], (min(b, c + block_rows) - c, 1)), steps
+                sim.state[0] = b / phys_rate
             else:  # not at rest yet: simulate the whole pause
-                st, sd = mj_rollout.rollout(
-                    model, data, state[None], ctrl[None, stop:b], initial_warmstart=warmstart[None]
-                )
-                sens[stop:b] = sd[0]
-                state = st[0, -1].copy()
+                for sd, d in sim.rows(ctrl_of, stop, b):
+                    yield sd, steps + d - stop
                 steps += b - stop
-    bad = [mujoco.mjtWarning(int(i)).name for i in np.flatnonzero(data.warning.number)]
-    if bad or not np.all(np.isfinite(sens)):
-        raise SimulationError(
-            f"MuJoCo instability in the gimbal model: warnings {bad or 'none'}, finite={np.all(np.isfinite(sens))}"
-        )
 
-    # MuJoCo's quaternion may change sign between steps; make it continuous.
-    q = sens[:, adr["q_imu"]]
-    flip = np.cumprod(np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0))
-    q[1:] *= flip[:, None]
 
-    _centre_gyro(sens, adr, phys_rate)
-    out = resample_cubic(sens, phys_rate, sample_rate, n_samples, 0.0)
+def _gathered(blocks, min_rows: int):
+    """(rows, steps) blocks joined until each has at least ``min_rows`` rows (the last may have fewer)."""
+    parts: list = []
+    count = 0
+    steps = 0
+    for rows, steps in blocks:
+        parts.append(rows)
+        count += len(rows)
+        if count >= min_rows:
+            yield (parts[0] if len(parts) == 1 else np.concatenate(parts)), steps
+            parts, count = [], 0
+    if parts:
+        yield (parts[0] if len(parts) == 1 else np.concatenate(parts)), steps
+
+
+def _continuous_q(blocks, q_cols: slice):
+    """The blocks with MuJoCo's quaternion made continuous (its sign may flip between steps), in place:
+    row k is multiplied by the product of the signs of q_i·q_(i−1), i = 1 … k (q as MuJoCo gave them)."""
+    last = None  # the previous block's last quaternion as MuJoCo gave it
+    sign = 1.0  # the product of the signs up to that row
+    for rows, steps in blocks:
+        q = rows[:, q_cols]
+        given = q.copy()
+        flip: np.ndarray
+        if last is None:
+            flip = np.cumprod(np.where(np.sum(given[1:] * given[:-1], axis=1) < 0, -1.0, 1.0))
+            q[1:] *= flip[:, None]
+        else:
+            before = np.concatenate([last, given[:-1]])
+            flip = sign * np.cumprod(np.where(np.sum(given * before, axis=1) < 0, -1.0, 1.0))
+            q *= flip[:, None]
+        if len(flip):
+            sign = float(flip[-1])
+        last = given[-1:]
+        yield rows, steps
+
+
+def _centred_rows(blocks, adr: dict, phys_rate: float, n: int):
+    """The blocks with the gyro put at the instant of the positions (:func:`_centre_gyro`), as (first row,
+    rows, steps), ``n`` rows in all: a row is final once the row after it is known, so each block holds its
+    last row back (and keeps the final row before it, for its position)."""
+    window = None  # rows kept from the last block: the last final row and the row held back
+    w0 = 0  # the index of the window's first row in the run
+    done = 0  # rows yielded so far
+    for rows, steps in blocks:
+        w = rows if window is None else np.concatenate([window, rows])
+        end = w0 + len(w) == n
+        lo, hi = done - w0, (len(w) if end else len(w) - 1)
+        _centre_gyro(w, adr, phys_rate, lo, hi)
+        if hi > lo:
+            yield done, w[lo:hi], steps
+            done = w0 + hi
+        keep = max(hi - 1, 0)
+        window, w0 = w[keep:], w0 + keep
+
+
+def _resampled(rows, phys_rate: float, sample_rate: float, n_samples: int, n: int):
+    """The final physics rows (``n`` in all, in blocks from :func:`_centred_rows`) resampled to the sample
+    times as :func:`resample_cubic` would the whole run: yields (first sample, rows, steps) blocks."""
+    ratio = phys_rate / sample_rate
+    buf, b0 = None, 0  # the rows kept (the last three: the cubic reads rows j − 1 … j + 2) and the first's index
+    i0 = 0
+    for _, block, steps in rows:
+        buf = block if buf is None else np.concatenate([buf, block])
+        b1 = b0 + len(buf)
+        i1 = n_samples if b1 == n else _samples_before(b1 - 3, ratio, n_samples)
+        if i1 > i0:
+            yield i0, _resample_span(buf, b0, n, ratio, 0.0, i0, i1), steps
+            i0 = i1
+        keep = max(len(buf) - 3, 0)
+        buf, b0 = buf[keep:], b0 + keep
+
+
+def _samples_before(j_max: int, ratio: float, n_samples: int) -> int:
+    """The number of samples i whose grid position i·ratio lies at or before row ``j_max`` (as
+    :func:`resample_cubic` rounds it), at most ``n_samples``."""
+    if j_max < 0:
+        return 0
+    i = min(n_samples, int((j_max + 1) / ratio) + 2)  # at least the count: i·ratio < j_max + 1 for each
+    while i > 0 and math.floor((i - 1) * ratio + 1e-9) > j_max:
+        i -= 1
+    return i
+
+
+def _run_of(out: np.ndarray, adr: dict, tube: Tube, steps: int) -> GimbalRun:
+    """The GimbalRun of resampled sensor rows ``out``."""
     col = lambda key: np.ascontiguousarray(out[:, adr[key]])
     qs = col("q_imu")
     qs /= norms(qs)[:, None]
@@ -346,7 +487,7 @@ def simulate_gimbal(
     )
 
 
-def _centre_gyro(sens: np.ndarray, adr: dict, phys_rate: float) -> None:
+def _centre_gyro(sens: np.ndarray, adr: dict, phys_rate: float, lo: int = 0, hi: int | None = None) -> None:
     """Put MuJoCo's gyro reading at the same instant as its positions (in place).
 
     MuJoCo's integrators advance positions with the *new* velocity,
@@ -358,19 +499,23 @@ def _centre_gyro(sens: np.ndarray, adr: dict, phys_rate: float) -> None:
     (1.4° after a spin-up to 360 °/s at 128 Hz). The rate at t_k is the
     central difference of the positions, v̄_k = (q_{k+1} − q_{k−1})/(2h); add
     Σ_j a_j·(v̄_j − v_j) to the gyro, with MuJoCo's joint axes a_j.
+
+    Only rows ``lo`` … ``hi``−1 are corrected (all by default): ``sens`` may be a stretch of the run with the
+    rows before and after them, read for their positions. Its own first and last rows have v̄ = v (at the
+    run's ends: no neighbour).
     """
     pos = np.concatenate([sens[:, adr[k]] for k in ("q_z", "q_y", "q_x")], axis=1)
     vel = np.concatenate([sens[:, adr[k]] for k in ("v_z", "v_y", "v_x")], axis=1)
     vbar = vel.copy()
     vbar[1:-1] = (pos[2:] - pos[:-2]) * (0.5 * phys_rate)
     dv = vbar - vel
-    gyro = sens[:, adr["gyro"]]
+    hi = len(sens) if hi is None else hi
+    gyro = sens[lo:hi, adr["gyro"]]
     for j, key in enumerate(("axis_z", "axis_y", "axis_x")):
-        gyro += sens[:, adr[key]] * dv[:, j : j + 1]
-    sens[:, adr["gyro"]] = gyro
+        gyro += sens[lo:hi, adr[key]] * dv[lo:hi, j : j + 1]
+    sens[lo:hi, adr["gyro"]] = gyro
 
 
-@njit(cache=True)
 def resample_cubic(x, rate_in, rate_out, n_out, offset):
     """Catmull–Rom resampling of rows ``x`` (n, k) from ``rate_in`` to ``rate_out`` Hz.
 
@@ -378,22 +523,30 @@ def resample_cubic(x, rate_in, rate_out, n_out, offset):
     (input rows are at positions 0, 1, 2, …); exact copies where that
     position falls on the grid (equal rates or integer ratios, offset 0).
     """
-    n, k = x.shape
-    out = np.empty((n_out, k))
-    ratio = rate_in / rate_out
-    for i in range(n_out):
+    return _resample_span(x, 0, len(x), rate_in / rate_out, offset, 0, n_out)
+
+
+@njit(cache=True)
+def _resample_span(x, x0, n, ratio, offset, i0, i1):
+    """Rows i0 … i1−1 of :func:`resample_cubic` of a run of ``n`` rows of which ``x`` holds rows x0, x0 + 1, …
+    (all those the cubic reads: rows j − 1 … j + 2 of grid position i·ratio + offset, clamped to the run)."""
+    k = x.shape[1]
+    out = np.empty((i1 - i0, k))
+    for i in range(i0, i1):
         pos = i * ratio + offset
         j = int(np.floor(pos + 1e-9))
         u = pos - j
+        r = i - i0
         if u < 1e-9:
-            out[i] = x[min(j, n - 1)]
+            out[r] = x[min(j, n - 1) - x0]
             continue
-        j0, j2, j3 = max(j - 1, 0), min(j + 1, n - 1), min(j + 2, n - 1)
+        j0, j2, j3 = max(j - 1, 0) - x0, min(j + 1, n - 1) - x0, min(j + 2, n - 1) - x0
+        j1 = j - x0
         u2, u3 = u * u, u * u * u
         c0 = -0.5 * u3 + u2 - 0.5 * u
         c1 = 1.5 * u3 - 2.5 * u2 + 1.0
         c2 = -1.5 * u3 + 2.0 * u2 + 0.5 * u
         c3 = 0.5 * u3 - 0.5 * u2
         for c in range(k):
-            out[i, c] = c0 * x[j0, c] + c1 * x[j, c] + c2 * x[j2, c] + c3 * x[j3, c]
+            out[r, c] = c0 * x[j0, c] + c1 * x[j1, c] + c2 * x[j2, c] + c3 * x[j3, c]
     return out

@@ -18,6 +18,7 @@ Pieces:
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -67,10 +68,13 @@ def add_move(profile: DriveProfile, axis: int, start: float, duration: float, an
 
     Rate ω(t) = angle/T·(1 − cos(2πt/T)) for 0 ≤ t ≤ T (peak 2·angle/T).
     """
-    t = np.arange(profile.n) / profile.rate - start
+    # Only the steps near the move are looked at (the same t values as over the whole profile).
+    a = min(profile.n, max(0, int(math.floor(start * profile.rate)) - 1))
+    b = min(profile.n, max(a, int(math.ceil((start + duration) * profile.rate)) + 2))
+    t = np.arange(a, b) / profile.rate - start
     inside = (t >= 0.0) & (t <= duration)
     tt = t[inside]
-    profile.omega[inside, axis] += angle / duration * (1.0 - np.cos(2.0 * np.pi * tt / duration))
+    profile.omega[a:b][inside, axis] += angle / duration * (1.0 - np.cos(2.0 * np.pi * tt / duration))
 
 
 def add_spin(profile: DriveProfile, axis: int, start: float, stop: float, rate: float, ramp: float = 0.5) -> None:

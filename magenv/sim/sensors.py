@@ -15,6 +15,7 @@ All parameters live in :class:`SensorConfig`; randomness comes only from the
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -123,41 +124,113 @@ def apply_sensor_model(
         cfg: error model.
         rng: the trial's generator (draws in a fixed order: determinism).
     """
-    n = len(gyr)
-    d2r = np.pi / 180.0
-    bias_g = rng.normal(0.0, cfg.gyr_bias_dps * d2r, 3)
-    bias_a = rng.normal(0.0, cfg.acc_bias, 3)
-    s = rng.normal(0.0, cfg.mag_soft_iron, (3, 3))
-    soft = np.eye(3) + 0.5 * (s + s.T)  # residual soft iron: I + S, S symmetric
-    hard = rng.normal(0.0, cfg.mag_hard_iron_ut, 3)
-    phase = rng.uniform(0.0, 1.0)
-    z = rng.standard_normal((4, n, 3))  # walk, gyro, accelerometer, magnetometer
-    held = hold_pattern(n, cfg.mag_hold_fraction, phase, int(cfg.mag_hold_run))
-    new = np.flatnonzero(~held)
-    z[3, new] = lowpass_noise(z[3, new], int(cfg.mag_noise_taps))  # the noise over the conversions
-    sig = np.array(
-        [cfg.gyr_drift_dps * d2r * math.sqrt(1.0 / rate), cfg.gyr_noise_dps * d2r, cfg.acc_noise, cfg.mag_noise_ut]
-    )
-    return _measure(
-        np.ascontiguousarray(gyr),
-        np.ascontiguousarray(acc),
-        np.ascontiguousarray(mag),
-        z,
-        sig,
-        bias_g,
-        bias_a,
-        soft,
-        hard,
-        int(cfg.gyr_lag_samples),
-        int(cfg.mag_lag_samples),
-        held,
-        float(cfg.mag_range_ut),
-    )
+    return SensorStream(len(gyr), rate, cfg, rng).measure(gyr, acc, mag)
+
+
+class SensorStream:
+    """:func:`apply_sensor_model` over N samples given in consecutive blocks (``measure``), the same numbers
+    bit for bit as all at once: a long trial need not hold its ideal readings and their noise whole.
+
+    The per-trial draws (biases, iron, hold phase) come first from ``rng``, then the four (N, 3) noise
+    streams (bias walk, gyro, accelerometer, magnetometer) in that order. All N at once, they are one draw;
+    in blocks, each stream reads from its own copy of ``rng`` advanced to where it starts (made at the first
+    block, so ``rng`` must not be drawn from meanwhile), and ``rng`` ends where the one draw would leave it.
+    The magnetometer's low-pass runs over its conversions across block edges.
+    """
+
+    def __init__(self, n: int, rate: float, cfg: SensorConfig, rng: np.random.Generator):
+        d2r = np.pi / 180.0
+        self.n, self.done = int(n), 0
+        self.gyr_lag, self.lag, self.taps = int(cfg.gyr_lag_samples), int(cfg.mag_lag_samples), int(cfg.mag_noise_taps)
+        self.bias_g = rng.normal(0.0, cfg.gyr_bias_dps * d2r, 3)
+        self.bias_a = rng.normal(0.0, cfg.acc_bias, 3)
+        s = rng.normal(0.0, cfg.mag_soft_iron, (3, 3))
+        self.soft = np.eye(3) + 0.5 * (s + s.T)  # residual soft iron: I + S, S symmetric
+        self.hard = rng.normal(0.0, cfg.mag_hard_iron_ut, 3)
+        phase = rng.uniform(0.0, 1.0)
+        self.held = hold_pattern(self.n, cfg.mag_hold_fraction, phase, int(cfg.mag_hold_run))
+        self.sig = np.array(
+            [cfg.gyr_drift_dps * d2r * math.sqrt(1.0 / rate), cfg.gyr_noise_dps * d2r, cfg.acc_noise, cfg.mag_noise_ut]
+        )
+        self.mag_range = float(cfg.mag_range_ut)
+        self.carry = np.zeros(6)  # the bias walk (3) and the held reading (3)
+        self.gyr_tail = np.zeros((0, 3))  # the last gyr_lag ideal rates before the next block
+        self.mag_tail = np.zeros((0, 3))  # the last gyr_lag + lag ideal fields before the next block
+        self.white_tail = np.zeros((0, 3))  # the last taps − 1 white magnetometer noise rows of conversions
+        self.rng = rng
+        self.streams: list = []  # with blocks: a generator per noise stream (_split)
+
+    def _split(self) -> list:
+        """One generator per noise stream, each advanced to its start."""
+        streams = [copy.deepcopy(self.rng)]
+        for _ in range(3):
+            g = copy.deepcopy(streams[-1])
+            for c in range(0, self.n, _SKIP):
+                g.standard_normal((min(self.n - c, _SKIP), 3))
+            streams.append(g)
+        return streams
+
+    def measure(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The measured (gyr, acc, mag) of the next block of ideal readings (m, 3) each."""
+        m, i0 = len(gyr), self.done
+        if i0 + m > self.n:
+            raise ValueError(f"SensorStream of {self.n} samples given {i0 + m}")
+        held = self.held[i0 : i0 + m]
+        if i0 == 0 and m == self.n:
+            z = self.rng.standard_normal((4, m, 3))  # walk, gyro, accelerometer, magnetometer
+            new = np.flatnonzero(~held)
+            z[3, new] = lowpass_noise(z[3, new], self.taps)  # the noise over the conversions
+        else:
+            if i0 == 0:
+                self.streams = self._split()
+            z = np.stack([g.standard_normal((m, 3)) for g in self.streams])
+            new = np.flatnonzero(~held)
+            white = np.concatenate([self.white_tail, z[3, new]])
+            k = len(self.white_tail)
+            z[3, new] = lowpass_noise(white, self.taps)[k:]
+            if self.taps > 1:
+                self.white_tail = white[-(self.taps - 1) :].copy()
+        gyr, acc, mag = (np.ascontiguousarray(a) for a in (gyr, acc, mag))
+        g_ext = np.concatenate([self.gyr_tail, gyr]) if len(self.gyr_tail) else gyr
+        m_ext = np.concatenate([self.mag_tail, mag]) if len(self.mag_tail) else mag
+        out = _measure(
+            g_ext,
+            acc,
+            m_ext,
+            z,
+            self.sig,
+            self.bias_g,
+            self.bias_a,
+            self.soft,
+            self.hard,
+            self.gyr_lag,
+            self.lag,
+            held,
+            self.mag_range,
+            i0,
+            i0 - len(self.gyr_tail),
+            i0 - len(self.mag_tail),
+            self.carry,
+        )
+        self.done = i0 + m
+        if self.gyr_lag:
+            self.gyr_tail = g_ext[-self.gyr_lag :].copy()
+        if self.gyr_lag + self.lag:
+            self.mag_tail = m_ext[-(self.gyr_lag + self.lag) :].copy()
+        if self.streams and self.done == self.n:
+            self.rng.bit_generator.state = self.streams[-1].bit_generator.state
+        return out
+
+
+#: Noise rows drawn at a time to advance a :class:`SensorStream`'s generators.
+_SKIP = 1 << 16
 
 
 @njit(cache=True)
-def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, gyr_lag, lag, held_mask, mag_range):
-    """Kernel of :func:`apply_sensor_model`.
+def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, gyr_lag, lag, held_mask, mag_range, i0, g0, m0, carry):
+    """Kernel of :class:`SensorStream`: samples i0 … i0 + m − 1 (``acc``, ``z``, ``held_mask`` rows), ``gyr``
+    from sample g0 on and ``mag`` from sample m0 on (the lagged rows before the block); ``carry`` (6,): the
+    bias walk and the held reading, updated.
 
     Gyro: ω(i − gyr_lag) + b + Σ walk + noise (walk std grows as drift·√t).
     Magnetometer: a new conversion at each sample i not held (``held_mask``,
@@ -165,26 +238,27 @@ def _measure(gyr, acc, mag, z, sig, bias_g, bias_a, soft, hard, gyr_lag, lag, he
     the residual iron (I + S)·B + h, plus noise (already coloured); held
     samples repeat it; then clipped to ±range.
     """
-    n = gyr.shape[0]
+    n = acc.shape[0]
     gyr_m = np.empty((n, 3))
     acc_m = np.empty((n, 3))
     mag_m = np.empty((n, 3))
-    walk = np.zeros(3)
-    held = np.zeros(3)
-    for i in range(n):
-        gsrc = max(i - gyr_lag, 0)
+    walk = carry[0:3]
+    held = carry[3:6]
+    for r in range(n):
+        i = i0 + r
+        gsrc = max(i - gyr_lag, 0) - g0
         for j in range(3):
-            walk[j] += sig[0] * z[0, i, j]
-            gyr_m[i, j] = gyr[gsrc, j] + bias_g[j] + walk[j] + sig[1] * z[1, i, j]
-            acc_m[i, j] = acc[i, j] + bias_a[j] + sig[2] * z[2, i, j]
-        if i == 0 or not held_mask[i]:  # a new conversion
-            src = max(i - gyr_lag - lag, 0)
+            walk[j] += sig[0] * z[0, r, j]
+            gyr_m[r, j] = gyr[gsrc, j] + bias_g[j] + walk[j] + sig[1] * z[1, r, j]
+            acc_m[r, j] = acc[r, j] + bias_a[j] + sig[2] * z[2, r, j]
+        if i == 0 or not held_mask[r]:  # a new conversion
+            src = max(i - gyr_lag - lag, 0) - m0
             for j in range(3):
                 b = hard[j] + soft[j, 0] * mag[src, 0] + soft[j, 1] * mag[src, 1] + soft[j, 2] * mag[src, 2]
-                b += sig[3] * z[3, i, j]
+                b += sig[3] * z[3, r, j]
                 held[j] = min(max(b, -mag_range), mag_range)
         for j in range(3):
-            mag_m[i, j] = held[j]
+            mag_m[r, j] = held[j]
     return gyr_m, acc_m, mag_m
 
 
