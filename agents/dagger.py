@@ -18,9 +18,10 @@ probability-weighted mean candidate action.
 Training (Ross et al. 2011, with β = 0 after the first iteration):
 
 1. iteration 0's data: the teacher's own trajectories (at each decision the
-   cheapest candidate) on ``trials_per_scenario`` training trials (seeds ≥
-   ``train_seed`` ≥ 10000) per scenario, every visited state labelled with the
-   candidate costs;
+   cheapest candidate; ``first: rule``: the continuation rule's) on
+   ``trials_per_scenario`` training trials (seeds ≥ ``train_seed`` ≥ 10000)
+   per scenario, the visited states labelled with the candidate costs (every
+   decision, or one in ``label_every``: the labels are the expensive part);
 2. each iteration: fit a fresh student on all data so far, with the
    cost-sensitive "regret" loss Σ_c softmax(logits)_c · r_c, where
    r_c = 100 · (cost_c − min cost) / (H · MSE of the continuation rule on that
@@ -76,6 +77,8 @@ DEFAULTS: dict[str, Any] = {
     "learning_rate": 1.0e-3,
     "hidden": [128, 128],
     "seed": 0,
+    "label_every": 1,
+    "first": "teacher",
 }
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
 TEACHER_NEEDS = ("env_id", "candidates", "decision_every", "candidate_costs", "continuation_action", "horizon_s")
@@ -89,7 +92,7 @@ def check_config(config: dict | None) -> dict:
     if unknown:
         raise ValueError(f"unknown DAgger config key(s) {unknown}; known: {sorted(DEFAULTS)}")
     cfg = {**DEFAULTS, **config}
-    for key in ("iterations", "trials_per_scenario", "decision_every", "fit_steps", "batch_size"):
+    for key in ("iterations", "trials_per_scenario", "decision_every", "fit_steps", "batch_size", "label_every"):
         if isinstance(cfg[key], bool) or not isinstance(cfg[key], int) or cfg[key] < 1:
             raise ValueError(f"DAgger config {key!r} must be a positive integer, got {cfg[key]!r}")
     if not isinstance(cfg["train_seed"], int) or cfg["train_seed"] < HELD_OUT_BELOW:
@@ -99,6 +102,8 @@ def check_config(config: dict | None) -> dict:
         raise ValueError(f"val_seeds must be [start, stop) within the validation seeds 5000–5999, got {[lo, hi]}")
     if not 0.0 <= cfg["beta"] <= 1.0 or not cfg["learning_rate"] > 0:
         raise ValueError("beta must lie in [0, 1] and learning_rate be positive")
+    if cfg["first"] not in ("teacher", "rule"):
+        raise ValueError(f"first must be 'teacher' or 'rule', got {cfg['first']!r}")
     if not cfg["hidden"] or any(int(h) != h or h < 1 for h in cfg["hidden"]):
         raise ValueError(f"hidden must be a list of positive layer widths, got {cfg['hidden']!r}")
     return cfg
@@ -249,9 +254,10 @@ def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inp
 class Episodes:
     """Closed-loop episodes of one env with the student's observation, the teacher reading its runner.
 
-    ``run(trial, act, label)``: ``act(obs, runner, costs)`` → the action (action_dim,) at each decision
-    (``costs`` the teacher's (C,) candidate costs at that state when ``label``, else None). Returns
-    (observations (D, n_obs) float32, costs (D, C) or None, RMSE °)."""
+    ``run(trial, act, label_every, needs_costs)``: ``act(obs, runner, costs)`` → the action (action_dim,) at
+    each decision, ``costs`` the teacher's (C,) candidate costs at that state on the labelled decisions (every
+    ``label_every``-th from the first; 0 = none) and, with ``needs_costs``, on all (else None). Returns
+    (labelled observations (D, n_obs) float32, their costs (D, C), RMSE °)."""
 
     def __init__(self, env_id: str, env_kwargs: dict, teacher):
         self.env_id, self.env_kwargs, self.teacher = env_id, dict(env_kwargs), teacher
@@ -267,22 +273,24 @@ class Episodes:
             self._env = gym.make(self.env_id, disable_env_checker=True, **kwargs).unwrapped
         return self._env
 
-    def run(self, trial, act: Callable[[np.ndarray, Any, Any], np.ndarray], label: bool = True):
+    def run(self, trial, act: Callable[[np.ndarray, Any, Any], np.ndarray], label_every: int = 1,
+            needs_costs: bool = False):  # fmt: skip
         from magenv import metrics
 
         env = self.env(trial)
         o, _ = env.reset(seed=0, options={"trial": trial})
         obs, costs = [], []
-        done = False
+        done, d = False, 0
         while not done:
-            obs.append(o)
-            c = self.teacher.candidate_costs(env._runner) if label else None
+            label = label_every > 0 and d % label_every == 0
+            c = self.teacher.candidate_costs(env._runner) if label or needs_costs else None
             if label:
+                obs.append(o)
                 costs.append(c)
             o, _, terminated, truncated, _ = env.step(np.asarray(act(o, env._runner, c), np.float64))
-            done = terminated or truncated
+            done, d = terminated or truncated, d + 1
         rmse = metrics.score(env.estimate, trial.q_true, trial.score_mask).total
-        return np.array(obs), (np.array(costs) if label else None), rmse
+        return np.array(obs), np.array(costs), rmse
 
 
 def check_teacher(teacher, env_id: str | None = None) -> str:
@@ -338,12 +346,12 @@ def train(
         return teacher.continuation_action(runner)
 
     def rule_mse(trial) -> float:
-        return episodes.run(trial, rule_act, label=False)[2] ** 2
+        return episodes.run(trial, rule_act, label_every=0)[2] ** 2
 
     data_x, data_r = [], []
 
-    def add(trial, act):
-        obs, costs, rmse = episodes.run(trial, act)
+    def add(trial, act, needs_costs):
+        obs, costs, rmse = episodes.run(trial, act, cfg["label_every"], needs_costs)
         horizon = int(round(teacher.horizon_s * trial.rate))
         regret = REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rule_mse(trial))
         data_x.append(inputs(obs, meta))
@@ -359,10 +367,11 @@ def train(
     def oracle_act(o, runner, costs):
         return cands[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
 
+    first_act, first_needs = (oracle_act, True) if cfg["first"] == "teacher" else (rule_act, False)
     for sc in cfg["scenarios"]:
         for s in range(cfg["train_seed"], cfg["train_seed"] + n_per):
-            add(make_trial(sc, s), oracle_act)
-    log(f"iteration 0 data: {len(data_x)} teacher episodes, {time.time() - t0:.0f} s")
+            add(make_trial(sc, s), first_act, first_needs)
+    log(f"iteration 0 data: {len(data_x)} {cfg['first']} episodes, {time.time() - t0:.0f} s")
     rng = np.random.default_rng(cfg["seed"])
     rows, best = [], None
     for it in range(cfg["iterations"]):
@@ -376,7 +385,7 @@ def train(
             return st.action(o)
 
         for sc, trial in val:
-            rmse[sc].append(episodes.run(trial, student_act, label=False)[2])
+            rmse[sc].append(episodes.run(trial, student_act, label_every=0)[2])
         ratio = {sc: float(np.mean(rmse[sc]) / np.mean(val_rule[sc])) for sc in cfg["scenarios"]}
         score = float(np.mean(list(ratio.values())))
         info = {"iteration": it, "val_ratio": score, "samples": len(x)}
@@ -400,7 +409,7 @@ def train(
 
         for sc in cfg["scenarios"]:
             for s in range(first, first + n_per):
-                add(make_trial(sc, s), mixture)
+                add(make_trial(sc, s), mixture, cfg["beta"] > 0)
         log(f"   collected {len(cfg['scenarios']) * n_per} student episodes, {time.time() - t:.0f} s")
     return out
 

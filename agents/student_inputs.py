@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from magenv.envs import BLEND_ID
+from magenv.envs import BLEND_ID, KALMAN_ID
 from magenv.envs.features import DIP_SCALE_DEG
 
 
@@ -66,8 +66,40 @@ class BlendInputs(StudentInputs):
         return np.concatenate(parts, 1)
 
 
+class KalmanInputs(StudentInputs):
+    """MagKalman-v0: the extended observation (``features="extended"``: the 19 base and the extra causal features,
+    and their copies 8 and 32 decisions earlier), each block followed by the teacher's continuation rule γ
+    recomputed from that block (``magenv.baselines.oracle_kalman``):
+    γ = 1 / (1 + (‖d̂‖/σ_d)² + (Δm/σ_m)² + (Δθ/σ_θ)²), ‖d̂‖ = 50 µT·field_ref·model_dist,
+    Δm = 50 µT·field_ref·norm_dev, Δθ = 90°·dip_dev (σ = inf: the term is absent)."""
+
+    env_id = KALMAN_ID
+    env_kwargs = {"features": "extended"}
+
+    def meta(self, teacher) -> dict:
+        from magenv.envs.kalman import EXTENDED, LAGS
+
+        return {"scales": [float(v) for v in teacher.scales], "block": len(EXTENDED) // (1 + len(LAGS))}
+
+    def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        from magenv.envs.kalman import FEATURES, FIELD_SCALE_UT
+
+        obs = np.atleast_2d(np.asarray(obs, np.float32))
+        sd, sm, sth = (float(v) for v in meta["scales"])
+        block = int(meta["block"])
+        i_nd, i_dd, i_md, i_m0 = (FEATURES.index(n) for n in ("norm_dev", "dip_dev", "model_dist", "field_ref"))
+        parts = []
+        for start in range(0, obs.shape[1], block):
+            blk = obs[:, start : start + block]
+            m0 = FIELD_SCALE_UT * blk[:, i_m0].astype(np.float64)
+            s = (m0 * blk[:, i_md] / sd) ** 2 + (m0 * blk[:, i_nd] / sm) ** 2
+            s += (DIP_SCALE_DEG * blk[:, i_dd] / sth) ** 2
+            parts += [blk, (1.0 / (1.0 + s))[:, None].astype(np.float32)]
+        return np.concatenate(parts, 1)
+
+
 #: env id → what its student sees
-INPUTS: dict[str, StudentInputs] = {BLEND_ID: BlendInputs()}
+INPUTS: dict[str, StudentInputs] = {BLEND_ID: BlendInputs(), KALMAN_ID: KalmanInputs()}
 
 
 def inputs_for(env_id: str) -> StudentInputs:

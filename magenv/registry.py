@@ -17,7 +17,8 @@ a fresh one. ``names()`` lists them all:
 * ``oracle`` — the privileged receding-horizon search of MagBlend-v0
   (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
   reads truth, so it is an upper bound (compare's headroom row), never a
-  baseline;
+  baseline; ``oracle_kalman`` likewise for MagKalman-v0
+  (``magenv.baselines.oracle_kalman``, continuing with ``kf_model_tuned``);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
 """
@@ -33,7 +34,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from magenv.baselines import constraint, kalman, kalman_policies, oracle, qsf, reference, rules
+from magenv.baselines import constraint, kalman, kalman_policies, oracle, oracle_kalman, qsf, reference, rules
 from magenv.protocols import Tunable
 
 AGENT_PREFIX = "agent:"
@@ -45,6 +46,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "qsf_detector_tuned": ("delay_magyq", qsf.tuned_detector_policy),
     # privileged (reads truth): an upper bound shown as the headroom row, never a baseline
     "oracle": ("fan_lambda", oracle.BlendOracle.from_fan_params),
+    "oracle_kalman": ("kf_model", oracle_kalman.KalmanOracle.from_model_params),
 }
 
 _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}

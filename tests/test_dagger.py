@@ -119,3 +119,16 @@ def test_student_acts_with_the_probability_weighted_candidate():
     np.testing.assert_allclose(student.action(np.zeros(2)), [0.25 * 0 + 0.5 * 1 + 0.25 * 0.5, 0.25 + 0.125])
     with pytest.raises(ValueError, match="candidates"):
         dagger.candidate_matrix(np.zeros((2, 2, 2)))
+
+
+def test_a_kalman_student_from_oracle_kalman(tmp_path):
+    """The same loop teaches a MagKalman-v0 student (extended observation, rule-driven first iteration, sparse
+    labels); it loads as an agent of that env."""
+    cfg = {**TINY, "iterations": 1, "label_every": 64, "first": "rule", "scenarios": ["dynamic_clean"]}
+    out = dagger.train(tmp_path / "k", registry.make("oracle_kalman"), cfg, log=lambda line: None)
+    run = yaml.safe_load((out / "run.yaml").read_text())
+    assert run["env_id"] == "magenv/MagKalman-v0" and run["student"]["n_inputs"] == 114 + 3
+    agent = load_agent(out)
+    assert agent.env_id == "magenv/MagKalman-v0" and agent.env_kwargs["features"] == "extended"
+    with pytest.raises(ValueError, match="first"):
+        dagger.check_config({"first": "oracle"})

@@ -39,7 +39,7 @@ def test_shipped_student_scores_as_when_it_was_trained(make_kinematic_trial):
 
 def test_unknown_pretrained_env_names_the_shipped_ones():
     with pytest.raises(RunError, match="magenv/MagBlend-v0"):
-        load_agent("pretrained:magenv/MagKalman-v0")
+        load_agent("pretrained:magenv/Nope-v0")
 
 
 def test_magenv_agents_lists_it(capsys):
