@@ -12,8 +12,9 @@ from magenv.train.cli import main
 NAME = "pretrained:magenv/MagBlend-v0"
 
 
-def test_shipped_folder_is_small_and_pickle_free():
-    folder = pretrained_agents()["magenv/MagBlend-v0"]
+@pytest.mark.parametrize("env_id", ["magenv/MagBlend-v0", "magenv/MagKalman-v0"])
+def test_shipped_folder_is_small_and_pickle_free(env_id):
+    folder = pretrained_agents()[env_id]
     files = {p.name: p.stat().st_size for p in folder.iterdir()}
     assert {"run.yaml", "best.safetensors", "card.md"} <= set(files)
     assert not [n for n in files if n.endswith((".zip", ".pkl", ".pt"))]
@@ -44,4 +45,12 @@ def test_unknown_pretrained_env_names_the_shipped_ones():
 
 def test_magenv_agents_lists_it(capsys):
     assert main(["agents"]) == 0
-    assert NAME in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert NAME in out and "pretrained:magenv/MagKalman-v0" in out
+
+
+def test_pretrained_kalman_student_acts_in_its_env(make_kinematic_trial):
+    agent = registry.make("agent:pretrained:magenv/MagKalman-v0")
+    assert agent.env_id == "magenv/MagKalman-v0" and agent.env_kwargs["features"] == "extended"
+    run = evaluation.run_method(agent.name, agent, make_kinematic_trial(seed=3, duration=3.0, disturbance_ut=20.0))
+    assert np.isfinite(run.score.total) and np.all((run.trust[1:] >= 0) & (run.trust[1:] <= 1))
