@@ -18,7 +18,8 @@ a fresh one. ``names()`` lists them all:
 * ``oracle`` — the privileged receding-horizon search of MagBlend-v0
   (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
   reads truth, so it is an upper bound (compare's headroom row), never a
-  baseline; likewise ``vqf_oracle`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``);
+  baseline; likewise ``oracle_kalman`` for MagKalman-v0 (``magenv.baselines.oracle_kalman``, continuing with
+  ``kf_model_tuned``) and ``vqf_oracle`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
 """
@@ -34,7 +35,17 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from magenv.baselines import constraint, kalman, kalman_policies, oracle, qsf, reference, rules, vqf_rules
+from magenv.baselines import (
+    constraint,
+    kalman,
+    kalman_policies,
+    oracle,
+    oracle_kalman,
+    qsf,
+    reference,
+    rules,
+    vqf_rules,
+)
 from magenv.protocols import Tunable
 
 AGENT_PREFIX = "agent:"
@@ -46,6 +57,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "qsf_detector_tuned": ("delay_magyq", qsf.tuned_detector_policy),
     # privileged (reads truth): an upper bound shown as the headroom row, never a baseline
     "oracle": ("fan_lambda", oracle.BlendOracle.from_fan_params),
+    "oracle_kalman": ("kf_model", oracle_kalman.KalmanOracle.from_model_params),
 }
 
 _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}

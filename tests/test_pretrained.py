@@ -12,8 +12,9 @@ from magenv.train.cli import main
 NAME = "pretrained:magenv/MagBlend-v0"
 
 
-def test_shipped_folder_is_small_and_pickle_free():
-    folder = pretrained_agents()["magenv/MagBlend-v0"]
+@pytest.mark.parametrize("env_id", ["magenv/MagBlend-v0", "magenv/MagKalman-v0"])
+def test_shipped_folder_is_small_and_pickle_free(env_id):
+    folder = pretrained_agents()[env_id]
     files = {p.name: p.stat().st_size for p in folder.iterdir()}
     assert {"run.yaml", "best.safetensors", "card.md"} <= set(files)
     assert not [n for n in files if n.endswith((".zip", ".pkl", ".pt"))]
@@ -28,11 +29,28 @@ def test_pretrained_agent_acts_in_compare(make_kinematic_trial):
     assert np.isfinite(run.score.total) and np.all((run.lam >= 0) & (run.lam <= 1))
 
 
+def test_shipped_student_scores_as_when_it_was_trained(make_kinematic_trial):
+    """The figures of the shipped MagBlend-v0 student on one trial, recorded before DAgger became
+    env-agnostic: the student still loads and acts the same."""
+    agent = registry.make("agent:" + NAME)
+    run = evaluation.run_method(agent.name, agent, make_kinematic_trial(seed=3, duration=4.0, disturbance_ut=40.0))
+    assert run.score.total == pytest.approx(0.19872633555783664, rel=1e-9)
+    assert float(np.sum(run.lam)) == pytest.approx(11.278644662997293, rel=1e-9)
+
+
 def test_unknown_pretrained_env_names_the_shipped_ones():
     with pytest.raises(RunError, match="magenv/MagBlend-v0"):
-        load_agent("pretrained:magenv/MagKalman-v0")
+        load_agent("pretrained:magenv/Nope-v0")
 
 
 def test_magenv_agents_lists_it(capsys):
     assert main(["agents"]) == 0
-    assert NAME in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert NAME in out and "pretrained:magenv/MagKalman-v0" in out
+
+
+def test_pretrained_kalman_student_acts_in_its_env(make_kinematic_trial):
+    agent = registry.make("agent:pretrained:magenv/MagKalman-v0")
+    assert agent.env_id == "magenv/MagKalman-v0" and agent.env_kwargs["features"] == "extended"
+    run = evaluation.run_method(agent.name, agent, make_kinematic_trial(seed=3, duration=3.0, disturbance_ut=20.0))
+    assert np.isfinite(run.score.total) and np.all((run.trust[1:] >= 0) & (run.trust[1:] <= 1))

@@ -28,10 +28,11 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from magenv.envs import KALMAN_ID
+from magenv.envs import KALMAN_ID, kalman_memory
 from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document, lagged_table, stack_lags
+from magenv.envs.features import observation_table as features_table
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
 from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
@@ -97,6 +98,9 @@ FEATURES = FeatureTable(
 )
 F = FEATURES.ix  # named kernel indices
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
+LAGS = (8, 32)  # decisions: the memory of the extended observation
+_CURRENT = (*FEATURES.features, *kalman_memory.EXTRA.features)
+EXTENDED = lagged_table(_CURRENT, LAGS)
 
 
 class Outputs(NamedTuple):
@@ -256,6 +260,29 @@ def _features(params, sensors, mdist, out, start, stop, j):
     feat[F.field_ref] = _clip(m0 / FIELD_SCALE_UT, F.field_ref)
 
 
+@njit(cache=True)
+def advance_extended(params, state, sensors, truth, mdist, out, gamma, start, stop, memory, rows, count, feat):
+    """:func:`advance`, then the extended observation ``feat`` (len(EXTENDED)) of sample ``stop``.
+
+    ``memory``: ``magenv.envs.kalman_memory.Memory`` (updated on the samples fused); ``rows``
+    (max(LAGS) + 1, len(FEATURES) + len(EXTRA)): ring of the current features by decision; ``count`` (1,)
+    int64: decisions so far (0 until the first step)."""
+    status, repairs = advance(params, state, sensors, truth, mdist, out, gamma, start, stop)
+    if status != OK:
+        return status, repairs
+    if stop > start:
+        kalman_memory.update(params, sensors, mdist, out.est, out.sig, out.trust, out.peek, memory, start, stop)
+        count[0] += 1
+    stack_lags(rows, count[0], out.feat, memory.value, LAGS, feat)
+    return status, repairs
+
+
+def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
+    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
+    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
+    return features_table(features, FEATURES, EXTENDED)
+
+
 def trial_disturbance(trial: Trial, params: kt.Params, model_c_a: float, model_c_b: float, model_p0: float = 1.0):
     """(N,) ‖d̂‖ of ``trial`` (:func:`model_disturbance`) with the Gauss–Markov parameters of the ``model_dist``
     feature and the filter's noise model ``params``; FilterError if the split fails."""
@@ -283,6 +310,7 @@ class KalmanRunner(TrialRunner):
         params: ``kalman_trust.make_params``; None = survey defaults for the trial's site.
         model_c_a, model_c_b, model_p0: Gauss–Markov parameters of the ``model_dist`` feature
             (per-sample correlation, driving std µT, initial reference variance µT²).
+        extended: ``feat`` is the EXTENDED observation (base, extra causal features, their lagged copies).
     """
 
     def __init__(
@@ -292,6 +320,7 @@ class KalmanRunner(TrialRunner):
         model_c_a: float = C_A,
         model_c_b: float = C_B,
         model_p0: float = 1.0,
+        extended: bool = False,
     ):
         super().__init__(trial, first=1)
         self.params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt) if params is None else params
@@ -304,11 +333,20 @@ class KalmanRunner(TrialRunner):
         self.trust[0] = 1.0
         self.repairs = 0
         self._args = (self.params, self.state, self.sensors, self.truth, self.mdist, self.out)
-        self._advance = self.compiled(advance, *self._args, 1.0, 1, 1)
+        self.extended = bool(extended)
+        if self.extended:
+            self.memory = kalman_memory.Memory.start(self.state.q)
+            rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
+            self.feat = np.zeros(len(EXTENDED))
+            self._more: tuple = (self.memory, rows, np.zeros(1, np.int64), self.feat)
+            self._advance = self.compiled(advance_extended, *self._args, 1.0, 1, 1, *self._more)
+        else:
+            self._more = ()
+            self._advance = self.compiled(advance, *self._args, 1.0, 1, 1)
         self._fuse(1, 1, 1.0)  # the observation of sample 1, nothing fused
 
     def _fuse(self, start: int, stop: int, gamma: float) -> None:
-        status, repairs = self._advance(*self._args, gamma, start, stop)
+        status, repairs = self._advance(*self._args, gamma, start, stop, *self._more)
         if status != OK:
             raise kt.FilterError(
                 f"trust KF: non-finite sample or covariance at sample {status} of trial "
@@ -317,6 +355,7 @@ class KalmanRunner(TrialRunner):
         self.repairs += repairs
 
 
+@document(kalman_memory.EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagKalmanEnv(TrustEnv):
     """
@@ -362,6 +401,17 @@ class MagKalmanEnv(TrustEnv):
 
     {observation_table}
 
+    With ``features="extended"`` (``EXTENDED``, 114 features) the observation
+    is these 19, then the extra causal features below
+    (``magenv.envs.kalman_memory``: signed mag headings and their EMAs, a
+    gyro-only anchor re-set on clean samples and the heading the magnetometer
+    added since, smoothed norm, dip and disturbance trends), then the copies
+    of all 38 as they were 8 and 32 decisions earlier (``NAME_lag8``,
+    ``NAME_lag32``: the memory). They are computed from the sensors, the
+    filter's signals and estimates — never truth.
+
+    {extended_table}
+
     Physical values are recoverable: m0 = 50·obs[18] µT, ‖m_j‖ − m0 = m0·obs[0]
     µT, dip deviation = 90·obs[1] degrees, NIS = 10^obs[6] − 1, ‖d̂_j‖ =
     m0·obs[16] µT
@@ -397,7 +447,8 @@ class MagKalmanEnv(TrustEnv):
       `"recording:PATH"`, a Trial or a list of Trials.
     - `decision_every` (default 8): samples fused per step (k); 1 = a γ per sample.
     - `episode_seconds` (default None): use only the first seconds of each trial; None = whole trial.
-    - `features` (default None = all): names of the observation features to keep, in the given order.
+    - `features` (default None = the 19 above): names of the observation features to keep, in the given
+      order, or `"extended"` for the extended observation (all 114; today's 19 stay the default).
     - `sigma_gyr`, `sigma_acc`, `sigma_mag` (defaults 0.5 °/s in rad/s, 0.02 m/s², 0.15 µT: the
       survey's sensor noise): the filter's noise model.
     - `th_acc` (default 0.08 m/s², Table A1): accelerometer gate; ``math.inf`` disables it.
@@ -447,6 +498,7 @@ class MagKalmanEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
+        features, table = observation_table(features)
         self._setup(
             scenario,
             decision_every,
@@ -454,9 +506,9 @@ class MagKalmanEnv(TrustEnv):
             render_mode,
             scenario_kwargs,
             features,
-            FEATURES.names,
-            FEATURES.low,
-            FEATURES.high,
+            table.names,
+            table.low,
+            table.high,
             prefetch=prefetch,
             trial_pool=trial_pool,
         )
@@ -471,10 +523,11 @@ class MagKalmanEnv(TrustEnv):
             heading_only=bool(heading_only),
         )
         self.model_kwargs: dict[str, Any] = dict(model_c_a=float(model_c_a), model_c_b=float(model_c_b))
+        self.extended = table is EXTENDED
 
     def _make_runner(self, trial: Trial) -> KalmanRunner:
         params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **self.filter_kwargs)
-        return KalmanRunner(trial, params, **self.model_kwargs)
+        return KalmanRunner(trial, params, **self.model_kwargs, extended=self.extended)
 
     def step(self, action):
         runner = self._step_runner()
@@ -601,6 +654,11 @@ class MagKalmanVectorEnv(BatchVectorEnv):
     first = 1
 
     def _alloc(self, n: int) -> None:
+        if self.template.extended:
+            raise ValueError(
+                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
+                'vectorization_mode="sync")'
+            )
         self.params = kt.make_params(46.0, 49.6, 1.0, **self.template.filter_kwargs)  # the env-wide constants
         rows = self.k_steps + 2
         self.dt, self.h_ref, self.m0, self.dip0 = np.ones(n), np.zeros((n, 3)), np.ones(n), np.zeros(n)

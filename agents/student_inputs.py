@@ -1,0 +1,110 @@
+"""What a DAgger student (``magenv.agents.dagger``) sees in each env: its observation options and its inputs.
+
+An entry of :data:`INPUTS` (env id → :class:`StudentInputs`) says which env
+options give the student its observation (``env_kwargs``: the env's extended,
+causal feature set), which per-run constants the inputs need from the teacher
+(``meta(teacher)``: stored in run.yaml's ``student`` section, so a run folder
+rebuilds its student from arrays and numbers only), and how an observation
+becomes the network's input (``__call__(obs, meta)``). A student for a new env
+is one entry here plus a teacher (the oracle interface of
+``magenv.agents.dagger``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from magenv.envs import BLEND_ID, KALMAN_ID
+from magenv.envs.features import DIP_SCALE_DEG
+
+
+class StudentInputs:
+    """Base: the observation as it is."""
+
+    env_id = ""
+    env_kwargs: dict[str, Any] = {}
+
+    def meta(self, teacher) -> dict:
+        """Per-run constants of the inputs, taken from ``teacher`` (YAML-safe numbers and lists)."""
+        return {}
+
+    def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        """(D, n_obs) observations → (D, n_in) float32 inputs."""
+        return np.atleast_2d(np.asarray(obs, np.float32))
+
+
+class BlendInputs(StudentInputs):
+    """MagBlend-v0: the extended observation (``features="extended"``: base and extra causal features, and their
+    copies 8 and 32 decisions earlier), each block followed by the teacher's continuation rule λ recomputed from
+    that block's ``norm_dev`` and ``dip_dev`` (the Fan rule of eqs. 15–17 with the teacher's ``norm_tol``,
+    ``th_dip_deg``): λ = ½·(min(|norm_dev|/norm_tol, 1) + min(|90°·dip_dev|/th_dip, 1))."""
+
+    env_id = BLEND_ID
+    env_kwargs = {"features": "extended"}
+
+    def meta(self, teacher) -> dict:
+        from magenv.envs.blend import EXTENDED, FEATURES, LAGS
+
+        return {
+            "rule": [float(teacher.norm_tol), float(teacher.th_dip_deg)],
+            "block": len(EXTENDED) // (1 + len(LAGS)),
+            "base_features": len(FEATURES),
+        }
+
+    def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        obs = np.atleast_2d(np.asarray(obs, np.float32))
+        norm_tol, th_dip = float(meta["rule"][0]), float(meta["rule"][1])
+        block = int(meta["block"])
+        parts = []
+        for start in range(0, obs.shape[1], block):
+            blk = obs[:, start : start + block]
+            lam1 = np.minimum(np.abs(blk[:, 0]) / norm_tol, 1.0)  # eq. 15 (norm_dev is column 0)
+            lam2 = np.minimum(np.abs(DIP_SCALE_DEG * blk[:, 1]) / th_dip, 1.0)  # eq. 16 (dip_dev, column 1)
+            parts += [blk, (0.5 * (lam1 + lam2))[:, None].astype(np.float32)]
+        return np.concatenate(parts, 1)
+
+
+class KalmanInputs(StudentInputs):
+    """MagKalman-v0: the extended observation (``features="extended"``: the 19 base and the extra causal features,
+    and their copies 8 and 32 decisions earlier), each block followed by the teacher's continuation rule γ
+    recomputed from that block (``magenv.baselines.oracle_kalman``):
+    γ = 1 / (1 + (‖d̂‖/σ_d)² + (Δm/σ_m)² + (Δθ/σ_θ)²), ‖d̂‖ = 50 µT·field_ref·model_dist,
+    Δm = 50 µT·field_ref·norm_dev, Δθ = 90°·dip_dev (σ = inf: the term is absent)."""
+
+    env_id = KALMAN_ID
+    env_kwargs = {"features": "extended"}
+
+    def meta(self, teacher) -> dict:
+        from magenv.envs.kalman import EXTENDED, LAGS
+
+        return {"scales": [float(v) for v in teacher.scales], "block": len(EXTENDED) // (1 + len(LAGS))}
+
+    def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        from magenv.envs.kalman import FEATURES, FIELD_SCALE_UT
+
+        obs = np.atleast_2d(np.asarray(obs, np.float32))
+        sd, sm, sth = (float(v) for v in meta["scales"])
+        block = int(meta["block"])
+        i_nd, i_dd, i_md, i_m0 = (FEATURES.index(n) for n in ("norm_dev", "dip_dev", "model_dist", "field_ref"))
+        parts = []
+        for start in range(0, obs.shape[1], block):
+            blk = obs[:, start : start + block]
+            m0 = FIELD_SCALE_UT * blk[:, i_m0].astype(np.float64)
+            s = (m0 * blk[:, i_md] / sd) ** 2 + (m0 * blk[:, i_nd] / sm) ** 2
+            s += (DIP_SCALE_DEG * blk[:, i_dd] / sth) ** 2
+            parts += [blk, (1.0 / (1.0 + s))[:, None].astype(np.float32)]
+        return np.concatenate(parts, 1)
+
+
+#: env id → what its student sees
+INPUTS: dict[str, StudentInputs] = {BLEND_ID: BlendInputs(), KALMAN_ID: KalmanInputs()}
+
+
+def inputs_for(env_id: str) -> StudentInputs:
+    """The student inputs of ``env_id``; ValueError naming the envs that have one."""
+    try:
+        return INPUTS[env_id]
+    except KeyError:
+        raise ValueError(f"no DAgger student inputs for env {env_id!r}; known: {sorted(INPUTS)}") from None

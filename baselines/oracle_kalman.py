@@ -1,0 +1,174 @@
+"""A privileged receding-horizon oracle for ``magenv/MagKalman-v0``: an **upper bound**, never a baseline.
+
+It reads the true orientation, so no deployable method can match it; it says
+how much a trust (γ) policy could gain on a trial (the *headroom* row of
+``magenv compare`` and ``magenv report``) and labels states for imitation
+(``magenv.agents.dagger``).
+
+At every decision (every k samples, the env's ``decision_every``) the oracle
+copies the env's own filter state (quaternion q̂ and error covariance P of
+``magenv.filters.kalman_trust``) and, for each candidate γ_c in
+``candidates``, rolls the env's filter kernel (``kalman_trust.step1``: gyro
+prediction, gated accelerometer update, magnetometer update with gain γ·K)
+forward over the next ``horizon_s`` seconds:
+
+* the first k samples with γ_c,
+* the rest with the continuation rule, re-evaluated every k samples from the
+  rolled-out state as the rule acts on the env's observation of that sample:
+  γ = 1 / (1 + (‖d̂_j‖/σ_d)² + (Δm_j/σ_m)² + (Δθ_j/σ_θ)²), where ‖d̂_j‖ (µT) is
+  the env's model-based disturbance estimate (``model_dist``, independent of
+  γ), Δm_j = ‖m_j‖ − m0 (µT) and Δθ_j the dip of m_j below the a-priori
+  horizontal minus θ0 (°), read by peeking at sample j (prediction and
+  accelerometer update on a copy, γ = 0) as the env does. ``kf_model``
+  (Ligorio & Sabatini 2015) is the σ_d term alone, ``kf_adaptive`` (Harada et
+  al. 2007) the σ_m, σ_θ terms (the others infinite).
+
+Cost of a candidate = Σ over the horizon of (total error Δθ, degrees)², the
+error of eq. 22 (``magenv.metrics.errors1``; samples without truth add 0):
+what the trial's RMSE adds up. The cheapest candidate is applied for k
+samples, then the search repeats from the new state.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from magenv.baselines.kalman_policies import AdaptiveTrust, KalmanRule, ModelTrust
+from magenv.envs import KALMAN_ID
+from magenv.envs.kalman import KalmanRunner
+from magenv.filters import kalman_trust as kt
+from magenv.filters.kalman_trust import SIG
+from magenv.metrics import errors1
+from magenv.protocols import Estimate
+from magenv.trial import Trial
+
+CANDIDATES = (0.0, 0.25, 0.5, 1.0)  # γ levels searched
+HORIZON_S = 0.25  # s, look-ahead of each search (0.5 s: the same RMSE to 0.3 % on validation seeds, 2× the cost)
+DECISION_EVERY = 8  # samples per decision (the env's default)
+
+
+@njit(cache=True)
+def rule_gamma(params, state, sensors, mdist, j, scales, peek_state, peek):
+    """The continuation rule's γ at sample j (≥ 1) from ``state`` (left unchanged; the peek works on
+    ``peek_state``, writing ``peek``). ``scales`` = (σ_d µT, σ_m µT, σ_θ °), inf = term absent."""
+    a = mdist[j] / scales[0]
+    s = a * a
+    if np.isfinite(scales[1]) or np.isfinite(scales[2]):
+        gyr, acc, mag = sensors
+        peek_state.q[:] = state.q
+        peek_state.p[:, :] = state.p
+        if kt.step1(params, peek_state, gyr[j - 1], gyr[j], acc[j], mag[j], 0.0, peek) < 0:
+            return 0.0
+        b = peek[SIG.mag_norm_dev] / scales[1]
+        c = peek[SIG.dip_dev] / scales[2]
+        s += b * b + (c * c if c == c else 0.0)
+    return 1.0 / (1.0 + s)
+
+
+@njit(cache=True)
+def candidate_costs(params, state, sensors, q_true, mdist, start, horizon, k, cands, scales, scratch, peek_state,
+                    sig, costs):  # fmt: skip
+    """``costs[c]`` = Σ (total error, °)² over samples start … start+horizon−1 of candidate ``cands[c]``
+    (inf if the filter fails). Each roll-out starts from a copy of ``state`` (``kalman_trust.State``, left
+    unchanged) held in ``scratch``; ``peek_state`` and ``sig`` (NSIG,) are working space."""
+    gyr, acc, mag = sensors
+    stop = min(gyr.shape[0], start + horizon)
+    for c in range(cands.shape[0]):
+        scratch.q[:] = state.q
+        scratch.p[:, :] = state.p
+        gamma = cands[c]
+        cost = 0.0
+        for i in range(start, stop):
+            off = i - start
+            if off >= k and off % k == 0:
+                gamma = rule_gamma(params, scratch, sensors, mdist, i, scales, peek_state, sig)
+            if kt.step1(params, scratch, gyr[i - 1], gyr[i], acc[i], mag[i], gamma, sig) < 0:
+                cost = np.inf
+                break
+            total = errors1(scratch.q, q_true[i])[0]
+            if total == total:
+                cost += total * total
+        costs[c] = cost
+
+
+def rule_scales(rule: KalmanRule) -> np.ndarray:
+    """(σ_d µT, σ_m µT, σ_θ °) of a ``kf_model`` or ``kf_adaptive`` rule (inf: term absent)."""
+    if isinstance(rule, ModelTrust):
+        return np.array([rule.sigma_dist_ut, math.inf, math.inf])
+    if isinstance(rule, AdaptiveTrust):
+        return np.array([math.inf, rule.sigma_mag_ut, rule.sigma_dip_deg])
+    raise ValueError(f"the continuation rule must be kf_model or kf_adaptive, got {type(rule).__name__}")
+
+
+class KalmanOracle:
+    """The receding-horizon γ oracle on whole trials (an ``Estimator``); it reads truth: an upper bound only.
+
+    It follows the oracle interface of ``magenv.agents.dagger`` (``env_id``, ``candidates`` (C, 1) of γ,
+    ``decision_every``, ``candidate_costs``, ``continuation_action``, ``horizon_s``).
+
+    Args:
+        rule: the continuation rule, a ``ModelTrust`` (kf_model) or ``AdaptiveTrust`` (kf_adaptive) with
+            the env's default features (None: ``kf_model`` at its default σ_d).
+        candidates: γ levels searched at each decision (``levels`` (C,); ``candidates`` is them as (C, 1)).
+        horizon_s: look-ahead, s. decision_every: samples per decision (k).
+    """
+
+    name = "oracle_kalman"
+    env_id = KALMAN_ID
+    privileged = True  # reads the true orientation: compare and report show it as the headroom row
+
+    def __init__(
+        self,
+        rule: KalmanRule | None = None,
+        candidates=CANDIDATES,
+        horizon_s: float = HORIZON_S,
+        decision_every: int = DECISION_EVERY,
+    ):
+        self.rule = ModelTrust() if rule is None else rule
+        if self.rule.features != ModelTrust().features:
+            raise ValueError("the continuation rule must read the env's default observation (features=None)")
+        self.scales = rule_scales(self.rule)
+        cands = np.asarray(candidates, float)
+        if cands.ndim != 1 or cands.size == 0 or not np.all((cands >= 0) & (cands <= 1)):
+            raise ValueError(f"candidates must be a non-empty list of γ in [0, 1], got {candidates!r}")
+        if not horizon_s > 0:
+            raise ValueError(f"horizon_s must be positive, got {horizon_s}")
+        if isinstance(decision_every, bool) or int(decision_every) != decision_every or decision_every < 1:
+            raise ValueError(f"decision_every must be a positive integer, got {decision_every!r}")
+        self.levels, self.candidates = cands, cands[:, None]
+        self.horizon_s, self.decision_every = float(horizon_s), int(decision_every)
+
+    @classmethod
+    def from_model_params(cls, params: dict) -> KalmanOracle:
+        """Privileged γ search (reads truth: an upper bound) continuing with the kf_model rule of ``params``."""
+        return cls(ModelTrust(params["sigma_dist_ut"]))
+
+    def candidate_costs(self, runner: KalmanRunner) -> np.ndarray:
+        """(len(candidates),) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state."""
+        horizon = int(round(self.horizon_s * runner.trial.rate))
+        state = runner.state
+        scratch = kt.State(np.empty_like(state.q), np.empty_like(state.p))
+        peek = kt.State(np.empty_like(state.q), np.empty_like(state.p))
+        costs, sig = np.empty(self.levels.size), np.empty(kt.NSIG)
+        candidate_costs(runner.params, state, runner.sensors, runner.q_true, runner.mdist, runner.pos, horizon,
+                        self.decision_every, self.levels, self.scales, scratch, peek, sig, costs)  # fmt: skip
+        return costs
+
+    def best_gamma(self, runner: KalmanRunner) -> float:
+        """The candidate with the lowest cost from ``runner``'s state (the first on ties)."""
+        return float(self.levels[int(np.argmin(self.candidate_costs(runner)))])
+
+    def continuation_action(self, runner: KalmanRunner) -> np.ndarray:
+        """(1,) the continuation rule's γ on the env's observation of ``runner``'s next sample."""
+        return np.array([self.rule.weight(runner.feat.astype(np.float32))])
+
+    def run(self, trial: Trial) -> Estimate:
+        """The oracle's estimate of every sample of ``trial`` (reads ``trial.q_true``), in the env's filter with
+        its default options."""
+        runner = KalmanRunner(trial)
+        while not runner.done:
+            runner.advance(self.decision_every, self.best_gamma(runner))
+        return Estimate(q=runner.est.copy(), trust=runner.trust.copy())

@@ -1,0 +1,182 @@
+"""The extended observation of ``magenv/MagKalman-v0`` (``features="extended"``): extra causal features with memory.
+
+All are computed from the sensor stream, the filter's own signals and
+estimates (``magenv.filters.kalman_trust.SIGNALS``) and the model-based
+disturbance ‖d̂‖ — never truth — by :func:`update`, which the env's kernel
+calls after each step on the samples just fused (``start:stop``); the values
+describe the decision at sample ``stop``, the same timing as the 19 base
+features. ``magenv.envs.kalman`` appends to [base, extra] their copies 8 and
+32 decisions earlier (the memory).
+
+Conventions (ENU earth frame, angles in degrees, signed, wrapped to ±180):
+
+* "heading(a ⊗ b*)" is the signed rotation about earth-up from orientation b
+  to a (``magenv.envs.blend_memory``'s convention, that of ``magenv.metrics``).
+* "mag heading" of sample i is atan2(east, north) of its field in the earth
+  frame of the a-priori estimate (after the gyro prediction and accelerometer
+  update of sample i, before its magnetometer update): ν_m,i + h_ENU; ≈ minus
+  the heading error in a clean field.
+* An EMA of time constant τ takes each sample with weight Δt/τ.
+* A sample is *clean* when | ‖m‖ − m0 | < 1 µT, its dip deviation < 1° and
+  ‖d̂‖ < 1 µT; the "anchor" is a gyro-only propagation of the orientation
+  (q ← q ⊗ exp(½(ω_{i−1} + ω_i)Δt)) reset to the estimate on clean samples, so
+  heading(q̂ ⊗ q_anc*) is the heading the magnetometer has added since the
+  field was last clean.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from magenv.envs.blend_memory import _heading
+from magenv.envs.features import Feature, FeatureTable
+from magenv.filters.kalman_trust import SIG
+from magenv.quaternion import from_rotvec1, mul1, normalize1
+
+_DEG = "°"
+_HEADING = -180.0, 180.0
+
+EXTRA = FeatureTable(
+    Feature("mh_ema_025", *_HEADING, _DEG, "EMA (τ 0.25 s) of the mag heading"),
+    Feature("mh_ema_1", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading"),
+    Feature("mh_ema_4", *_HEADING, _DEG, "EMA (τ 4 s) of the mag heading"),
+    Feature("mh_clean", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading over clean samples only"),
+    Feature("mh_j", *_HEADING, _DEG, "mag heading of the next sample j (the peek's a-priori innovation)"),
+    Feature("d_anchor", *_HEADING, _DEG, "heading(q̂ ⊗ q_anc*), q_anc the gyro-only anchor re-set on clean samples"),
+    Feature("t_anchor", 0.0, 3.0, "units of 10 s", "time since the last clean sample (clipped)"),
+    Feature("d_gyro", *_HEADING, _DEG, "heading(q̂ ⊗ q_gyr*), q_gyr the gyro-only propagation from the start"),
+    Feature("nd_ema_05", -1.0, 10.0, "fraction of m0", "EMA (τ 0.5 s) of the field-norm deviation"),
+    Feature("nd_ema_2", -1.0, 10.0, "fraction of m0", "EMA (τ 2 s) of the field-norm deviation"),
+    Feature("nd_ema_8", 0.0, 10.0, "fraction of m0", "EMA (τ 8 s) of the absolute field-norm deviation"),
+    Feature("dd_ema_05", 0.0, 180.0, _DEG, "EMA (τ 0.5 s) of the absolute dip deviation"),
+    Feature("dd_ema_2", -180.0, 180.0, _DEG, "EMA (τ 2 s) of the signed dip deviation"),
+    Feature("md_ema_1", 0.0, 10.0, "fraction of m0", "EMA (τ 1 s) of ‖d̂‖/m0"),
+    Feature("md_ema_4", 0.0, 10.0, "fraction of m0", "EMA (τ 4 s) of ‖d̂‖/m0"),
+    Feature("gyro_ema_1", 0.0, 100.0, "rad/s", "EMA (τ 1 s) of ‖ω‖"),
+    Feature("trust_ema_1", 0.0, 1.0, "–", "EMA (τ 1 s) of the trust γ applied"),
+    Feature("nis_ema_1", 0.0, 10.0, "decades", "log10(1 + EMA (τ 1 s) of the NIS)"),
+    Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
+)
+X = EXTRA.ix
+_LOW, _HIGH = EXTRA.low64, EXTRA.high64
+CLEAN_NORM_UT, CLEAN_DIP_DEG, CLEAN_DIST_UT = 1.0, 1.0, 1.0
+T_ANCHOR_SCALE_S = 10.0
+
+# layout of the state vector: two quaternions, then the EMAs and the time since clean
+Q_ANC, Q_GYR = 0, 4
+(S_MH025, S_MH1, S_MH4, S_MHC, S_ND05, S_ND2, S_ND8, S_DD05, S_DD2, S_MD1, S_MD4, S_G1, S_TR1, S_NIS1, S_CLEAN4,
+ S_TANC) = range(8, 24)  # fmt: skip
+N_STATE = 24
+
+
+class Memory(NamedTuple):
+    """The streaming state of the extra features of one trial (arrays updated in place)."""
+
+    state: np.ndarray  # (N_STATE,) see the layout constants
+    value: np.ndarray  # (len(EXTRA),) the features of the next decision (zeros before any sample is fused)
+
+    @classmethod
+    def start(cls, q0: np.ndarray) -> Memory:
+        """Memory at the start of a trial: both gyro-only references at the initial estimate ``q0``."""
+        state = np.zeros(N_STATE)
+        state[Q_ANC : Q_ANC + 4] = q0
+        state[Q_GYR : Q_GYR + 4] = q0
+        state[S_TR1] = 1.0
+        return cls(state, np.zeros(len(EXTRA)))
+
+
+@njit(cache=True, inline="always")
+def _ema(old, new, a):
+    return old + a * (new - old)
+
+
+@njit(cache=True, inline="always")
+def _clip(x, i):
+    if x != x:
+        return 0.0 if _LOW[i] <= 0.0 <= _HIGH[i] else _LOW[i]
+    return min(_HIGH[i], max(_LOW[i], x))
+
+
+@njit(cache=True, inline="always")
+def _mag_heading(sig, h_ref):
+    """Mag heading (deg) from a signal row: atan2 of the east and north components of ν_m + h_ENU."""
+    return np.rad2deg(np.arctan2(sig[SIG.nu_e] + h_ref[0], sig[SIG.nu_n] + h_ref[1]))
+
+
+@njit(cache=True)
+def _propagate(s, o, w, dt):
+    """s[o:o+4] ← s[o:o+4] ⊗ exp(w·dt) (w rad/s, sensor frame)."""
+    q = normalize1(mul1(s[o : o + 4].copy(), from_rotvec1(w * dt)))
+    s[o : o + 4] = q
+
+
+@njit(cache=True)
+def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
+    """Consume samples ``start:stop`` (1 ≤ ``start`` < ``stop``) just fused; ``mem.value`` = the extra features at
+    sample ``stop``.
+
+    Args:
+        params: ``magenv.filters.kalman_trust.Params``. sensors: the trial's ``Sensors``.
+        mdist: (N,) ‖d̂‖, µT. est: (N, 4) the env's estimates. sig: (N, NSIG) the filter's signals per sample.
+        trust: (N,) γ per sample. peek: (NSIG,) the a-priori signals of sample ``stop``. mem: :class:`Memory`.
+    """
+    gyr = sensors.gyr
+    s, out = mem.state, mem.value
+    dt, m0, h_ref = params.dt, params.m0, params.h_ref
+    a025, a05, a1, a2, a4, a8 = dt / 0.25, dt / 0.5, dt, dt / 2.0, dt / 4.0, dt / 8.0
+    for i in range(start, stop):
+        row = sig[i]
+        mh = _mag_heading(row, h_ref)
+        dm = row[SIG.mag_norm_dev]
+        dd = row[SIG.dip_dev]
+        if dd != dd:
+            dd = 0.0
+        md = mdist[i]
+        clean = abs(dm) < CLEAN_NORM_UT and abs(dd) < CLEAN_DIP_DEG and md < CLEAN_DIST_UT
+        w = 0.5 * (gyr[i - 1] + gyr[i])
+        _propagate(s, Q_GYR, w, dt)
+        if clean:
+            s[Q_ANC : Q_ANC + 4] = est[i]
+            s[S_TANC] = 0.0
+            s[S_MHC] = _ema(s[S_MHC], mh, a1)
+        else:
+            _propagate(s, Q_ANC, w, dt)
+            s[S_TANC] += dt
+        s[S_MH025] = _ema(s[S_MH025], mh, a025)
+        s[S_MH1] = _ema(s[S_MH1], mh, a1)
+        s[S_MH4] = _ema(s[S_MH4], mh, a4)
+        s[S_ND05] = _ema(s[S_ND05], dm / m0, a05)
+        s[S_ND2] = _ema(s[S_ND2], dm / m0, a2)
+        s[S_ND8] = _ema(s[S_ND8], abs(dm) / m0, a8)
+        s[S_DD05] = _ema(s[S_DD05], abs(dd), a05)
+        s[S_DD2] = _ema(s[S_DD2], dd, a2)
+        s[S_MD1] = _ema(s[S_MD1], md / m0, a1)
+        s[S_MD4] = _ema(s[S_MD4], md / m0, a4)
+        s[S_G1] = _ema(s[S_G1], np.sqrt(gyr[i, 0] ** 2 + gyr[i, 1] ** 2 + gyr[i, 2] ** 2), a1)
+        s[S_TR1] = _ema(s[S_TR1], trust[i], a1)
+        s[S_NIS1] = _ema(s[S_NIS1], row[SIG.nis], a1)
+        s[S_CLEAN4] = _ema(s[S_CLEAN4], 1.0 if clean else 0.0, a4)
+    q = est[stop - 1]
+    out[X.mh_ema_025] = _clip(s[S_MH025], X.mh_ema_025)
+    out[X.mh_ema_1] = _clip(s[S_MH1], X.mh_ema_1)
+    out[X.mh_ema_4] = _clip(s[S_MH4], X.mh_ema_4)
+    out[X.mh_clean] = _clip(s[S_MHC], X.mh_clean)
+    out[X.mh_j] = _clip(_mag_heading(peek, h_ref), X.mh_j)
+    a, g = Q_ANC, Q_GYR
+    out[X.d_anchor] = _clip(_heading(q[0], q[1], q[2], q[3], s[a], s[a + 1], s[a + 2], s[a + 3]), X.d_anchor)
+    out[X.t_anchor] = _clip(s[S_TANC] / T_ANCHOR_SCALE_S, X.t_anchor)
+    out[X.d_gyro] = _clip(_heading(q[0], q[1], q[2], q[3], s[g], s[g + 1], s[g + 2], s[g + 3]), X.d_gyro)
+    out[X.nd_ema_05] = _clip(s[S_ND05], X.nd_ema_05)
+    out[X.nd_ema_2] = _clip(s[S_ND2], X.nd_ema_2)
+    out[X.nd_ema_8] = _clip(s[S_ND8], X.nd_ema_8)
+    out[X.dd_ema_05] = _clip(s[S_DD05], X.dd_ema_05)
+    out[X.dd_ema_2] = _clip(s[S_DD2], X.dd_ema_2)
+    out[X.md_ema_1] = _clip(s[S_MD1], X.md_ema_1)
+    out[X.md_ema_4] = _clip(s[S_MD4], X.md_ema_4)
+    out[X.gyro_ema_1] = _clip(s[S_G1], X.gyro_ema_1)
+    out[X.trust_ema_1] = _clip(s[S_TR1], X.trust_ema_1)
+    out[X.nis_ema_1] = _clip(np.log10(1.0 + s[S_NIS1]), X.nis_ema_1)
+    out[X.clean_ema_4] = _clip(s[S_CLEAN4], X.clean_ema_4)

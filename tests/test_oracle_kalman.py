@@ -1,0 +1,81 @@
+"""The privileged γ oracle of MagKalman-v0: its search is a roll-out of the env's own filter, it beats its
+continuation rule, it is deterministic, and it is shown as the headroom row."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import kinematic_trial
+
+from magenv import evaluation, registry
+from magenv.agents import dagger
+from magenv.baselines.kalman_policies import AdaptiveTrust, ModelTrust
+from magenv.baselines.oracle_kalman import KalmanOracle
+from magenv.envs import KALMAN_ID
+from magenv.envs.kalman import KalmanRunner
+from magenv.metrics import errors
+
+RULE = ModelTrust(0.3)  # close to the packaged tuned kf_model
+
+
+@pytest.fixture(scope="module")
+def trial():
+    return kinematic_trial(seed=1, duration=6.0, disturbance_ut=40.0, disturbance_window=(1.5, 4.5))
+
+
+def test_costs_are_the_roll_out_of_the_env_filter(trial):
+    """A candidate's cost is Σ (total error)² of the env's runner applying it for one decision and then the
+    continuation rule on its observation, over the look-ahead; the searched runner is left unchanged."""
+    oracle = KalmanOracle(RULE, candidates=(0.0, 0.6), horizon_s=0.125)
+    runner = KalmanRunner(trial)
+    runner.advance(300, 0.5)
+    q, p = runner.state.q.copy(), runner.state.p.copy()
+    costs = oracle.candidate_costs(runner)
+    np.testing.assert_array_equal(runner.state.q, q)
+    np.testing.assert_array_equal(runner.state.p, p)
+    start, horizon = runner.pos, int(round(0.125 * trial.rate))
+    for gamma, cost in zip(oracle.levels, costs, strict=True):
+        copy = KalmanRunner(trial)
+        copy.advance(300, 0.5)
+        copy.advance(8, gamma)
+        while copy.pos < start + horizon:
+            copy.advance(8, oracle.continuation_action(copy)[0])
+        err = errors(copy.est[start : start + horizon], trial.q_true[start : start + horizon])[:, 0]
+        assert cost == pytest.approx(np.sum(err**2), rel=1e-5)
+    assert costs[0] != costs[1]
+
+
+def test_oracle_beats_its_continuation_rule_and_is_deterministic(trial):
+    oracle = KalmanOracle(RULE)
+    a, b = oracle.run(trial), oracle.run(trial)
+    np.testing.assert_array_equal(a.q, b.q)
+    ours = evaluation.run_method("oracle", oracle, trial).score.total
+    theirs = evaluation.run_method("rule", RULE, trial).score.total
+    assert ours < theirs
+    assert set(np.unique(a.trust[1:])) <= set(oracle.levels)
+
+
+def test_continuation_action_is_the_rule_on_the_observation(trial):
+    for rule in (RULE, AdaptiveTrust(2.7, 0.74)):
+        oracle = KalmanOracle(rule)
+        runner = KalmanRunner(trial, extended=True)
+        for _ in range(40):
+            assert oracle.continuation_action(runner)[0] == rule.weight(runner.feat[:19].astype(np.float32))
+            runner.advance(8, 0.7)
+
+
+def test_teacher_interface_registry_and_bad_arguments():
+    oracle = registry.make("oracle_kalman")
+    assert oracle.privileged and oracle.env_id == KALMAN_ID and dagger.check_teacher(oracle) == KALMAN_ID
+    assert oracle.candidates.shape == (len(oracle.levels), 1) and oracle.rule.sigma_dist_ut > 0
+    from magenv.train.compare import headroom_names
+
+    assert headroom_names({"oracle_kalman": oracle, "kf_model_tuned": registry.make("kf_model_tuned")}) == {
+        "oracle_kalman"
+    }
+    with pytest.raises(ValueError, match="candidates"):
+        KalmanOracle(candidates=(0.0, 1.5))
+    with pytest.raises(ValueError, match="horizon_s"):
+        KalmanOracle(horizon_s=0.0)
+    with pytest.raises(ValueError, match="kf_model or kf_adaptive"):
+        KalmanOracle(registry.make("kf_gate"))
