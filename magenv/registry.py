@@ -17,7 +17,10 @@ a fresh one. ``names()`` lists them all:
 * ``oracle`` — the privileged receding-horizon search of MagBlend-v0
   (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
   reads truth, so it is an upper bound (compare's headroom row), never a
-  baseline;
+  baseline; likewise ``oracle_constraint`` (MagConstraint-v0, continuing
+  with ``cf_constraint_tuned``, ``magenv.baselines.oracle_constraint``) and
+  ``oracle_qsf`` (MagQSF-v0, continuing with ``qsf_detector_tuned``,
+  ``magenv.baselines.oracle_qsf``);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
 """
@@ -33,7 +36,17 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from magenv.baselines import constraint, kalman, kalman_policies, oracle, qsf, reference, rules
+from magenv.baselines import (
+    constraint,
+    kalman,
+    kalman_policies,
+    oracle,
+    oracle_constraint,
+    oracle_qsf,
+    qsf,
+    reference,
+    rules,
+)
 from magenv.protocols import Tunable
 
 AGENT_PREFIX = "agent:"
@@ -45,6 +58,8 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "qsf_detector_tuned": ("delay_magyq", qsf.tuned_detector_policy),
     # privileged (reads truth): an upper bound shown as the headroom row, never a baseline
     "oracle": ("fan_lambda", oracle.BlendOracle.from_fan_params),
+    "oracle_constraint": ("cf_constraint", oracle_constraint.ConstraintOracle.from_constraint_params),
+    "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),
 }
 
 _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}
