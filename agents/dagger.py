@@ -1,19 +1,26 @@
-"""DAgger: an observation-only student for ``magenv/MagBlend-v0`` that imitates a privileged teacher.
+"""DAgger: an observation-only student for any magenv env that has a privileged teacher (an oracle).
 
-The teacher (``magenv.baselines.oracle.BlendOracle``, handed in by the caller:
-this layer does not import baselines) gives, at any env state, the cost of
-each candidate λ (Σ squared total error over its look-ahead). The student is
-an MLP over the extended observation (``features="extended"``: base and extra
-causal features, and their copies 8 and 32 decisions earlier) plus, per block,
-the teacher's continuation-rule λ recomputed from that block's ``norm_dev`` and
-``dip_dev`` (the Fan rule of eqs. 15–17 with the teacher's parameters); its
-logits score the candidates, and it acts with the probability-weighted mean λ.
+The teacher (an oracle of ``magenv.baselines``, handed in by the caller: this
+layer does not import baselines) follows the oracle interface:
+
+* ``env_id`` — the env it searches in; ``decision_every`` — samples per decision (k);
+* ``candidates`` — (C, action_dim) env actions searched at each decision;
+* ``candidate_costs(runner) -> (C,)`` — Σ over its look-ahead of (total error, °)² of each candidate
+  applied for one decision and then the continuation rule, rolled from a copy of the env runner's state;
+* ``continuation_action(runner) -> (action_dim,)`` — the continuation rule's action at the next decision;
+* ``horizon_s`` — the look-ahead, s (the unit of the regret below).
+
+The student is an MLP over inputs built from the env's extended observation
+(``magenv.agents.student_inputs``: per env the observation options and the
+feature function); its logits score the C candidates, and it acts with the
+probability-weighted mean candidate action.
 
 Training (Ross et al. 2011, with β = 0 after the first iteration):
 
-1. iteration 0's data: the teacher's own trajectories on ``trials_per_scenario``
-   training trials (seeds ≥ ``train_seed`` ≥ 10000) per scenario, every
-   visited state labelled with the candidate costs;
+1. iteration 0's data: the teacher's own trajectories (at each decision the
+   cheapest candidate) on ``trials_per_scenario`` training trials (seeds ≥
+   ``train_seed`` ≥ 10000) per scenario, every visited state labelled with the
+   candidate costs;
 2. each iteration: fit a fresh student on all data so far, with the
    cost-sensitive "regret" loss Σ_c softmax(logits)_c · r_c, where
    r_c = 100 · (cost_c − min cost) / (H · MSE of the continuation rule on that
@@ -23,9 +30,14 @@ Training (Ross et al. 2011, with β = 0 after the first iteration):
 3. roll the student (with probability β per decision the teacher) on new
    training trials, label every state it visits, add them, repeat.
 
+Episodes run in the env itself (``gym.make(env_id, **env_kwargs)``, each trial
+through ``reset(options={"trial": …})``), so training sees exactly the
+observations and action handling of evaluation; the teacher reads the env's
+runner.
+
 The run folder holds weights only (``magenv.agents.weights`` format)::
 
-    run.yaml             env id, env kwargs, algo "dagger", the config, the student's shape and rule
+    run.yaml             env id, env kwargs, algo "dagger", the config, the student's shape and input constants
     best.safetensors     the student with the best validation score
     checkpoints/it_N.safetensors   the student of each iteration
     iterations.csv       validation RMSE (°) and ratio to the rule per scenario and iteration
@@ -44,14 +56,13 @@ from typing import Any
 import numpy as np
 import yaml
 
+from magenv.agents.student_inputs import StudentInputs, inputs_for
 from magenv.agents.weights import RunError, _write, read
 from magenv.envs import BLEND_ID
-from magenv.envs.features import DIP_SCALE_DEG
 from magenv.seeding import HELD_OUT_BELOW
 
 ALGO = "dagger"
 RUN_FILE, BEST, CHECKPOINTS, LOG = "run.yaml", "best.safetensors", "checkpoints", "iterations.csv"
-ENV_KWARGS = {"features": "extended"}
 DEFAULTS: dict[str, Any] = {
     "iterations": 6,
     "trials_per_scenario": 20,
@@ -67,6 +78,8 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
 }
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
+TEACHER_NEEDS = ("env_id", "candidates", "decision_every", "candidate_costs", "continuation_action", "horizon_s")
+_SHAPE_KEYS = ("hidden", "candidates", "n_inputs")  # run.yaml student keys that are not input constants
 
 
 def check_config(config: dict | None) -> dict:
@@ -91,6 +104,16 @@ def check_config(config: dict | None) -> dict:
     return cfg
 
 
+def candidate_matrix(candidates) -> np.ndarray:
+    """Candidates as a (C, action_dim) float array (a flat list is C scalar actions); ValueError otherwise."""
+    cands = np.asarray(candidates, np.float64)
+    if cands.ndim == 1:
+        cands = cands[:, None]
+    if cands.ndim != 2 or cands.size == 0 or not np.all(np.isfinite(cands)):
+        raise ValueError(f"candidates must be a non-empty finite (C, action_dim) array, got shape {cands.shape}")
+    return cands
+
+
 # ----------------------------------------------------------------- the student
 
 
@@ -99,28 +122,20 @@ class Student:
 
     Args:
         layers: [(W (out, in), b (out,)), …] float32, the last one the logits over ``candidates``.
-        mu, sd: (n_in,) input standardisation. candidates: (C,) λ levels.
-        rule: (norm_tol, th_dip_deg) of the continuation rule. block: features per observation block.
+        mu, sd: (n_in,) input standardisation. candidates: (C, action_dim) env actions (or (C,) scalars).
+        inputs: the env's feature function (``magenv.agents.student_inputs``); meta: its per-run constants.
     """
 
-    def __init__(self, layers, mu, sd, candidates, rule, block: int):
+    def __init__(self, layers, mu, sd, candidates, inputs: StudentInputs, meta: dict):
         self.layers = [(np.asarray(w, np.float32), np.asarray(b, np.float32)) for w, b in layers]
         self.mu, self.sd = np.asarray(mu, np.float32), np.asarray(sd, np.float32)
-        self.candidates = np.asarray(candidates, np.float64)
-        self.rule = (float(rule[0]), float(rule[1]))
-        self.block = int(block)
+        self.candidates = candidate_matrix(candidates)
+        self._columns = [np.ascontiguousarray(c) for c in self.candidates.T]
+        self.feature_fn, self.meta = inputs, dict(meta)
 
     def inputs(self, obs: np.ndarray) -> np.ndarray:
-        """(D, n_obs) extended observations → (D, n_in): each block followed by its rule λ."""
-        obs = np.atleast_2d(np.asarray(obs, np.float32))
-        norm_tol, th_dip = self.rule
-        parts = []
-        for start in range(0, obs.shape[1], self.block):
-            blk = obs[:, start : start + self.block]
-            lam1 = np.minimum(np.abs(blk[:, 0]) / norm_tol, 1.0)  # eq. 15 (norm_dev is column 0)
-            lam2 = np.minimum(np.abs(DIP_SCALE_DEG * blk[:, 1]) / th_dip, 1.0)  # eq. 16 (dip_dev, column 1)
-            parts += [blk, (0.5 * (lam1 + lam2))[:, None].astype(np.float32)]
-        return np.concatenate(parts, 1)
+        """(D, n_obs) observations → (D, n_in) network inputs."""
+        return self.feature_fn(obs, self.meta)
 
     def probabilities(self, x: np.ndarray) -> np.ndarray:
         """Softmax over the candidates for inputs ``x`` (D, n_in)."""
@@ -133,9 +148,10 @@ class Student:
         p = np.exp(z)
         return p / p.sum(1, keepdims=True)
 
-    def lam(self, obs: np.ndarray) -> float:
-        """λ for one observation: the probability-weighted mean of the candidates."""
-        return float(self.probabilities(self.inputs(obs))[0] @ self.candidates)
+    def action(self, obs: np.ndarray) -> np.ndarray:
+        """(action_dim,) float64 for one observation: the probability-weighted mean of the candidates."""
+        p = self.probabilities(self.inputs(obs))[0]
+        return np.array([p @ col for col in self._columns])
 
     def tensors(self) -> dict:
         import torch
@@ -150,7 +166,7 @@ class Student:
         _write(path, self.tensors(), {"algo": ALGO, **meta})
 
     @classmethod
-    def load(cls, path: Path, student: dict) -> Student:
+    def load(cls, path: Path, student: dict, inputs: StudentInputs) -> Student:
         """The student in ``path`` with the shape of run.yaml's ``student`` section (RunError if they differ)."""
         tensors, _ = read(path, ALGO)
         try:
@@ -165,27 +181,33 @@ class Student:
         widths = [*student["hidden"], len(student["candidates"])]
         if mu.shape != (n_in,) or [w.shape[0] for w, _ in layers] != widths or layers[0][0].shape[1] != n_in:
             raise RunError(f"{path}: the weights do not fit the student of run.yaml ({n_in} inputs, {widths})")
-        return cls(layers, mu, sd, student["candidates"], student["rule"], student["block"])
+        meta = {k: v for k, v in student.items() if k not in _SHAPE_KEYS}
+        return cls(layers, mu, sd, student["candidates"], inputs, meta)
 
 
 class StudentPolicy:
-    """A DAgger student acting in MagBlend-v0 (``magenv.protocols.Policy``; memoryless: its memory is the
+    """A DAgger student acting in its env (``magenv.protocols.Policy``; memoryless: its memory is the
     observation's lagged features)."""
 
-    env_id = BLEND_ID
-
-    def __init__(self, student: Student, name: str = "dagger", env_kwargs: dict | None = None, source: str = ""):
-        self.student, self.name, self.source, self.which = student, name, source, "best"
-        self.env_kwargs = dict(ENV_KWARGS if env_kwargs is None else env_kwargs)
+    def __init__(
+        self,
+        student: Student,
+        name: str = "dagger",
+        env_kwargs: dict | None = None,
+        source: str = "",
+        env_id: str = BLEND_ID,
+    ):
+        self.student, self.name, self.source, self.which, self.env_id = student, name, source, "best", env_id
+        self.env_kwargs = dict(inputs_for(env_id).env_kwargs if env_kwargs is None else env_kwargs)
 
     def reset(self) -> None:
         """Nothing to forget."""
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        return np.array([self.student.lam(obs)], np.float32)
+        return self.student.action(obs).astype(np.float32)
 
 
-def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, rule, block: int) -> Student:
+def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inputs, meta) -> Student:
     """A fresh student fitted to minimise the expected regret Σ_c softmax_c · r_c (Adam, cosine schedule,
     ``fit_steps`` mini-batches of ``batch_size`` rounded to whole epochs)."""
     import torch
@@ -218,95 +240,124 @@ def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, rul
             sched.step()
     linear = [m for m in net if isinstance(m, torch.nn.Linear)]
     weights = [(m.weight.detach().numpy().copy(), m.bias.detach().numpy().copy()) for m in linear]
-    return Student(weights, mu, sd, candidates, rule, block)
+    return Student(weights, mu, sd, candidates, inputs, meta)
 
 
 # ----------------------------------------------------------------- episodes
 
 
-def episode(trial, teacher, act: Callable[[np.ndarray, Any], float], k: int, label: bool = True):
-    """Run ``trial`` in the env's runner with the extended observation; ``act(obs, runner)`` → λ each step.
+class Episodes:
+    """Closed-loop episodes of one env with the student's observation, the teacher reading its runner.
 
-    Returns (observations (D, n_obs) float32, teacher candidate costs (D, C) or None, RMSE °)."""
-    from magenv import metrics
-    from magenv.envs.blend import BlendRunner
+    ``run(trial, act, label)``: ``act(obs, runner, costs)`` → the action (action_dim,) at each decision
+    (``costs`` the teacher's (C,) candidate costs at that state when ``label``, else None). Returns
+    (observations (D, n_obs) float32, costs (D, C) or None, RMSE °)."""
 
-    runner = BlendRunner(trial, extended=True)
-    obs, costs = [], []
-    while not runner.done:
-        o = runner.feat.astype(np.float32)
-        obs.append(o)
-        if label:
-            costs.append(teacher.candidate_costs(runner))
-        runner.advance(k, float(np.clip(act(o, runner), 0.0, 1.0)))
-    rmse = metrics.score(runner.est, trial.q_true, trial.score_mask).total
-    return np.array(obs), (np.array(costs) if label else None), rmse
+    def __init__(self, env_id: str, env_kwargs: dict, teacher):
+        self.env_id, self.env_kwargs, self.teacher = env_id, dict(env_kwargs), teacher
+        self._env = None
+
+    def env(self, trial):
+        if self._env is None:
+            import gymnasium as gym
+
+            import magenv  # noqa: F401  (registers the envs)
+
+            kwargs = {**self.env_kwargs, "scenario": [trial]}
+            self._env = gym.make(self.env_id, disable_env_checker=True, **kwargs).unwrapped
+        return self._env
+
+    def run(self, trial, act: Callable[[np.ndarray, Any, Any], np.ndarray], label: bool = True):
+        from magenv import metrics
+
+        env = self.env(trial)
+        o, _ = env.reset(seed=0, options={"trial": trial})
+        obs, costs = [], []
+        done = False
+        while not done:
+            obs.append(o)
+            c = self.teacher.candidate_costs(env._runner) if label else None
+            if label:
+                costs.append(c)
+            o, _, terminated, truncated, _ = env.step(np.asarray(act(o, env._runner, c), np.float64))
+            done = terminated or truncated
+        rmse = metrics.score(env.estimate, trial.q_true, trial.score_mask).total
+        return np.array(obs), (np.array(costs) if label else None), rmse
 
 
-def check_teacher(teacher) -> None:
-    need = ("candidate_costs", "continuation_lambda", "candidates", "horizon_s", "norm_tol", "th_dip_deg")
-    missing = [a for a in need if not hasattr(teacher, a)]
-    if missing or getattr(teacher, "env_id", BLEND_ID) != BLEND_ID:
+def check_teacher(teacher, env_id: str | None = None) -> str:
+    """The env id the teacher searches in (checked against ``env_id`` if given); ValueError if ``teacher``
+    lacks the oracle interface or its env has no student inputs."""
+    missing = [a for a in TEACHER_NEEDS if not hasattr(teacher, a)]
+    if missing:
         raise ValueError(
-            f"teacher {getattr(teacher, 'name', teacher)!r} cannot teach a MagBlend-v0 student (lacks {missing}); "
-            "use the oracle"
+            f"teacher {getattr(teacher, 'name', teacher)!r} cannot teach a DAgger student (lacks {missing}); "
+            "use an oracle (e.g. oracle, oracle_kalman)"
         )
+    if env_id is not None and env_id != teacher.env_id:
+        raise ValueError(f"teacher {getattr(teacher, 'name', teacher)!r} searches {teacher.env_id}, not {env_id}")
+    inputs_for(teacher.env_id)
+    return teacher.env_id
 
 
-def train(out: Path, teacher, config: dict | None = None, log: Callable[[str], None] = print) -> Path:
-    """Run DAgger from ``teacher`` into the new run folder ``out`` (see the module docstring); returns ``out``."""
+def train(
+    out: Path,
+    teacher,
+    config: dict | None = None,
+    log: Callable[[str], None] = print,
+    env_id: str | None = None,
+) -> Path:
+    """Run DAgger from ``teacher`` (in ``env_id``, default the teacher's env) into the new run folder ``out``
+    (see the module docstring); returns ``out``."""
     from magenv.scenarios import make_trial
 
-    check_teacher(teacher)
+    env_id = check_teacher(teacher, env_id)
     cfg = check_config(config)
+    if cfg["decision_every"] != teacher.decision_every:
+        raise ValueError(
+            f"DAgger config decision_every {cfg['decision_every']} differs from the teacher's {teacher.decision_every}"
+        )
     out = Path(out)
     if (out / RUN_FILE).exists():
         raise ValueError(f"{out} already holds a run; choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     k, n_per = cfg["decision_every"], cfg["trials_per_scenario"]
-    cands, rule = np.asarray(teacher.candidates, float), (teacher.norm_tol, teacher.th_dip_deg)
-    from magenv.envs.blend import EXTENDED, FEATURES, LAGS
-
-    block = len(EXTENDED) // (1 + len(LAGS))
-    student_meta = {
-        "hidden": [int(h) for h in cfg["hidden"]],
-        "candidates": cands.tolist(),
-        "rule": list(rule),
-        "block": block,
-        "n_inputs": len(EXTENDED) + 1 + len(LAGS),
-        "base_features": len(FEATURES),
-    }
-    env_kwargs = {**ENV_KWARGS, "decision_every": k}
-    run = {"env_id": BLEND_ID, "algo": ALGO, "env_kwargs": env_kwargs, "teacher": getattr(teacher, "name", "")}
+    inputs = inputs_for(env_id)
+    cands, meta = candidate_matrix(teacher.candidates), inputs.meta(teacher)
+    env_kwargs = {**inputs.env_kwargs, "decision_every": k}
+    episodes = Episodes(env_id, env_kwargs, teacher)
+    val = [(sc, make_trial(sc, s)) for sc in cfg["scenarios"] for s in range(*cfg["val_seeds"])]
+    n_obs = episodes.env(val[0][1]).observation_space.shape[0]
+    n_in = int(inputs(np.zeros((1, n_obs), np.float32), meta).shape[1])
+    student_meta = {"hidden": [int(h) for h in cfg["hidden"]], "candidates": cands.tolist(), **meta, "n_inputs": n_in}
+    run = {"env_id": env_id, "algo": ALGO, "env_kwargs": env_kwargs, "teacher": getattr(teacher, "name", "")}
     run.update({"config": cfg, "student": student_meta})
     (out / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
-    rule_act = lambda o, runner: teacher.continuation_lambda(runner)
+
+    def rule_act(o, runner, costs):
+        return teacher.continuation_action(runner)
 
     def rule_mse(trial) -> float:
-        return episode(trial, teacher, rule_act, k, label=False)[2] ** 2
+        return episodes.run(trial, rule_act, label=False)[2] ** 2
 
-    horizon = None
     data_x, data_r = [], []
 
     def add(trial, act):
-        nonlocal horizon
-        obs, costs, rmse = episode(trial, teacher, act, k)
+        obs, costs, rmse = episodes.run(trial, act)
         horizon = int(round(teacher.horizon_s * trial.rate))
         regret = REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rule_mse(trial))
-        data_x.append(probe.inputs(obs))
+        data_x.append(inputs(obs, meta))
         data_r.append(regret.astype(np.float32))
         return rmse
 
-    probe = Student([(np.zeros((1, 1)), np.zeros(1))], [0], [1], cands, rule, block)  # inputs() only
-    val = [(sc, make_trial(sc, s)) for sc in cfg["scenarios"] for s in range(*cfg["val_seeds"])]
     val_rule: dict[str, list[float]] = {sc: [] for sc in cfg["scenarios"]}
     for sc, trial in val:
         val_rule[sc].append(rule_mse(trial) ** 0.5)
     log(f"rule on validation: {_fmt({sc: np.mean(v) for sc, v in val_rule.items()})}")
     t0 = time.time()
 
-    def oracle_act(o, runner):
-        return teacher.best_lambda(runner)
+    def oracle_act(o, runner, costs):
+        return cands[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
 
     for sc in cfg["scenarios"]:
         for s in range(cfg["train_seed"], cfg["train_seed"] + n_per):
@@ -317,22 +368,22 @@ def train(out: Path, teacher, config: dict | None = None, log: Callable[[str], N
     for it in range(cfg["iterations"]):
         t = time.time()
         x, r = np.concatenate(data_x), np.concatenate(data_r)
-        student = fit(x, r, cfg, cfg["seed"] + it, cands, rule, block)
+        student = fit(x, r, cfg, cfg["seed"] + it, cands, inputs, meta)
         t_fit = time.time() - t
         rmse: dict[str, list[float]] = {sc: [] for sc in cfg["scenarios"]}
 
-        def student_act(o, runner, st=student):
-            return st.lam(o)
+        def student_act(o, runner, costs, st=student):
+            return st.action(o)
 
         for sc, trial in val:
-            rmse[sc].append(episode(trial, teacher, student_act, k, label=False)[2])
+            rmse[sc].append(episodes.run(trial, student_act, label=False)[2])
         ratio = {sc: float(np.mean(rmse[sc]) / np.mean(val_rule[sc])) for sc in cfg["scenarios"]}
         score = float(np.mean(list(ratio.values())))
-        meta = {"iteration": it, "val_ratio": score, "samples": len(x)}
-        student.save(out / CHECKPOINTS / f"it_{it}.safetensors", meta)
+        info = {"iteration": it, "val_ratio": score, "samples": len(x)}
+        student.save(out / CHECKPOINTS / f"it_{it}.safetensors", info)
         if best is None or score < best:
             best = score
-            student.save(out / BEST, meta)
+            student.save(out / BEST, info)
         rows.append({"iteration": it, "samples": len(x), "fit_s": round(t_fit, 1), "score": score, "best": best})
         rows[-1].update({f"{sc}_rmse": float(np.mean(v)) for sc, v in rmse.items()})
         rows[-1].update({f"{sc}_ratio": v for sc, v in ratio.items()})
@@ -343,9 +394,9 @@ def train(out: Path, teacher, config: dict | None = None, log: Callable[[str], N
         t = time.time()
         first = cfg["train_seed"] + n_per * (it + 1)
 
-        def mixture(o, runner, student=student):
-            lam = student.lam(o)
-            return teacher.best_lambda(runner) if cfg["beta"] > 0 and rng.random() < cfg["beta"] else lam
+        def mixture(o, runner, costs, student=student):
+            action = student.action(o)
+            return oracle_act(o, runner, costs) if cfg["beta"] > 0 and rng.random() < cfg["beta"] else action
 
         for sc in cfg["scenarios"]:
             for s in range(first, first + n_per):
@@ -386,9 +437,13 @@ def load_policy(run_dir: str | Path, name: str | None = None) -> StudentPolicy:
     path = run_dir / RUN_FILE
     try:
         run = yaml.safe_load(path.read_text())
-        student_meta, env_kwargs = run["student"], dict(run["env_kwargs"])
+        student_meta, env_kwargs, env_id = run["student"], dict(run["env_kwargs"]), str(run["env_id"])
     except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
         raise RunError(f"{path}: not a DAgger run ({type(exc).__name__}: {exc})") from None
+    try:
+        inputs = inputs_for(env_id)
+    except ValueError as exc:
+        raise RunError(f"{path}: {exc}") from None
     weights = run_dir / BEST
-    student = Student.load(weights, student_meta)
-    return StudentPolicy(student, name or f"agent:{run_dir.name}", env_kwargs, str(weights))
+    student = Student.load(weights, student_meta, inputs)
+    return StudentPolicy(student, name or f"agent:{run_dir.name}", env_kwargs, str(weights), env_id)

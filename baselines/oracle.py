@@ -29,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from magenv.envs import BLEND_ID
 from magenv.envs.blend import BlendRunner, dip_deg
 from magenv.filters import blend, stationary
 from magenv.metrics import errors1
@@ -79,15 +80,20 @@ def candidate_costs(p, site, state, sensors, q_true, start, horizon, k, cands, n
 class BlendOracle:
     """The receding-horizon oracle on whole trials (an ``Estimator``); it reads truth: an upper bound only.
 
+    It follows the oracle interface of ``magenv.agents.dagger`` (``env_id``, ``candidates`` (C, 1) of λ,
+    ``decision_every``, ``candidate_costs``, ``continuation_action``, ``horizon_s``), so it teaches the
+    MagBlend-v0 student.
+
     Args:
         norm_tol, th_dip_deg: the continuation Fan rule's parameters (fraction of m0; degrees).
-        candidates: λ levels searched at each decision.
+        candidates: λ levels searched at each decision (``levels`` (C,); ``candidates`` is them as (C, 1)).
         horizon_s: look-ahead, s.
         decision_every: samples per decision (k).
         hold: the env's stationary hold (MagBlend-v0's default: on).
     """
 
     name = "oracle"
+    env_id = BLEND_ID
     privileged = True  # reads the true orientation: compare and report show it as the headroom row
 
     def __init__(
@@ -109,7 +115,8 @@ class BlendOracle:
         if isinstance(decision_every, bool) or int(decision_every) != decision_every or decision_every < 1:
             raise ValueError(f"decision_every must be a positive integer, got {decision_every!r}")
         self.norm_tol, self.th_dip_deg = float(norm_tol), float(th_dip_deg)
-        self.candidates, self.horizon_s = cands, float(horizon_s)
+        self.levels, self.horizon_s = cands, float(horizon_s)
+        self.candidates = cands[:, None]  # (C, action_dim = 1): the env actions searched
         self.decision_every, self.hold = int(decision_every), bool(hold)
 
     @classmethod
@@ -121,7 +128,7 @@ class BlendOracle:
         """(len(candidates),) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state."""
         horizon = int(round(self.horizon_s * runner.trial.rate))
         scratch = _scratch(runner.state)
-        costs = np.empty(self.candidates.size)
+        costs = np.empty(self.levels.size)
         candidate_costs(
             runner.params,
             runner.site,
@@ -131,7 +138,7 @@ class BlendOracle:
             runner.pos,
             horizon,
             self.decision_every,
-            self.candidates,
+            self.levels,
             self.norm_tol,
             self.th_dip_deg,
             scratch,
@@ -141,12 +148,16 @@ class BlendOracle:
 
     def best_lambda(self, runner: BlendRunner) -> float:
         """The candidate with the lowest cost from ``runner``'s state (the first on ties)."""
-        return float(self.candidates[int(np.argmin(self.candidate_costs(runner)))])
+        return float(self.levels[int(np.argmin(self.candidate_costs(runner)))])
 
     def continuation_lambda(self, runner: BlendRunner) -> float:
         """The continuation rule's λ at ``runner``'s next sample (the tuned Fan rule on the env's state)."""
         j = min(runner.pos, runner.n - 1)
         return float(fan_lambda(runner.site, runner.state.q, runner.sensors.mag[j], self.norm_tol, self.th_dip_deg))
+
+    def continuation_action(self, runner: BlendRunner) -> np.ndarray:
+        """(1,) the continuation rule's λ at ``runner``'s next sample (:meth:`continuation_lambda`)."""
+        return np.array([self.continuation_lambda(runner)])
 
     def run(self, trial: Trial) -> Estimate:
         """The oracle's estimate of every sample of ``trial`` (reads ``trial.q_true``)."""

@@ -9,7 +9,9 @@ import yaml
 from magenv import evaluation, registry
 from magenv.agents import dagger
 from magenv.agents.loading import RunError, load_agent
+from magenv.agents.student_inputs import StudentInputs, inputs_for
 from magenv.baselines.rules import FanLambda
+from magenv.envs import BLEND_ID
 from magenv.envs.blend import BlendRunner
 from magenv.train.cli import main
 
@@ -68,6 +70,10 @@ def test_refuses_an_existing_run_and_bad_configs(run_dir):
             dagger.check_config(bad)
     with pytest.raises(ValueError, match="cannot teach"):
         dagger.train(run_dir.parent / "other", registry.make("fan_lambda"), TINY)
+    with pytest.raises(ValueError, match="decision_every 4 differs"):
+        dagger.train(run_dir.parent / "other", oracle, {**TINY, "decision_every": 4})
+    other = str(run_dir.parent / "other")
+    assert main(["train", "--teacher", "oracle", "--env", "magenv/MagQSF-v0", "--out", other]) == 2
 
 
 def test_weights_that_do_not_fit_are_refused(run_dir, tmp_path):
@@ -86,10 +92,30 @@ def test_rule_inputs_are_the_continuation_rule(make_kinematic_trial):
     runner = BlendRunner(make_kinematic_trial(seed=2, duration=2.0, disturbance_ut=30.0), extended=True)
     for _ in range(40):
         runner.advance(8, 0.5)
-    probe = dagger.Student([(np.zeros((1, 1)), np.zeros(1))], [0], [1], oracle.candidates, (rule.norm_tol,
-                           rule.th_dip_deg), 42)  # fmt: skip
-    x = probe.inputs(runner.feat)[0]
+    inputs = inputs_for(BLEND_ID)
+    x = inputs(runner.feat, inputs.meta(oracle))[0]
     obs = runner.feat.astype(np.float32)
     for b in range(3):
         assert x[43 * b + 42] == pytest.approx(rule.weight(obs[42 * b : 42 * b + 13]), abs=1e-6)
         np.testing.assert_array_equal(x[43 * b : 43 * b + 42], obs[42 * b : 42 * (b + 1)])
+
+
+def test_blend_oracle_follows_the_teacher_interface(make_kinematic_trial):
+    oracle = registry.make("oracle")
+    assert dagger.check_teacher(oracle) == BLEND_ID and oracle.candidates.shape == (5, 1)
+    runner = BlendRunner(make_kinematic_trial(seed=4, duration=2.0, disturbance_ut=30.0))
+    runner.advance(80, 0.3)
+    costs = oracle.candidate_costs(runner)
+    assert costs.shape == (5,) and oracle.best_lambda(runner) == oracle.candidates[np.argmin(costs), 0]
+    np.testing.assert_array_equal(oracle.continuation_action(runner), [oracle.continuation_lambda(runner)])
+    with pytest.raises(ValueError, match="searches magenv/MagBlend-v0, not magenv/MagQSF-v0"):
+        dagger.check_teacher(oracle, "magenv/MagQSF-v0")
+
+
+def test_student_acts_with_the_probability_weighted_candidate():
+    """Two-dimensional candidates: the action is p @ candidates, p the softmax of the logits."""
+    layers = [(np.zeros((3, 2)), np.log([1.0, 2.0, 1.0]))]
+    student = dagger.Student(layers, [0, 0], [1, 1], [[0.0, 1.0], [1.0, 0.0], [0.5, 0.5]], StudentInputs(), {})
+    np.testing.assert_allclose(student.action(np.zeros(2)), [0.25 * 0 + 0.5 * 1 + 0.25 * 0.5, 0.25 + 0.125])
+    with pytest.raises(ValueError, match="candidates"):
+        dagger.candidate_matrix(np.zeros((2, 2, 2)))

@@ -3,10 +3,11 @@
     magenv train --env magenv/MagBlend-v0 --algo ppo --steps 100000 --out runs/NAME \
         [--config FILE] [--seed S] [--eval-every N] [--eval-scenarios A,B] [--eval-seeds 0:3] [--force]
 
-With ``--teacher oracle`` it runs DAgger instead (``magenv.agents.dagger``: an MLP student imitating the
-privileged oracle on the extended observation; ``--config`` a YAML file of the DAgger keys, default
-``agents/configs/dagger.yaml``; ``--iters`` overrides its iterations); the run folder is loadable with
-``--agent RUN`` like any other.
+With ``--teacher NAME`` it runs DAgger instead (``magenv.agents.dagger``: an MLP student imitating the
+privileged oracle NAME — ``oracle`` for MagBlend-v0, ``oracle_kalman`` … — on the env's extended
+observation; ``--env`` defaults to the teacher's env; ``--config`` a YAML file of the DAgger keys per env
+id, default ``agents/configs/dagger.yaml``; ``--iters`` overrides its iterations); the run folder is
+loadable with ``--agent RUN`` like any other.
 
 Progress bar, TensorBoard logs (``runs/NAME/tb``), periodic evaluation on
 held-out trials with the best model kept, checkpoints, and resume: running
@@ -40,7 +41,7 @@ from magenv.train.seeds import seeds_arg
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     seeds = f"{DEFAULT_EVAL_SEEDS[0]}:{DEFAULT_EVAL_SEEDS[-1] + 1}"
-    p.add_argument("--env", default=BLEND_ID, help="environment id (default %(default)s)")
+    p.add_argument("--env", default=None, help=f"environment id (default {BLEND_ID}; with --teacher the teacher's)")
     p.add_argument("--algo", default="ppo", help="ppo, sac or recurrent_ppo (default %(default)s)")
     p.add_argument(
         "--steps",
@@ -99,7 +100,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--teacher",
         default=None,
-        help="train a DAgger student imitating this privileged method (oracle) instead of an SB3 agent",
+        help="train a DAgger student imitating this privileged method (oracle, oracle_kalman, …) instead of an "
+        "SB3 agent",
     )
     p.add_argument("--iters", type=rule_arg(POSITIVE_INT), default=None, help="DAgger iterations (default: config's)")
 
@@ -113,12 +115,15 @@ def run_dagger(args: argparse.Namespace) -> int:
     from magenv import registry
     from magenv.agents import dagger
 
-    if args.env != BLEND_ID:
-        raise CommandError(f"--teacher trains MagBlend-v0 students only, got --env {args.env}")
+    try:
+        teacher = registry.make(args.teacher)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    env_id = args.env or getattr(teacher, "env_id", BLEND_ID)
     path = args.config or str(resources.files("magenv.agents") / "configs" / "dagger.yaml")
     try:
-        config = (yaml.safe_load(Path(path).read_text()) or {}).get(BLEND_ID, {})
-    except (OSError, yaml.YAMLError, AttributeError) as exc:
+        config = dict((yaml.safe_load(Path(path).read_text()) or {}).get(env_id) or {})
+    except (OSError, yaml.YAMLError, AttributeError, TypeError, ValueError) as exc:
         raise CommandError(f"cannot read the DAgger config {path}: {exc}") from None
     if args.iters is not None:
         config["iterations"] = args.iters
@@ -127,8 +132,7 @@ def run_dagger(args: argparse.Namespace) -> int:
     if args.eval_scenarios is not None:
         config["scenarios"] = args.eval_scenarios.split(",")
     try:
-        teacher = registry.make(args.teacher)
-        out = dagger.train(args.out, teacher, config, log=lambda line: print(line, flush=True))
+        out = dagger.train(args.out, teacher, config, log=lambda line: print(line, flush=True), env_id=env_id)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     print(f"DAgger run in {out}; best student {out / dagger.BEST}")
@@ -143,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.teacher is not None:
         return run_dagger(args)
+    args.env = args.env or BLEND_ID
     if args.env not in gym.registry:
         known = ", ".join(k for k in gym.registry if k.startswith("magenv/"))
         raise CommandError(f"unknown env {args.env!r}; magenv envs: {known}")
