@@ -137,7 +137,8 @@ class ConstraintOracle:
 
     def make_runner(self, trial: Trial) -> ConstraintRunner:
         """The env's runner on ``trial`` with the rule's eq. 18 (the state the oracle searches from)."""
-        return ConstraintRunner(trial, **{k: self.rule[k] for k in RULE_PARAMS[1:]})
+        r = self.rule
+        return ConstraintRunner(trial, False, th2=r["th2"], th3=r["th3"], k_min=r["k_min"], k_max=r["k_max"])
 
     def _params(self, runner: ConstraintRunner) -> cf.Params:
         return runner.filter.params._replace(th1=self.rule["th1"])

@@ -37,7 +37,7 @@ from numba import njit
 
 from magenv.checks import check_choice, check_int, check_positive
 from magenv.envs import QSF_ID
-from magenv.envs.qsf import VARIANTS, QSFRunner, decode_action
+from magenv.envs.qsf import VARIANTS, QSFRunner, decode_action, fill_decision
 from magenv.filters import qsf
 from magenv.metrics import errors1
 from magenv.protocols import Estimate
@@ -47,17 +47,6 @@ from magenv.trial import Trial
 CANDIDATES = ((-1.0, 0.0), (0.0, 0.3), (0.0, 1.0), (1.0, 1.0))
 HORIZON_S = 0.5  # s, look-ahead of each search
 DECISION_EVERY = 10  # samples per decision (the env's default)
-
-
-@njit(cache=True)
-def _fill(inputs, code, trust, start, stop):
-    """Magnetic actions and trusts of samples start:stop for one decision (as ``magenv.envs.qsf.advance``)."""
-    keep = qsf.MAG_NONE if code == qsf.MAG_NONE else qsf.MAG_KEEP
-    for i in range(start, stop):
-        inputs.action[i] = keep
-        inputs.trust[i] = trust
-    if code == qsf.MAG_START and stop > start:
-        inputs.action[start] = qsf.MAG_START
 
 
 @njit(cache=True)
@@ -89,11 +78,11 @@ def candidate_costs(p, state, inputs, codes, q_true, dt, start, horizon, k, cand
         work.mag_t0[:] = state.mag_t0
         work.mag_ref[:] = state.mag_ref
         a = min(start + k, stop)
-        _fill(wins, cand_codes[c], cand_trust[c], start, a)
+        fill_decision(wins, cand_codes[c], cand_trust[c], start, a)
         bad, _ = qsf.run_kernel(p, work, wins, dt, start, a, out)
         while bad < 0 and a < stop:
             b = min(a + k, stop)
-            _fill(wins, rule_code(codes, work.period_active[0], a), 1.0, a, b)
+            fill_decision(wins, rule_code(codes, work.period_active[0], a), 1.0, a, b)
             bad, _ = qsf.run_kernel(p, work, wins, dt, a, b, out)
             a = b
         if bad >= 0:

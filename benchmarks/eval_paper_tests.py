@@ -63,6 +63,11 @@ def main() -> None:
         runs = evaluation.evaluate(methods, [make_trial(sc, s) for s in args.seeds])
         per_trial[sc] = {m: [r.scored.total for r in runs if r.method == m] for m in methods}
         print(f"{sc}: {time.time() - t:.0f} s", flush=True)
+        if args.json:  # after each test, so that a long run keeps what it has
+            with open(args.json, "w") as f:
+                json.dump(
+                    {"env": args.env, "agent": args.agent, "seeds": list(args.seeds), "per_trial_rmse": per_trial}, f
+                )
     paired = [m for m in ("agent", oracle) if m in methods]
     print(f"held-out seeds {args.seeds[0]}:{args.seeds[-1] + 1} ({len(args.seeds)} per test); RMSE °, mean over trials")
     head = " | ".join(list(methods) + [f"{m}/{rule} [95% CI] (win)" for m in paired])
@@ -73,9 +78,6 @@ def main() -> None:
         cells += [_cell(paired_ratio(np.array(res[m]), np.array(res[rule]))) for m in paired]
         print(f"| {sc} | {' | '.join(cells)} |")
     print(f"({time.time() - t0:.0f} s)")
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"env": args.env, "agent": args.agent, "seeds": list(args.seeds), "per_trial_rmse": per_trial}, f)
 
 
 if __name__ == "__main__":

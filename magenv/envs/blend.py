@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit, prange
 
 from magenv.checks import check_bool
-from magenv.envs import BLEND_ID, blend_memory
+from magenv.envs import BLEND_ID, blend_memory, lagged
 from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
@@ -83,23 +83,10 @@ FEATURES = FeatureTable(
 F = FEATURES.ix  # named kernel indices
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
-EXTENDED_OPTION = "extended"  # features="extended": the whole EXTENDED table
 LAGS = (8, 32)  # decisions: the memory of the extended observation
 _CURRENT = (*FEATURES.features, *blend_memory.EXTRA.features)
-EXTENDED = FeatureTable(
-    *_CURRENT,
-    *(
-        Feature(
-            f"{f.name}_lag{lag}",
-            f.low,
-            f.high,
-            f.unit,
-            f"`{f.name}` {lag} decisions earlier (before the start: the first observation)",
-        )
-        for lag in LAGS
-        for f in _CURRENT
-    ),
-)
+EXTENDED = lagged.extended_table(_CURRENT, LAGS)
+_LAGS = np.array(LAGS, np.int64)
 
 
 class Site(NamedTuple):
@@ -242,16 +229,7 @@ def advance_extended(p, site, state, sensors, truth, out, lam_const, start, stop
     advance(p, site, state, sensors, truth, out, lam_const, start, stop)
     if stop > start:
         blend_memory.update(p, site, sensors, out.est, out.dip, out.stationary, q0, memory, start, stop)
-        count[0] += 1
-    d = count[0]
-    length, width = rows.shape
-    nb = out.feat.shape[0]
-    row = rows[d % length]
-    row[:nb] = out.feat
-    row[nb:] = memory.value
-    feat[:width] = row
-    for li in range(len(LAGS)):
-        feat[(li + 1) * width : (li + 2) * width] = rows[max(d - LAGS[li], 0) % length]
+    lagged.compose(out.feat, memory.value, rows, count, _LAGS, stop > start, feat)
 
 
 class BlendRunner(TrialRunner):
@@ -320,13 +298,7 @@ class BlendRunner(TrialRunner):
 def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
     """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
     the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
-    if isinstance(features, str):
-        if features != EXTENDED_OPTION:
-            raise ValueError(f"features must be None, {EXTENDED_OPTION!r} or a list of names, got {features!r}")
-        return None, EXTENDED
-    if features is not None and any(f not in FEATURES.names for f in features):
-        return features, EXTENDED
-    return features, FEATURES
+    return lagged.observation_table(features, FEATURES, EXTENDED)
 
 
 @document(blend_memory.EXTRA, "{extended_table}")

@@ -31,6 +31,7 @@ from numba import njit
 
 from magenv.envs.blend_memory import _ema, _heading
 from magenv.envs.features import Feature, FeatureTable
+from magenv.envs.headings import dip_deg, norm3, planar_heading, wrap_deg
 from magenv.filters import constraint as cf
 from magenv.quaternion import GRAVITY, rotate1
 
@@ -92,17 +93,6 @@ class Memory(NamedTuple):
         return cls(state, cf.Trace.empty(n), np.zeros(len(EXTRA)))
 
 
-@njit(cache=True, inline="always")
-def _wrap(deg):
-    return (deg + 180.0) % 360.0 - 180.0
-
-
-@njit(cache=True, inline="always")
-def _planar_heading(v):
-    """Heading (deg) of an ENU vector in the horizontal plane, atan2(east, north)."""
-    return np.rad2deg(np.arctan2(v[0], v[1]))
-
-
 @njit(cache=True)
 def update(p, inputs, trace, mem, start, stop):
     """Advance ``mem`` (:class:`Memory`) over the fused samples start:stop of ``trace`` (the env's
@@ -118,15 +108,15 @@ def update(p, inputs, trace, mem, start, stop):
     for i in range(start, stop):
         q = trace.est[i]
         me = rotate1(q, inputs.mag[i])
-        mn = np.sqrt(me[0] * me[0] + me[1] * me[1] + me[2] * me[2])
-        mh = _wrap(_planar_heading(me) - h_e)
+        mn = norm3(me)
+        mh = wrap_deg(planar_heading(me) - h_e)
         s[S_MH025] = _ema(s[S_MH025], mh, min(dt / 0.25, 1.0))
         s[S_MH1] = _ema(s[S_MH1], mh, dt)
         s[S_MH4] = _ema(s[S_MH4], mh, dt / 4.0)
         cj = inputs.joint_j[i]
         a_h = np.sqrt(cj[0] * cj[0] + cj[1] * cj[1])
         wgt = min(a_h / JOINT_FULL, 1.0)
-        jh = _wrap(_planar_heading(rotate1(q, inputs.joint_i[i])) - _planar_heading(cj))
+        jh = wrap_deg(planar_heading(rotate1(q, inputs.joint_i[i])) - planar_heading(cj))
         s[S_JH025] = _ema(s[S_JH025], jh, wgt * min(dt / 0.25, 1.0))
         s[S_JH1] = _ema(s[S_JH1], jh, wgt * dt)
         s[S_JH4] = _ema(s[S_JH4], jh, wgt * dt / 4.0)
@@ -135,10 +125,10 @@ def update(p, inputs, trace, mem, start, stop):
         s[S_DEV05] = _ema(s[S_DEV05], dev, dt / 0.5)
         s[S_DEV2] = _ema(s[S_DEV2], dev, dt / 2.0)
         s[S_ND2] = _ema(s[S_ND2], (mn - m0) / m0, dt / 2.0)
-        dip = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -me[2] / mn)))) if mn > 0 else dip0
+        dip = dip_deg(me, mn, dip0)
         s[S_DD2] = _ema(s[S_DD2], dip - dip0, dt / 2.0)
         g = inputs.gyr[i]
-        s[S_G1] = _ema(s[S_G1], np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]), dt)
+        s[S_G1] = _ema(s[S_G1], norm3(g), dt)
         clean = dev < CLEAN_DEV
         s[S_CLEAN4] = _ema(s[S_CLEAN4], 1.0 if clean else 0.0, dt / 4.0)
         if clean:

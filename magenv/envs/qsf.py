@@ -147,6 +147,18 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
 
 
 @njit(cache=True)
+def fill_decision(inputs, code, trust, start, stop):
+    """``inputs.action`` and ``inputs.trust`` of samples start:stop for one decision: MAG_START starts a period
+    at sample ``start`` and keeps it for the rest, MAG_KEEP keeps, MAG_NONE makes no magnetic update."""
+    keep = qsf.MAG_NONE if code == qsf.MAG_NONE else qsf.MAG_KEEP
+    for i in range(start, stop):
+        inputs.action[i] = keep
+        inputs.trust[i] = trust
+    if code == qsf.MAG_START and stop > start:
+        inputs.action[start] = qsf.MAG_START
+
+
+@njit(cache=True)
 def advance(p, state, inputs, out, detected, truth, dt, site, code, trust, start, stop, err, feat):
     """Fuse samples ``start:stop`` with one decision and one trust, then the observation of sample ``stop``.
 
@@ -160,12 +172,7 @@ def advance(p, state, inputs, out, detected, truth, dt, site, code, trust, start
         err: (N_ERR,) set to the error sums; feat: set to the observation of sample ``stop``.
     Returns ``(bad, repairs)`` of ``qsf.run_kernel`` (bad −1: every sample fused).
     """
-    keep = qsf.MAG_NONE if code == qsf.MAG_NONE else qsf.MAG_KEEP
-    for i in range(start, stop):
-        inputs.action[i] = keep
-        inputs.trust[i] = trust
-    if code == qsf.MAG_START and stop > start:
-        inputs.action[start] = qsf.MAG_START
+    fill_decision(inputs, code, trust, start, stop)
     bad, repairs = qsf.run_kernel(p, state, inputs, dt, start, stop, out)
     if bad >= 0:
         return bad, repairs

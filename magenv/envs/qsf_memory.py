@@ -32,6 +32,7 @@ from numba import njit
 
 from magenv.envs.blend_memory import _ema, _heading
 from magenv.envs.features import Feature, FeatureTable
+from magenv.envs.headings import dip_deg, norm3, planar_heading, wrap_deg
 from magenv.filters.qsf import SIGNAL
 from magenv.quaternion import GRAVITY, from_rotvec1, mul1, normalize1, rotate1
 
@@ -88,17 +89,6 @@ class Memory(NamedTuple):
         return cls(state, np.zeros(len(EXTRA)))
 
 
-@njit(cache=True, inline="always")
-def _wrap(deg):
-    return (deg + 180.0) % 360.0 - 180.0
-
-
-@njit(cache=True, inline="always")
-def _planar_heading(v):
-    """Heading (deg) of an ENU vector in the horizontal plane, atan2(east, north)."""
-    return np.rad2deg(np.arctan2(v[0], v[1]))
-
-
 @njit(cache=True)
 def update(p, state, inputs, out, spread, site, dt, mem, start, stop):
     """Advance ``mem`` (:class:`Memory`) over the fused samples start:stop and write ``mem.value``.
@@ -118,23 +108,21 @@ def update(p, state, inputs, out, spread, site, dt, mem, start, stop):
         q = out.q[i]
         mag = inputs.mag[i]
         me = rotate1(q, mag)
-        mn = np.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
-        mh = _wrap(_planar_heading(me) - h_e)
+        mn = norm3(mag)
+        mh = wrap_deg(planar_heading(me) - h_e)
         s[S_MH1] = _ema(s[S_MH1], mh, dt)
         s[S_MH4] = _ema(s[S_MH4], mh, dt / 4.0)
         s[S_MH16] = _ema(s[S_MH16], mh, dt / 16.0)
         nd = (mn - m0) / m0
-        dip = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -me[2] / mn)))) if mn > 0 else dip0
+        dip = dip_deg(me, mn, dip0)
         clean = abs(nd) < CLEAN_NORM and abs(dip - dip0) < CLEAN_DIP_DEG
         s[S_CLEAN4] = _ema(s[S_CLEAN4], 1.0 if clean else 0.0, dt / 4.0)
         s[S_ND2] = _ema(s[S_ND2], nd, dt / 2.0)
         s[S_DD2] = _ema(s[S_DD2], dip - dip0, dt / 2.0)
         g, g0 = inputs.gyr[i], inputs.gyr[i - 1 if i > 0 else 0]
-        s[S_G1] = _ema(s[S_G1], np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]), dt)
+        s[S_G1] = _ema(s[S_G1], norm3(g), dt)
         a = inputs.acc[i]
-        s[S_ACC05] = _ema(
-            s[S_ACC05], abs(np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]) - GRAVITY) / GRAVITY, dt / 0.5
-        )
+        s[S_ACC05] = _ema(s[S_ACC05], abs(norm3(a) - GRAVITY) / GRAVITY, dt / 0.5)
         s[S_SPR1] = _ema(s[S_SPR1], spread[i], dt)
         turn = from_rotvec1(0.5 * (g0 + g) * dt)  # the filter's gyro prediction without bias (eq. 17)
         if clean:
@@ -151,8 +139,8 @@ def update(p, state, inputs, out, spread, site, dt, mem, start, stop):
         else:
             s[Q_PER : Q_PER + 4] = q
     if state.period_active[0]:
-        s[S_REFH] = _wrap(
-            _planar_heading(rotate1(out.q[stop - 1], inputs.mag[stop - 1])) - _planar_heading(state.mag_ref)
+        s[S_REFH] = wrap_deg(
+            planar_heading(rotate1(out.q[stop - 1], inputs.mag[stop - 1])) - planar_heading(state.mag_ref)
         )
     else:
         s[S_REFH] = 0.0
