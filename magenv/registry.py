@@ -19,7 +19,10 @@ a fresh one. ``names()`` lists them all:
   (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
   reads truth, so it is an upper bound (compare's headroom row), never a
   baseline; likewise ``oracle_kalman`` for MagKalman-v0 (``magenv.baselines.oracle_kalman``, continuing with
-  ``kf_model_tuned``) and ``vqf_oracle`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``);
+  ``kf_model_tuned``), ``oracle_constraint`` (MagConstraint-v0, continuing with ``cf_constraint_tuned``,
+  ``magenv.baselines.oracle_constraint``), ``oracle_qsf`` (MagQSF-v0, continuing with
+  ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``) and ``vqf_oracle`` for MagVQF-v0
+  (``magenv.baselines.oracle_vqf``);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
 """
@@ -40,7 +43,9 @@ from magenv.baselines import (
     kalman,
     kalman_policies,
     oracle,
+    oracle_constraint,
     oracle_kalman,
+    oracle_qsf,
     qsf,
     reference,
     rules,
@@ -58,6 +63,8 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     # privileged (reads truth): an upper bound shown as the headroom row, never a baseline
     "oracle": ("fan_lambda", oracle.BlendOracle.from_fan_params),
     "oracle_kalman": ("kf_model", oracle_kalman.KalmanOracle.from_model_params),
+    "oracle_constraint": ("cf_constraint", oracle_constraint.ConstraintOracle.from_constraint_params),
+    "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),
 }
 
 _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}

@@ -25,11 +25,10 @@ import numpy as np
 from numba import njit, prange
 
 from magenv.checks import check_bool
-from magenv.envs import BLEND_ID, blend_memory
+from magenv.envs import BLEND_ID, blend_memory, lagged
 from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document, lagged_table, stack_lags
-from magenv.envs.features import observation_table as features_table
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import blend, stationary
 from magenv.filters.madgwick import BETA_DEFAULT
 from magenv.filters.sensors import Sensors
@@ -86,7 +85,8 @@ _LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
 LAGS = (8, 32)  # decisions: the memory of the extended observation
 _CURRENT = (*FEATURES.features, *blend_memory.EXTRA.features)
-EXTENDED = lagged_table(_CURRENT, LAGS)
+EXTENDED = lagged.extended_table(_CURRENT, LAGS)
+_LAGS = np.array(LAGS, np.int64)
 
 
 class Site(NamedTuple):
@@ -229,8 +229,7 @@ def advance_extended(p, site, state, sensors, truth, out, lam_const, start, stop
     advance(p, site, state, sensors, truth, out, lam_const, start, stop)
     if stop > start:
         blend_memory.update(p, site, sensors, out.est, out.dip, out.stationary, q0, memory, start, stop)
-        count[0] += 1
-    stack_lags(rows, count[0], out.feat, memory.value, LAGS, feat)
+    lagged.compose(out.feat, memory.value, rows, count, _LAGS, stop > start, feat)
 
 
 class BlendRunner(TrialRunner):
@@ -299,7 +298,7 @@ class BlendRunner(TrialRunner):
 def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
     """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
     the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
-    return features_table(features, FEATURES, EXTENDED)
+    return lagged.observation_table(features, FEATURES, EXTENDED)
 
 
 @document(blend_memory.EXTRA, "{extended_table}")

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit, prange
 
 from magenv.checks import check_bool, check_positive
-from magenv.envs import CONSTRAINT_ID
+from magenv.envs import CONSTRAINT_ID, constraint_memory, lagged
 from magenv.envs.batch import BatchVectorEnv, check_box_actions
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
@@ -48,6 +48,9 @@ FEATURES = FeatureTable(
     Feature("mag_dev_mean", 0.0, 10.0, "fraction of m0", f"mean `mag_dev` over {WINDOW}"),
 )
 F = FEATURES.ix  # named kernel indices
+#: features="extended": FEATURES, the extra causal features of ``magenv.envs.constraint_memory`` and their copies
+#: ``constraint_memory.LAGS`` decisions earlier
+EXTENDED = lagged.extended_table((*FEATURES.features, *constraint_memory.EXTRA.features), constraint_memory.LAGS)
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
 
@@ -124,13 +127,14 @@ class ConstraintRunner(TrialRunner):
         trial: a two-link Trial; ``filter_kwargs``: those of ``magenv.filters.constraint.ConstraintFilter``
             (lever arms, th1 … k_max, q0, use_constraint). Raises ``MissingChannelsError`` if the trial
             lacks link j's channels or the lever arms.
+        extended: ``feat`` is the EXTENDED observation (base, extra causal features, their lagged copies).
 
     Attributes as the other runners (``magenv.envs.common.TrustEnv``): ``feat``, ``err``, ``pos``,
     ``last_count``, ``has_dist``, ``est`` (N, 4), ``q_true``; and ``filter`` (the ``ConstraintFilter``),
     ``q`` (4,) the current estimate, ``trace`` (``magenv.filters.constraint.Trace``) the per-sample w, k, …
     """
 
-    def __init__(self, trial: Trial, **filter_kwargs):
+    def __init__(self, trial: Trial, extended: bool = False, **filter_kwargs):
         self.filter = cf.ConstraintFilter(trial, **filter_kwargs)  # checks link j's channels
         super().__init__(trial)
         self.q = self.filter.q0.copy()
@@ -143,13 +147,28 @@ class ConstraintRunner(TrialRunner):
         args = (*self._filter_args, cf.Control.of(0.0, 0.0), 0, 0, *self._outputs)
         self._advance = self.compiled(advance, *args)
         self._advance(*args)  # observation of sample 0
+        self.extended = bool(extended)
+        if self.extended:
+            self.memory = constraint_memory.Memory.start(self.q, trial.n)
+            self._ring = lagged.ring(constraint_memory.LAGS, len(FEATURES) + len(constraint_memory.EXTRA))
+            self.feat = np.zeros(len(EXTENDED))
+            self._compose(0, 0)
 
     def _fuse(self, start: int, stop: int, action) -> None:
         """``action`` = (w ∈ [0, 1], k ≥ 0 or None for eq. 18)."""
         w, k = action
         self._advance(*self._filter_args, cf.Control.of(w, k), start, stop, *self._outputs)
+        if self.extended:
+            self._compose(start, stop)
+
+    def _compose(self, start: int, stop: int) -> None:
+        """The extended observation of sample ``stop`` after fusing start:stop."""
+        base = self._outputs[-1]
+        constraint_memory.update(self.filter.params, self.filter.inputs, self.trace, self.memory, start, stop)
+        lagged.compose(base, self.memory.value, *self._ring, stop > start, self.feat)
 
 
+@document(constraint_memory.EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagConstraintEnv(TrustEnv):
     """
@@ -192,6 +211,14 @@ class MagConstraintEnv(TrustEnv):
 
     {observation_table}
 
+    With ``features="extended"`` (``EXTENDED``) the observation is those
+    features, the extra causal features below (``magenv.envs.constraint_memory``,
+    where the conventions are defined: signed mag and joint headings, parallel
+    w = 0 / w = 1 filters, a gyro anchor, smoothed field deviations), and
+    copies of both 25 and 100 decisions earlier (1 s and 4 s at k = 4):
+
+    {extended_table}
+
     ## Rewards
 
     Minus the mean total orientation error of link i (2·acos|q_e,0|, degrees)
@@ -222,7 +249,8 @@ class MagConstraintEnv(TrustEnv):
     - `control_gain` (default False): the action also sets k.
     - `gain_max` (default 1.0): k = action[1]·gain_max with ``control_gain``.
     - `th2`, `th3`, `k_min`, `k_max` (defaults 0.25, 0.2, 0.01, 0.2): eq. 18 when k is not controlled.
-    - `features` (default None = all): names of the observation features to keep, in order.
+    - `features` (default None = all): names of the observation features to keep, in order, or
+      `"extended"` for the extended observation (all of the table below; the 13 above stay the default).
     - `scenario_kwargs` (default None): overrides for ``magenv.scenarios.make_trial``.
 
     `info` of each step: `t` (s), `sample`, `w`, `k` (mean over the step), `action_clipped`,
@@ -258,6 +286,7 @@ class MagConstraintEnv(TrustEnv):
         # bad arguments fail here, not at reset (ValueError / TypeError naming the argument)
         control_gain, gain_max = check_bool("control_gain", control_gain), check_positive("gain_max", gain_max)
         _, th2, th3, k_min, k_max = cf.check_rule_params(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
+        features, table = lagged.observation_table(features, FEATURES, EXTENDED)
         self._setup(
             scenario,
             decision_every,
@@ -265,9 +294,9 @@ class MagConstraintEnv(TrustEnv):
             render_mode,
             scenario_kwargs,
             features,
-            FEATURES.names,
-            FEATURES.low,
-            FEATURES.high,
+            table.names,
+            table.low,
+            table.high,
             2 if control_gain else 1,
             world="twolink",
             require=cf.require_two_link,
@@ -275,9 +304,10 @@ class MagConstraintEnv(TrustEnv):
         )
         self.control_gain, self.gain_max = control_gain, gain_max
         self.filter_kwargs: dict[str, Any] = dict(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
+        self.extended = table is EXTENDED
 
     def _make_runner(self, trial: Trial) -> ConstraintRunner:
-        return ConstraintRunner(trial, **self.filter_kwargs)  # checks link j's channels
+        return ConstraintRunner(trial, self.extended, **self.filter_kwargs)  # checks link j's channels
 
     def _action(self, action) -> tuple[float, float | None, bool]:
         dim = 2 if self.control_gain else 1  # the action Box's length
@@ -405,6 +435,11 @@ class MagConstraintVectorEnv(BatchVectorEnv):
 
     def _alloc(self, n: int) -> None:
         env = self.template
+        if env.extended:
+            raise ValueError(
+                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
+                'vectorization_mode="sync")'
+            )
         kw = env.filter_kwargs
         self.constants = (cf.TH1, kw["th2"], kw["th3"], kw["k_min"], kw["k_max"], True, not env.control_gain)
         rows = self.k_steps + 2

@@ -10,16 +10,13 @@ all come from that one declaration.
 from __future__ import annotations
 
 from collections import namedtuple
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 # Scales shared by the envs' features, so that a rule can recover physical values from an observation.
 DIP_SCALE_DEG = 90.0  # dip deviations in units of 90°
 GYRO_SCALE = 2.0 * np.pi  # rad/s: gyro norms in revolutions per second
-EXTENDED_OPTION = "extended"  # features="extended": an env's whole extended table (current features and lags)
 
 
 @dataclass(frozen=True)
@@ -79,48 +76,3 @@ def document(table: FeatureTable, placeholder: str = "{observation_table}"):
         raise ValueError(f"{cls.__name__}'s docstring has no line {placeholder!r}")
 
     return decorate
-
-
-def lagged_table(current: Sequence[Feature], lags: Sequence[int]) -> FeatureTable:
-    """The extended table: ``current`` features, then their copies ``lag`` decisions earlier for each lag."""
-    lagged = (
-        Feature(
-            f"{f.name}_lag{lag}",
-            f.low,
-            f.high,
-            f.unit,
-            f"`{f.name}` {lag} decisions earlier (before the start: the first observation)",
-        )
-        for lag in lags
-        for f in current
-    )
-    return FeatureTable(*current, *lagged)
-
-
-def observation_table(features, base: FeatureTable, extended: FeatureTable):
-    """An env's ``features`` option → (names to select, None = all; the table they come from):
-    ``"extended"`` is the whole ``extended`` table; a list of names uses ``base``, or ``extended`` if it
-    names any feature outside ``base``."""
-    if isinstance(features, str):
-        if features != EXTENDED_OPTION:
-            raise ValueError(f"features must be None, {EXTENDED_OPTION!r} or a list of names, got {features!r}")
-        return None, extended
-    if features is not None and any(f not in base.names for f in features):
-        return features, extended
-    return features, base
-
-
-@njit(cache=True)
-def stack_lags(rows, count, base, extra, lags, feat):
-    """The extended observation ``feat`` = [base, extra] now and as it was ``lags`` decisions ago.
-
-    ``rows`` (max(lags) + 1, len(base) + len(extra)): ring of the current features by decision, the row of
-    decision ``count`` written here; before the first decision the first observation stands in."""
-    length, width = rows.shape
-    nb = base.shape[0]
-    row = rows[count % length]
-    row[:nb] = base
-    row[nb:] = extra
-    feat[:width] = row
-    for li in range(len(lags)):
-        feat[(li + 1) * width : (li + 2) * width] = rows[max(count - lags[li], 0) % length]

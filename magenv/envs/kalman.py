@@ -28,11 +28,10 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from magenv.envs import KALMAN_ID, kalman_memory
+from magenv.envs import KALMAN_ID, kalman_memory, lagged
 from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document, lagged_table, stack_lags
-from magenv.envs.features import observation_table as features_table
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
 from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
@@ -100,7 +99,8 @@ F = FEATURES.ix  # named kernel indices
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
 LAGS = (8, 32)  # decisions: the memory of the extended observation
 _CURRENT = (*FEATURES.features, *kalman_memory.EXTRA.features)
-EXTENDED = lagged_table(_CURRENT, LAGS)
+EXTENDED = lagged.extended_table(_CURRENT, LAGS)
+_LAGS = np.array(LAGS, np.int64)
 
 
 class Outputs(NamedTuple):
@@ -272,15 +272,14 @@ def advance_extended(params, state, sensors, truth, mdist, out, gamma, start, st
         return status, repairs
     if stop > start:
         kalman_memory.update(params, sensors, mdist, out.est, out.sig, out.trust, out.peek, memory, start, stop)
-        count[0] += 1
-    stack_lags(rows, count[0], out.feat, memory.value, LAGS, feat)
+    lagged.compose(out.feat, memory.value, rows, count, _LAGS, stop > start, feat)
     return status, repairs
 
 
 def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
     """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
     the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
-    return features_table(features, FEATURES, EXTENDED)
+    return lagged.observation_table(features, FEATURES, EXTENDED)
 
 
 def trial_disturbance(trial: Trial, params: kt.Params, model_c_a: float, model_c_b: float, model_p0: float = 1.0):

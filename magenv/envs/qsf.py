@@ -26,7 +26,7 @@ from gymnasium import spaces
 from numba import njit, prange
 
 from magenv.checks import check_choice, check_mapping
-from magenv.envs import QSF_ID
+from magenv.envs import QSF_ID, lagged, qsf_memory
 from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
@@ -60,6 +60,9 @@ FEATURES = FeatureTable(
     Feature("trust_prev", 0.0, 1.0, "–", "trust applied in the last step (0 after reset)"),
 )
 F = FEATURES.ix  # named kernel indices
+#: features="extended": FEATURES, the extra causal features of ``magenv.envs.qsf_memory`` and their copies
+#: ``qsf_memory.LAGS`` decisions earlier
+EXTENDED = lagged.extended_table((*FEATURES.features, *qsf_memory.EXTRA.features), qsf_memory.LAGS)
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
 VARIANTS = ("delay_magyq", "magyq")
 DECISIONS = ("none", "start", "keep")  # indexed by the qsf.MAG_* codes
@@ -144,6 +147,18 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
 
 
 @njit(cache=True)
+def fill_decision(inputs, code, trust, start, stop):
+    """``inputs.action`` and ``inputs.trust`` of samples start:stop for one decision: MAG_START starts a period
+    at sample ``start`` and keeps it for the rest, MAG_KEEP keeps, MAG_NONE makes no magnetic update."""
+    keep = qsf.MAG_NONE if code == qsf.MAG_NONE else qsf.MAG_KEEP
+    for i in range(start, stop):
+        inputs.action[i] = keep
+        inputs.trust[i] = trust
+    if code == qsf.MAG_START and stop > start:
+        inputs.action[start] = qsf.MAG_START
+
+
+@njit(cache=True)
 def advance(p, state, inputs, out, detected, truth, dt, site, code, trust, start, stop, err, feat):
     """Fuse samples ``start:stop`` with one decision and one trust, then the observation of sample ``stop``.
 
@@ -157,12 +172,7 @@ def advance(p, state, inputs, out, detected, truth, dt, site, code, trust, start
         err: (N_ERR,) set to the error sums; feat: set to the observation of sample ``stop``.
     Returns ``(bad, repairs)`` of ``qsf.run_kernel`` (bad −1: every sample fused).
     """
-    keep = qsf.MAG_NONE if code == qsf.MAG_NONE else qsf.MAG_KEEP
-    for i in range(start, stop):
-        inputs.action[i] = keep
-        inputs.trust[i] = trust
-    if code == qsf.MAG_START and stop > start:
-        inputs.action[start] = qsf.MAG_START
+    fill_decision(inputs, code, trust, start, stop)
     bad, repairs = qsf.run_kernel(p, state, inputs, dt, start, stop, out)
     if bad >= 0:
         return bad, repairs
@@ -181,6 +191,7 @@ class QSFRunner(TrialRunner):
         detector: the QSF detector whose codes and spread the features report.
         init: the start, ``magenv.filters.qsf.initial_orientation`` ("auto", "triad" or "truth").
         filter_kwargs: keywords of ``magenv.filters.qsf.make_params``.
+        extended: ``feat`` is the EXTENDED observation (base, extra causal features, their lagged copies).
 
     Attributes as the other runners (``magenv.envs.common.TrustEnv``): ``feat``, ``err``, ``pos``,
     ``last_count``, ``has_dist``, ``est`` (N, 4), ``q_true``; and ``params``, ``state``, ``inputs``
@@ -195,6 +206,7 @@ class QSFRunner(TrialRunner):
         detector: qsf.QSFDetector | None = None,
         init: str = "auto",
         filter_kwargs: dict | None = None,
+        extended: bool = False,
     ):
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
@@ -213,13 +225,30 @@ class QSFRunner(TrialRunner):
         self._args = (self.params, self.state, self.inputs, self.out, self.detected, self.truth, trial.dt, site)
         self._advance = self.compiled(advance, *self._args, 0, 0.0, 0, 0, self.err, self.feat)
         self._advance(*self._args, qsf.MAG_NONE, 0.0, 0, 0, self.err, self.feat)  # the observation of sample 0
+        self._base = self.feat
+        self.extended = bool(extended)
+        if self.extended:
+            self.memory = qsf_memory.Memory.start(self.state.x[qsf.ORIENTATION])
+            self._ring = lagged.ring(qsf_memory.LAGS, len(FEATURES) + len(qsf_memory.EXTRA))
+            self.feat = np.zeros(len(EXTENDED))
+            self._compose(0, 0)
 
     def _fuse(self, i0: int, i1: int, action) -> None:
         """``action`` = (code, trust) of :func:`advance`."""
         code, trust = action
-        result = self._advance(*self._args, int(code), float(trust), i0, i1, self.err, self.feat)
+        result = self._advance(*self._args, int(code), float(trust), i0, i1, self.err, self._base)
         qsf.checked(result, self.inputs)  # FilterError on a non-finite sample
         self.trust_prev = float(trust)
+        if self.extended:
+            self._compose(i0, i1)
+
+    def _compose(self, start: int, stop: int) -> None:
+        """The extended observation of sample ``stop`` after fusing start:stop."""
+        site = (self.trial.field_norm, self.trial.field_dip)
+        qsf_memory.update(
+            self.params, self.state, self.inputs, self.out, self.spread, site, self.trial.dt, self.memory, start, stop
+        )
+        lagged.compose(self._base, self.memory.value, *self._ring, stop > start, self.feat)
 
 
 def episode_start(trial: Trial, variant: str, detector, init: str, filter_kwargs: dict | None):
@@ -234,6 +263,7 @@ def episode_start(trial: Trial, variant: str, detector, init: str, filter_kwargs
     return params, (codes, spread), state
 
 
+@document(qsf_memory.EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagQSFEnv(TrustEnv):
     """
@@ -275,6 +305,14 @@ class MagQSFEnv(TrustEnv):
     noise (µT, default 0.1 m0); values are clipped to range. Features are
     computed by ``magenv.envs.qsf.QSFRunner``.
 
+    With ``features="extended"`` (``EXTENDED``) the observation is those
+    features, the extra causal features below (``magenv.envs.qsf_memory``,
+    where the conventions are defined: signed mag and reference headings,
+    gyro anchors, smoothed field and motion statistics), and copies of both
+    10 and 40 decisions earlier (1 s and 4 s at k = 10):
+
+    {extended_table}
+
     ## Rewards
 
     Minus the mean total orientation error (degrees) over the samples fused
@@ -308,7 +346,8 @@ class MagQSFEnv(TrustEnv):
     - `episode_seconds` (default None): use only the first seconds of each trial.
     - `variant` (default `"delay_magyq"`): or `"magyq"`.
     - `init` (default `"auto"`): `"triad"`, `"truth"` or `"auto"` (``qsf.initial_orientation``).
-    - `features` (default None = all): names of the features to keep, in order.
+    - `features` (default None = all): names of the features to keep, in order, or `"extended"` for
+      the extended observation (all of the table below; the 14 above stay the default).
     - `detector` (default ``qsf.QSFDetector()``): a ``QSFDetector`` or a mapping of its thresholds
       (``window_s``, ``th_spread``, ``th_drift``, ``max_period_s``), e.g. from a YAML config.
     - `filter_kwargs`: keywords of ``qsf.make_params`` (noise levels, ``max_age_s`` …).
@@ -343,6 +382,7 @@ class MagQSFEnv(TrustEnv):
         check_choice("variant", variant, VARIANTS)
         check_choice("init", init, qsf.INITS)
         filter_kwargs = check_mapping("filter_kwargs", filter_kwargs)
+        features, table = lagged.observation_table(features, FEATURES, EXTENDED)
         self._setup(
             scenario,
             decision_every,
@@ -350,9 +390,9 @@ class MagQSFEnv(TrustEnv):
             render_mode,
             scenario_kwargs,
             features,
-            FEATURES.names,
-            FEATURES.low,
-            FEATURES.high,
+            table.names,
+            table.low,
+            table.high,
             trial_pool=trial_pool,
         )
         self.action_space = spaces.Box(
@@ -365,10 +405,11 @@ class MagQSFEnv(TrustEnv):
             raise TypeError(f"detector must be a QSFDetector or a mapping of its thresholds, got {detector!r}")
         self.detector = detector or qsf.QSFDetector()
         self.filter_kwargs: dict[str, Any] = filter_kwargs
+        self.extended = table is EXTENDED
         qsf.make_params(50.0, 60.0, mode=variant, **self.filter_kwargs)  # bad keywords fail here, not at reset
 
     def _make_runner(self, trial: Trial) -> QSFRunner:
-        return QSFRunner(trial, self.variant, self.detector, self.init, self.filter_kwargs)
+        return QSFRunner(trial, self.variant, self.detector, self.init, self.filter_kwargs, self.extended)
 
     def step(self, action):
         runner = self._step_runner()
@@ -494,6 +535,11 @@ class MagQSFVectorEnv(BatchVectorEnv):
 
     def _alloc(self, n: int) -> None:
         env = self.template
+        if env.extended:
+            raise ValueError(
+                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
+                'vectorization_mode="sync")'
+            )
         p = qsf.make_params(50.0, 60.0, mode=env.variant, **env.filter_kwargs)
         self.constants = (p.mode, p.update_reference)
         rows, na = self.k_steps + 2, qsf.N_AUGMENTED

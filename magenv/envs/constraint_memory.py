@@ -1,0 +1,155 @@
+"""The extra causal features of ``magenv/MagConstraint-v0``'s extended observation (``features="extended"``).
+
+What the oracle (``magenv.baselines.oracle_constraint``) uses and today's
+observation lacks is the *sign* of link i's heading error and of each
+correction: the magnetometer pulls the heading one way, the constraint
+another, and which one is right changes over seconds. These features are
+computed from the sensors, link j's given orientation and the env's own
+estimate history only — never truth — by :func:`update`, called after each
+step on the samples just fused (``start:stop``); they describe the decision
+at sample ``stop``, the timing of the base features.
+
+Conventions (ENU earth frame, degrees, signed, wrapped to ±180): "heading(a ⊗
+b*)" is the rotation about earth-up from orientation b to a
+(``magenv.envs.blend_memory``'s convention); the *mag heading* of sample i is
+the heading of its field C(q_i)y_M (q_i the estimate after the sample) minus
+that of the Earth field m_E (≈ −heading error in an undisturbed field); the
+*joint heading* is `con_heading` of the base table (heading of C(q)h_i minus
+that of C(q_j)h_j, ≈ the heading error while the joint centre accelerates
+horizontally). An EMA of time constant τ takes each sample with weight Δt/τ.
+"Parallel" filters run the env's filter (``magenv.filters.constraint.fuse``)
+from the start on the same samples with a fixed w (k by eq. 18). A sample is
+*clean* when eq. 16's deviation ‖C(q)y_M − m_E‖/m0 < 0.03.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from magenv.envs.blend_memory import _ema, _heading
+from magenv.envs.features import Feature, FeatureTable
+from magenv.envs.headings import dip_deg, norm3, planar_heading, wrap_deg
+from magenv.filters import constraint as cf
+from magenv.quaternion import GRAVITY, rotate1
+
+_DEG = "°"
+_HEADING = -180.0, 180.0
+EXTRA = FeatureTable(
+    Feature("mh_ema_025", *_HEADING, _DEG, "EMA (τ 0.25 s) of the mag heading"),
+    Feature("mh_ema_1", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading"),
+    Feature("mh_ema_4", *_HEADING, _DEG, "EMA (τ 4 s) of the mag heading"),
+    Feature(
+        "jh_ema_025",
+        *_HEADING,
+        _DEG,
+        "EMA (τ 0.25 s) of the joint heading, each sample weighted by min(a_h/(0.2 g), 1), a_h the horizontal "
+        "joint-centre acceleration ‖C(q_j)h_j‖ in the ENU plane",
+    ),
+    Feature("jh_ema_1", *_HEADING, _DEG, "as `jh_ema_025` with τ 1 s"),
+    Feature("jh_ema_4", *_HEADING, _DEG, "as `jh_ema_025` with τ 4 s"),
+    Feature("ja_h_ema_1", 0.0, 10.0, "units of g", "EMA (τ 1 s) of a_h (how much the constraint sees the heading)"),
+    Feature("d_mag", *_HEADING, _DEG, "heading(q_mag ⊗ q*), q_mag the parallel w = 0 filter (magnetometer)"),
+    Feature("d_con", *_HEADING, _DEG, "heading(q_con ⊗ q*), q_con the parallel w = 1 filter (constraint)"),
+    Feature(
+        "d_anchor", *_HEADING, _DEG, "heading(q ⊗ q_anc*), q_anc the gyro (k = 0) re-anchored to q on clean samples"
+    ),
+    Feature("t_clean", 0.0, 3.0, "units of 10 s", "time since the last clean sample (clipped)"),
+    Feature("dev_ema_05", 0.0, 10.0, "fraction of m0", "EMA (τ 0.5 s) of eq. 16's deviation"),
+    Feature("dev_ema_2", 0.0, 10.0, "fraction of m0", "EMA (τ 2 s) of eq. 16's deviation"),
+    Feature("nd_ema_2", -1.0, 10.0, "fraction of m0", "EMA (τ 2 s) of (‖y_M‖ − m0)/m0"),
+    Feature("dd_ema_2", *_HEADING, _DEG, "EMA (τ 2 s) of the signed dip deviation of C(q)y_M"),
+    Feature("gyro_ema_1", 0.0, 100.0, "rad/s", "EMA (τ 1 s) of ‖ω_i‖"),
+    Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
+)
+X = EXTRA.ix
+_LOW, _HIGH = EXTRA.low64, EXTRA.high64
+LAGS = (25, 100)  # decisions: 1 s and 4 s at the env's default k = 4, 100 Hz
+
+# layout of the state vector: three quaternions, then the scalars
+Q_MAG, Q_CON, Q_ANC = 0, 4, 8
+(S_MH025, S_MH1, S_MH4, S_JH025, S_JH1, S_JH4, S_JA1, S_DEV05, S_DEV2, S_ND2, S_DD2, S_G1, S_TCLEAN,
+ S_CLEAN4) = range(12, 26)  # fmt: skip
+N_STATE = 26
+CLEAN_DEV = 0.03  # fraction of m0
+JOINT_FULL = 0.2 * GRAVITY  # m/s², horizontal joint acceleration at which the joint heading counts fully
+
+
+class Memory(NamedTuple):
+    """The streaming state of the extra features of one trial (arrays updated in place)."""
+
+    state: np.ndarray  # (N_STATE,) see the layout constants
+    scratch: cf.Trace  # the parallel filters' trace rows (trial length)
+    value: np.ndarray  # (len(EXTRA),) the features of the next decision (zeros before any sample is fused)
+
+    @classmethod
+    def start(cls, q0: np.ndarray, n: int) -> Memory:
+        """Memory at the start of an ``n``-sample trial: every parallel filter at the start ``q0``."""
+        state = np.zeros(N_STATE)
+        for o in (Q_MAG, Q_CON, Q_ANC):
+            state[o : o + 4] = q0
+        return cls(state, cf.Trace.empty(n), np.zeros(len(EXTRA)))
+
+
+@njit(cache=True)
+def update(p, inputs, trace, mem, start, stop):
+    """Advance ``mem`` (:class:`Memory`) over the fused samples start:stop of ``trace`` (the env's
+    ``constraint.Trace``) and write ``mem.value``. ``p``: the env's ``constraint.Params``."""
+    s, sc, out = mem.state, mem.scratch, mem.value
+    if stop <= start:
+        return
+    dt, m0, n_e = p.dt, p.field_norm, p.field_dir
+    h_e = np.rad2deg(np.arctan2(n_e[0], n_e[1]))
+    dip0 = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -n_e[2]))))
+    q_anc = s[Q_ANC : Q_ANC + 4]
+    gyro_only = cf.Control(0.0, 0.0, False, False)  # k = 0: eq. 17 with the gyro alone
+    for i in range(start, stop):
+        q = trace.est[i]
+        me = rotate1(q, inputs.mag[i])
+        mn = norm3(me)
+        mh = wrap_deg(planar_heading(me) - h_e)
+        s[S_MH025] = _ema(s[S_MH025], mh, min(dt / 0.25, 1.0))
+        s[S_MH1] = _ema(s[S_MH1], mh, dt)
+        s[S_MH4] = _ema(s[S_MH4], mh, dt / 4.0)
+        cj = inputs.joint_j[i]
+        a_h = np.sqrt(cj[0] * cj[0] + cj[1] * cj[1])
+        wgt = min(a_h / JOINT_FULL, 1.0)
+        jh = wrap_deg(planar_heading(rotate1(q, inputs.joint_i[i])) - planar_heading(cj))
+        s[S_JH025] = _ema(s[S_JH025], jh, wgt * min(dt / 0.25, 1.0))
+        s[S_JH1] = _ema(s[S_JH1], jh, wgt * dt)
+        s[S_JH4] = _ema(s[S_JH4], jh, wgt * dt / 4.0)
+        s[S_JA1] = _ema(s[S_JA1], a_h / GRAVITY, dt)
+        dev = trace.mag_dev[i]
+        s[S_DEV05] = _ema(s[S_DEV05], dev, dt / 0.5)
+        s[S_DEV2] = _ema(s[S_DEV2], dev, dt / 2.0)
+        s[S_ND2] = _ema(s[S_ND2], (mn - m0) / m0, dt / 2.0)
+        dip = dip_deg(me, mn, dip0)
+        s[S_DD2] = _ema(s[S_DD2], dip - dip0, dt / 2.0)
+        g = inputs.gyr[i]
+        s[S_G1] = _ema(s[S_G1], norm3(g), dt)
+        clean = dev < CLEAN_DEV
+        s[S_CLEAN4] = _ema(s[S_CLEAN4], 1.0 if clean else 0.0, dt / 4.0)
+        if clean:
+            q_anc[:] = q
+            s[S_TCLEAN] = 0.0
+        else:
+            cf.fuse(p, q_anc, inputs, gyro_only, i, i + 1, sc)
+            s[S_TCLEAN] += dt
+    cf.fuse(p, s[Q_MAG : Q_MAG + 4], inputs, cf.Control(0.0, 0.0, False, True), start, stop, sc)
+    cf.fuse(p, s[Q_CON : Q_CON + 4], inputs, cf.Control(1.0, 0.0, False, True), start, stop, sc)
+    q = trace.est[stop - 1]
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    out[X.mh_ema_025], out[X.mh_ema_1], out[X.mh_ema_4] = s[S_MH025], s[S_MH1], s[S_MH4]
+    out[X.jh_ema_025], out[X.jh_ema_1], out[X.jh_ema_4] = s[S_JH025], s[S_JH1], s[S_JH4]
+    out[X.ja_h_ema_1] = s[S_JA1]
+    out[X.d_mag] = _heading(s[Q_MAG], s[Q_MAG + 1], s[Q_MAG + 2], s[Q_MAG + 3], qw, qx, qy, qz)
+    out[X.d_con] = _heading(s[Q_CON], s[Q_CON + 1], s[Q_CON + 2], s[Q_CON + 3], qw, qx, qy, qz)
+    out[X.d_anchor] = _heading(qw, qx, qy, qz, q_anc[0], q_anc[1], q_anc[2], q_anc[3])
+    out[X.t_clean] = s[S_TCLEAN] / 10.0
+    out[X.dev_ema_05], out[X.dev_ema_2] = s[S_DEV05], s[S_DEV2]
+    out[X.nd_ema_2], out[X.dd_ema_2], out[X.gyro_ema_1] = s[S_ND2], s[S_DD2], s[S_G1]
+    out[X.clean_ema_4] = s[S_CLEAN4]
+    for k in range(out.shape[0]):
+        out[k] = min(max(out[k], _LOW[k]), _HIGH[k])

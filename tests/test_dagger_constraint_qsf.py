@@ -1,0 +1,59 @@
+"""DAgger students of MagConstraint-v0 and MagQSF-v0: their inputs, and a run folder that loads and acts in the env
+the oracle searched (its tuned eq. 18 / QSF detector)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from magenv import evaluation, registry
+from magenv import scenarios as sc
+from magenv.agents import dagger
+from magenv.agents.student_inputs import inputs_for
+from magenv.envs import CONSTRAINT_ID, QSF_ID
+from magenv.envs.constraint import EXTENDED
+
+
+def test_constraint_inputs_follow_each_block_with_the_rule_weight():
+    oracle = registry.make("oracle_constraint")
+    inputs = inputs_for(CONSTRAINT_ID)
+    meta = inputs.meta(oracle)
+    assert inputs.env_kwargs["th2"] == oracle.env_kwargs["th2"] and inputs.env_kwargs["features"] == "extended"
+    assert "decision_every" not in inputs.env_kwargs
+    obs = np.random.default_rng(0).uniform(0.0, 0.3, (5, len(EXTENDED))).astype(np.float32)
+    x = inputs(obs, meta)
+    block = meta["block"]
+    assert x.shape == (5, len(EXTENDED) + len(EXTENDED) // block)
+    for b in range(len(EXTENDED) // block):
+        np.testing.assert_array_equal(
+            x[:, b * (block + 1) : b * (block + 1) + block], obs[:, b * block : (b + 1) * block]
+        )
+        np.testing.assert_allclose(x[:, b * (block + 1) + block], np.minimum(obs[:, b * block] / meta["th1"], 1.0))
+
+
+def test_qsf_inputs_adopt_the_tuned_detector():
+    oracle = registry.make("oracle_qsf")
+    inputs = inputs_for(QSF_ID)
+    assert inputs.meta(oracle) == {}
+    assert inputs.env_kwargs["detector"] == oracle.env_kwargs["detector"]
+
+
+TINY = {"iterations": 2, "trials_per_scenario": 1, "val_seeds": [5000, 5001], "fit_steps": 30, "hidden": [8]}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("teacher", "scenario", "k"), [("oracle_constraint", "constraint_test3", 4), ("oracle_qsf", "handheld_random", 10)]
+)
+def test_tiny_run_loads_and_acts_in_the_teachers_env(tmp_path, teacher, scenario, k):
+    oracle = registry.make(teacher)
+    out = dagger.train(
+        tmp_path / "run", oracle, {**TINY, "scenarios": [scenario], "decision_every": k}, log=lambda s: None
+    )
+    run = yaml.safe_load((out / "run.yaml").read_text())
+    for key, value in oracle.env_kwargs.items():
+        assert run["env_kwargs"][key] == value
+    agent = registry.make(f"agent:{out}")
+    trial = sc.make_trial(scenario, 0, duration=5.0)
+    assert np.isfinite(evaluation.run_method("agent", agent, trial).score.total)

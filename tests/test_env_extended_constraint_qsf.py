@@ -1,0 +1,136 @@
+"""The extended observations of MagConstraint-v0 and MagQSF-v0 (``features="extended"``): causal, with memory,
+the base features unchanged, documented, seeded, not batched."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import magenv  # noqa: F401  (registers the envs)
+from magenv import scenarios
+from magenv.envs import CONSTRAINT_ID, QSF_ID, constraint, constraint_memory, qsf, qsf_memory
+from magenv.filters import qsf as fq
+
+SPECS = {
+    CONSTRAINT_ID: dict(
+        module=constraint,
+        memory=constraint_memory,
+        env=constraint.MagConstraintEnv,
+        trial=lambda: scenarios.make_trial("constraint_test2", 0, duration=6.0, disturbances=((2.0, 2.0),)),
+        runner=lambda trial, ext: constraint.ConstraintRunner(trial, ext),
+        actions=[(w, None) for w in (0.0, 0.4, 1.0, 0.7)],
+        k=4,
+    ),
+    QSF_ID: dict(
+        module=qsf,
+        memory=qsf_memory,
+        env=qsf.MagQSFEnv,
+        trial=lambda: scenarios.make_trial("handheld_corridor", 0, duration=8.0),
+        runner=lambda trial, ext: qsf.QSFRunner(trial, extended=ext),
+        actions=[(fq.MAG_START, 1.0), (fq.MAG_KEEP, 0.5), (fq.MAG_KEEP, 1.0), (fq.MAG_NONE, 0.0)],
+        k=10,
+    ),
+}
+IDS = list(SPECS)
+
+
+@pytest.fixture(scope="module")
+def trials():
+    return {env_id: spec["trial"]() for env_id, spec in SPECS.items()}
+
+
+def _observations(spec, trial, steps=None):
+    runner = spec["runner"](trial, True)
+    obs, i = [runner.feat.copy()], 0
+    while not runner.done and (steps is None or i < steps):
+        runner.advance(spec["k"], spec["actions"][i % len(spec["actions"])])
+        obs.append(runner.feat.copy())
+        i += 1
+    return np.array(obs)
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_features_are_causal_and_truth_free(env_id, trials):
+    """Changing the sensors from sample s on leaves every observation before sample s is read unchanged;
+    changing the truth changes nothing."""
+    spec, trial = SPECS[env_id], trials[env_id]
+    s, k = 301, spec["k"]
+    rng = np.random.default_rng(0)
+    later = dataclasses.replace(
+        trial, mag=np.concatenate([trial.mag[:s], trial.mag[s:] + rng.normal(0, 9.0, (trial.n - s, 3))])
+    )
+    a, b = _observations(spec, trial), _observations(spec, later)
+    last_unchanged = (s - 1) // k  # its next sample j = k·d ≤ s − 1
+    np.testing.assert_array_equal(a[: last_unchanged + 1], b[: last_unchanged + 1])
+    assert not np.array_equal(a[last_unchanged + 1], b[last_unchanged + 1])
+    q_true = trial.q_true[::-1].copy()
+    other = dataclasses.replace(trial, truth={**trial.truth, "q_true": q_true})
+    np.testing.assert_array_equal(_observations(spec, other, 60), a[:61])
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_memory_holds_the_features_lags_decisions_earlier(env_id, trials):
+    spec = SPECS[env_id]
+    mod, mem = spec["module"], spec["memory"]
+    n_current = len(mod.FEATURES) + len(mem.EXTRA)
+    obs = _observations(spec, trials[env_id])
+    assert obs.shape[1] == len(mod.EXTENDED) == n_current * (1 + len(mem.LAGS))
+    current = obs[:, :n_current]
+    for i, lag in enumerate(mem.LAGS):
+        block = obs[:, n_current * (i + 1) : n_current * (i + 2)]
+        np.testing.assert_array_equal(block[lag:], current[:-lag])
+        np.testing.assert_array_equal(block[:lag], np.repeat(current[:1], lag, 0))  # before the start: the first
+    assert np.all(np.any(current[1:, len(mod.FEATURES) :] != 0, axis=0))  # every extra feature moves
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_base_features_and_estimate_are_unchanged_by_the_option(env_id, trials):
+    spec, trial = SPECS[env_id], trials[env_id]
+    plain, ext = spec["runner"](trial, False), spec["runner"](trial, True)
+    n_base = len(spec["module"].FEATURES)
+    for action in spec["actions"] * 10:
+        plain.advance(spec["k"], action)
+        ext.advance(spec["k"], action)
+        np.testing.assert_array_equal(ext.feat[:n_base], plain.feat)
+    np.testing.assert_array_equal(ext.est, plain.est)
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_env_option_documented_default_kept_and_not_batched(env_id, trials):
+    spec = SPECS[env_id]
+    mod, mem = spec["module"], spec["memory"]
+    env = gym.make(env_id, scenario=[trials[env_id]], features="extended").unwrapped
+    assert env.observation_space.shape == (len(mod.EXTENDED),) and env.features == mod.EXTENDED.names
+    assert gym.make(env_id, scenario=[trials[env_id]]).unwrapped.observation_space.shape == (len(mod.FEATURES),)
+    picked = gym.make(env_id, scenario=[trials[env_id]], features=["gyro_norm", "d_anchor_lag" + str(mem.LAGS[0])])
+    assert picked.unwrapped.observation_space.shape == (2,)
+    for row in mem.EXTRA.markdown().splitlines():
+        assert row in spec["env"].__doc__
+    with pytest.raises(ValueError, match="extended"):
+        gym.make(env_id, features="extnded")
+    obs, _ = env.reset(seed=0)
+    assert np.all(obs >= mod.EXTENDED.low) and np.all(obs <= mod.EXTENDED.high)
+    with pytest.raises(ValueError, match="not batched"):
+        gym.make_vec(env_id, 2, scenario=[trials[env_id]], features="extended")
+
+
+@pytest.mark.parametrize(
+    ("env_id", "scenario", "action"),
+    [(CONSTRAINT_ID, "constraint_test2", [0.5]), (QSF_ID, "handheld_corridor", [0.0, 1.0])],
+)
+def test_extended_env_replays_its_seed(env_id, scenario, action):
+    kwargs = {"scenario": scenario, "features": "extended", "scenario_kwargs": {"duration": 3.0}}
+
+    def episode(seed):
+        env = gym.make(env_id, **kwargs)
+        obs = [env.reset(seed=seed)[0]]
+        for _ in range(30):
+            obs.append(env.step(np.array(action, np.float32))[0])
+        return np.array(obs)
+
+    a = episode(3)
+    np.testing.assert_array_equal(a, episode(3))
+    assert not np.array_equal(a, episode(4))
