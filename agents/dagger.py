@@ -311,6 +311,13 @@ def check_teacher(teacher, env_id: str | None = None) -> str:
     return teacher.env_id
 
 
+def student_env_kwargs(inputs: StudentInputs, teacher, decision_every: int) -> dict:
+    """The options of the env the student acts in: its observation's (``inputs.env_kwargs``), then the teacher's
+    own (``teacher.env_kwargs`` if any, e.g. a tuned eq. 18 or QSF detector: the env the teacher searched), and
+    ``decision_every``."""
+    return {**inputs.env_kwargs, **getattr(teacher, "env_kwargs", {}), "decision_every": int(decision_every)}
+
+
 def train(
     out: Path,
     teacher,
@@ -335,7 +342,7 @@ def train(
     k, n_per = cfg["decision_every"], cfg["trials_per_scenario"]
     inputs = inputs_for(env_id)
     cands, meta = candidate_matrix(teacher.candidates), inputs.meta(teacher)
-    env_kwargs = {**inputs.env_kwargs, "decision_every": k}
+    env_kwargs = student_env_kwargs(inputs, teacher, k)
     episodes = Episodes(env_id, env_kwargs, teacher)
     val = [(sc, make_trial(sc, s)) for sc in cfg["scenarios"] for s in range(*cfg["val_seeds"])]
     n_obs = episodes.env(val[0][1]).observation_space.shape[0]

@@ -98,31 +98,18 @@ class KalmanInputs(StudentInputs):
         return np.concatenate(parts, 1)
 
 
-class TeacherEnvInputs(StudentInputs):
-    """Base of the envs whose teacher fixes env options (its ``env_kwargs``: e.g. the tuned rule's eq. 18 or
-    QSF detector, which its runner must have): ``meta(teacher)`` adopts them into ``env_kwargs`` (besides
-    ``features="extended"``), so the student acts in the env the teacher searched; run.yaml keeps them."""
-
-    env_kwargs = {"features": "extended"}
-
-    def meta(self, teacher) -> dict:
-        given = {k: v for k, v in getattr(teacher, "env_kwargs", {}).items() if k != "decision_every"}
-        self.env_kwargs = {**type(self).env_kwargs, **given}
-        return {}
-
-
-class ConstraintInputs(TeacherEnvInputs):
+class ConstraintInputs(StudentInputs):
     """MagConstraint-v0: the extended observation (``magenv.envs.constraint_memory``: base and extra causal
     features, and their copies 25 and 100 decisions earlier), each block followed by the teacher's
     continuation-rule w = min(mag_dev/th1, 1) (eq. 16; ``mag_dev`` is column 0 of every block)."""
 
     env_id = CONSTRAINT_ID
+    env_kwargs = {"features": "extended"}
 
     def meta(self, teacher) -> dict:
         from magenv.envs.constraint import EXTENDED, FEATURES
         from magenv.envs.constraint_memory import LAGS
 
-        super().meta(teacher)
         block = len(EXTENDED) // (1 + len(LAGS))
         return {"th1": float(teacher.rule["th1"]), "block": block, "base_features": len(FEATURES)}
 
@@ -136,11 +123,12 @@ class ConstraintInputs(TeacherEnvInputs):
         return np.concatenate(parts, 1)
 
 
-class QSFInputs(TeacherEnvInputs):
+class QSFInputs(StudentInputs):
     """MagQSF-v0: the extended observation as it is (``magenv.envs.qsf_memory``: base and extra causal features,
     and their copies 10 and 40 decisions earlier; the detector's start/keep codes are base features)."""
 
     env_id = QSF_ID
+    env_kwargs = {"features": "extended"}
 
 
 #: env id → what its student sees

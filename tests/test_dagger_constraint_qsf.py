@@ -19,8 +19,6 @@ def test_constraint_inputs_follow_each_block_with_the_rule_weight():
     oracle = registry.make("oracle_constraint")
     inputs = inputs_for(CONSTRAINT_ID)
     meta = inputs.meta(oracle)
-    assert inputs.env_kwargs["th2"] == oracle.env_kwargs["th2"] and inputs.env_kwargs["features"] == "extended"
-    assert "decision_every" not in inputs.env_kwargs
     obs = np.random.default_rng(0).uniform(0.0, 0.3, (5, len(EXTENDED))).astype(np.float32)
     x = inputs(obs, meta)
     block = meta["block"]
@@ -32,11 +30,14 @@ def test_constraint_inputs_follow_each_block_with_the_rule_weight():
         np.testing.assert_allclose(x[:, b * (block + 1) + block], np.minimum(obs[:, b * block] / meta["th1"], 1.0))
 
 
-def test_qsf_inputs_adopt_the_tuned_detector():
-    oracle = registry.make("oracle_qsf")
-    inputs = inputs_for(QSF_ID)
-    assert inputs.meta(oracle) == {}
-    assert inputs.env_kwargs["detector"] == oracle.env_kwargs["detector"]
+@pytest.mark.parametrize(("teacher", "env_id"), [("oracle_constraint", CONSTRAINT_ID), ("oracle_qsf", QSF_ID)])
+def test_the_student_acts_in_the_env_the_teacher_searched(teacher, env_id):
+    oracle = registry.make(teacher)
+    kwargs = dagger.student_env_kwargs(inputs_for(env_id), oracle, oracle.decision_every)
+    assert kwargs["features"] == "extended" and kwargs["decision_every"] == oracle.decision_every
+    for key, value in oracle.env_kwargs.items():
+        assert kwargs[key] == value  # e.g. the tuned eq. 18 (th2) or the tuned QSF detector
+    assert inputs_for(env_id).env_kwargs == {"features": "extended"}  # the shared inputs are left as they were
 
 
 TINY = {"iterations": 2, "trials_per_scenario": 1, "val_seeds": [5000, 5001], "fit_steps": 30, "hidden": [8]}
