@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import vqf
@@ -21,6 +20,7 @@ from tests.conftest import (
     check_feature_table,
     check_kernel_layout,
     check_scalar_action,
+    check_seeded_replay,
     check_with_checkers,
     kinematic_trial,
 )
@@ -137,13 +137,7 @@ def test_gymnasium_and_sb3_checkers(short_trials):
 
 def test_same_seed_same_episode_on_a_simulated_scenario():
     kw = dict(scenario="dynamic_magnet", episode_seconds=1.0)
-    acts = np.linspace(0, 1, 40)
-    a = _run(gym.make(ENV_ID, **kw), acts, seed=7)
-    b = _run(gym.make(ENV_ID, **kw), acts, seed=7)
-    c = _run(gym.make(ENV_ID, **kw), acts, seed=8)
-    np.testing.assert_array_equal(a[0], b[0])
-    np.testing.assert_array_equal(a[1], b[1])
-    assert not np.array_equal(a[0], c[0])
+    check_seeded_replay(ENV_ID, kw, 7, np.linspace(0, 1, 40), 32)  # 1 s at 256 Hz, 8 samples per step
 
 
 def test_bad_actions_and_arguments(short_trials):
