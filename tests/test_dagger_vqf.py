@@ -76,3 +76,43 @@ def test_the_shipped_agent_loads_and_acts(disturbed):
     assert agent.env_id == "magenv/MagVQF-v0" and agent.env_kwargs["rejection"] == "on"
     run = evaluation.run_method(agent.name, agent, disturbed)
     assert np.isfinite(run.scored.total) and np.all((run.trust >= 0) & (run.trust <= 1))
+
+
+def test_the_rule_input_is_the_fan_rules_trust_per_block_and_survives_saving(tmp_path):
+    from magenv.baselines.vqf_rules import VQFFanLambda
+
+    rule = (0.2, 5.0)
+    d = len(FEATURES) * 3
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-0.3, 0.3, (40, d))
+    probe = dv.Student([], np.zeros(d), np.ones(d), dv.CANDIDATES, rule=rule)
+    z = probe.augment(x)
+    assert z.shape == (40, d + 3)
+    fan = VQFFanLambda(*rule)
+    for b in range(3):
+        block = x[:, b * len(FEATURES) : (b + 1) * len(FEATURES)]
+        np.testing.assert_array_equal(z[:, b * (len(FEATURES) + 1) : (b + 1) * (len(FEATURES) + 1) - 1], block)
+        want = [fan(row)[0] for row in block]
+        np.testing.assert_allclose(z[:, (b + 1) * (len(FEATURES) + 1) - 1], want, rtol=1e-6)
+    student = dv.fit(x, rng.uniform(0, 1, (40, len(dv.CANDIDATES))), np.ones(40), hidden=(8,), steps=20, rule=rule)
+    assert student.mean.shape == (d + 3,)
+    dv.save(tmp_path, student, {"decision_every": 32, "rejection": "on"}, {})
+    loaded = dv.load_policy(tmp_path).student
+    assert loaded.rule == rule
+    np.testing.assert_allclose(loaded.logits(x[0]), student.logits(x[0]))
+
+
+def test_an_ensemble_acts_with_its_members_mean_trust_and_survives_saving(tmp_path):
+    d = len(FEATURES) * 3
+    rng = np.random.default_rng(1)
+    x, c = rng.uniform(-0.3, 0.3, (40, d)), rng.uniform(0, 1, (40, len(dv.CANDIDATES)))
+    ens = dv.fit(x, c, np.ones(40), hidden=(8,), steps=20, seed=3, members=3)
+    singles = [dv.fit(x, c, np.ones(40), hidden=(8,), steps=20, seed=3 + m) for m in range(3)]
+    assert len(ens.more) == 2
+    assert ens.act(x[0]) == pytest.approx(np.mean([s.act(x[0]) for s in singles]), rel=1e-9)
+    dv.save(tmp_path, ens, {"decision_every": 32, "rejection": "on"}, {})
+    loaded = dv.load_policy(tmp_path).student
+    assert loaded.act(x[0]) == pytest.approx(ens.act(x[0]), rel=1e-9)
+    (tmp_path / dv.RUN_FILE).write_text((tmp_path / dv.RUN_FILE).read_text().replace("n_members: 3", "n_members: 4"))
+    with pytest.raises(RunError, match="m3_w0"):
+        dv.load_policy(tmp_path)

@@ -8,7 +8,9 @@ in it plus simulated training trials (seeds ≥ 10000) and is scored on its own
 recordings, which it never saw, and on held-out simulated seeds (< 5000); the
 paired ratios to VQF (``magenv.stats.paired_ratio``) are printed per fold and
 pooled over the folds, so each recording's figure comes from a student that
-did not train on it. ``--final`` trains on all nine (the shipped
+did not train on it. Each fold keeps the DAgger round of the lowest
+:func:`validation_ratio` (validation seeds 5000–5999 and its own training
+recordings only). ``--final`` trains on all nine (the shipped
 ``pretrained:magenv/MagVQF-v0``), whose figures on the recordings are
 therefore training figures and are not reported.
 """
@@ -37,6 +39,9 @@ class Config:
     eval_seeds: tuple = (0, 8)  # held-out simulated seeds for the figures
     hidden: tuple = (64, 64)
     fit_steps: int = 3000
+    members: int = 5  # MLPs per student (seeds seed…seed+4), acting with their mean trust
+    rule: str | None = None  # a tuned rule whose trust u is a student input ("vqf_fan_lambda"; None: none)
+    val_seeds: tuple = (5000, 5004)  # simulated validation seeds: the round kept (with the training recordings)
     seed: int = 0
     folds: tuple = field(default=FOLDS)
 
@@ -83,27 +88,50 @@ def sim_training_trials(cfg: Config) -> list:
     ]
 
 
+def rule_params(cfg: Config) -> tuple[float, float] | None:
+    """(norm_tol, th_dip_deg) of the student's rule input: ``magenv tune``'s file for ``cfg.rule``."""
+    from magenv import registry
+
+    if cfg.rule is None:
+        return None
+    params = registry.tuned_params(cfg.rule)
+    return params["norm_tol"], params["th_dip_deg"]
+
+
 def fit_on(cfg: Config, data: list, seed: int):
     from magenv.agents import dagger_vqf as dv
 
     xs, cs, ss = (np.concatenate([d[i] for d in data]) for i in range(3))
-    return dv.fit(xs, cs, ss, cfg.hidden, cfg.fit_steps, seed=seed)
+    return dv.fit(xs, cs, ss, cfg.hidden, cfg.fit_steps, seed=seed, rule=rule_params(cfg), members=cfg.members)
+
+
+def validation_ratio(cfg: Config, student, recordings: list) -> float:
+    """Mean over the sim scenarios' validation seeds and the (training) recordings of the student's
+    ratio of mean total RMSE to VQF's: the model-selection figure (never a reported seed or recording)."""
+    from magenv.agents import dagger_vqf as dv
+    from magenv.scenarios import make_trial
+
+    policy = dv.StudentPolicy(student, _env_kwargs(cfg))
+    groups = [[make_trial(s, seed) for seed in range(*cfg.val_seeds)] for s in cfg.sim_scenarios] + [recordings]
+    return float(np.mean([np.mean(score(policy, g)) / np.mean(score("vqf", g)) for g in groups]))
 
 
 def train_student(cfg: Config, recordings: list, labeller: Labeller, tag: str, log) -> tuple:
     """DAgger over ``recordings`` plus simulated training trials: round 0 the oracle's trajectories, each
-    further round the latest student's, labelled by the oracle; returns (student, the rounds ≥ 1 data)."""
+    further round the latest student's, labelled by the oracle; keeps the round of the lowest
+    :func:`validation_ratio`; returns (student, the kept round)."""
     trials = [*recordings, *sim_training_trials(cfg)]
     data = [labeller.label(t, 0) for t in trials]
     student = fit_on(cfg, data, cfg.seed)
-    extra = []
+    best = (validation_ratio(cfg, student, recordings), 0, student)
+    log(f"  round 0: validation ratio {best[0]:.3f}")
     for rnd in range(1, cfg.iterations):
-        new = [labeller.label(t, rnd, student, tag) for t in trials]
-        extra += [(t.name, d) for t, d in zip(trials, new)]
-        data += new
+        data += [labeller.label(t, rnd, student, tag) for t in trials]
         student = fit_on(cfg, data, cfg.seed + rnd)
-        log(f"  round {rnd}: {sum(len(d[0]) for d in data)} labelled decisions")
-    return student, extra
+        val = validation_ratio(cfg, student, recordings)
+        log(f"  round {rnd}: {sum(len(d[0]) for d in data)} labelled decisions, validation ratio {val:.3f}")
+        best = min(best, (val, rnd, student), key=lambda b: b[0])
+    return best[2], best[1]
 
 
 def score(policy_or_name, trials) -> list[float]:
@@ -155,8 +183,8 @@ def main(argv=None) -> int:
         held = cfg.folds[f]
         log(f"fold {f}: held out {held}")
         train = [t for key, t in every.items() if key not in held]
-        student, _ = train_student(cfg, train, labeller, f".fold{f}", log)
-        run_dir = dv.save(args.out / f"fold{f}", student, _env_kwargs(cfg), {"held_out": list(held)})
+        student, kept = train_student(cfg, train, labeller, f".fold{f}", log)
+        run_dir = dv.save(args.out / f"fold{f}", student, _env_kwargs(cfg), {"held_out": list(held), "round": kept})
         policy = dv.load_policy(run_dir)
         tests = [every[k] for k in held]
         for name, trials in [("recordings", tests), *sims.items()]:
