@@ -16,7 +16,7 @@ Each acts on the observation alone and carries the env options it runs with
       λ2 = min(|θ_dip − θ0| / th_dip, 1)         (eq. 16, th_dip = 20°)
       λ  = (λ1 + λ2) / 2                         (eq. 17)
 
-* ``vqf_oracle`` — the privileged search of ``magenv.baselines.oracle_vqf`` on
+* ``oracle_vqf`` — the privileged search of ``magenv.baselines.oracle_vqf`` on
   top of VQF's rejection: an upper bound (it reads truth), never a baseline.
 * ``vqf_threshold`` — u = 0 when |‖m‖ − m0|/m0 > norm_th or |θ_dip − θ0| >
   dip_th_deg, else 1 (the gate of ``magenv.baselines.rules.Threshold``),
@@ -104,16 +104,16 @@ def vqf_no_rejection() -> VQFTrust:
     return VQFTrust(1.0, "off")
 
 
-def vqf_oracle() -> VQFOracle:
+def oracle_vqf() -> VQFOracle:
     """Privileged receding-horizon trust search over VQF (reads truth: the headroom, never a baseline)."""
     return VQFOracle(rejection="on")
 
 
 def methods() -> dict:
     """Name → factory for ``magenv.registry``: VQF with and without its rejection, the two rules, and the
-    privileged ``vqf_oracle`` (``magenv.baselines.oracle_vqf``)."""
+    privileged ``oracle_vqf`` (``magenv.baselines.oracle_vqf``)."""
     return {
-        "vqf_oracle": vqf_oracle,
+        "oracle_vqf": oracle_vqf,
         "vqf_rejection": vqf_rejection,
         "vqf_no_rejection": vqf_no_rejection,
         "vqf_fan_lambda": VQFFanLambda,

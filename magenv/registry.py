@@ -21,7 +21,7 @@ a fresh one. ``names()`` lists them all:
   baseline; likewise ``oracle_kalman`` for MagKalman-v0 (``magenv.baselines.oracle_kalman``, continuing with
   ``kf_model_tuned``), ``oracle_constraint`` (MagConstraint-v0, continuing with ``cf_constraint_tuned``,
   ``magenv.baselines.oracle_constraint``), ``oracle_qsf`` (MagQSF-v0, continuing with
-  ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``) and ``vqf_oracle`` for MagVQF-v0
+  ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``) and ``oracle_vqf`` for MagVQF-v0
   (``magenv.baselines.oracle_vqf``);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.

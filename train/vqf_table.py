@@ -35,14 +35,14 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--cv", type=Path, required=True, help="folder of the leave-recordings-out folds")
-    p.add_argument("--oracle", action="store_true", help="add the privileged vqf_oracle (headroom)")
+    p.add_argument("--oracle", action="store_true", help="add the privileged oracle_vqf (headroom)")
     args = p.parse_args(argv)
     trials = {path.stem[:2]: load_recording(path) for path in list_recordings()}
     folds = {}
     for run in sorted(args.cv.glob("fold*")):
         for key in yaml.safe_load((run / dv.RUN_FILE).read_text())["held_out"]:
             folds[key] = dv.load_policy(run, "agent (held out)")
-    names = [*METHODS, "agent", *(["vqf_oracle"] if args.oracle else [])]
+    names = [*METHODS, "agent", *(["oracle_vqf"] if args.oracle else [])]
     scores: dict[str, dict[str, float]] = {n: {} for n in names}
     runner = evaluation.PolicyRunner()
     for key, trial in trials.items():
