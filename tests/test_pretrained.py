@@ -30,12 +30,12 @@ def test_pretrained_agent_acts_in_compare(make_kinematic_trial):
 
 
 def test_shipped_student_scores_as_when_it_was_trained(make_kinematic_trial):
-    """The figures of the shipped MagBlend-v0 student on one trial, recorded before DAgger became
-    env-agnostic: the student still loads and acts the same."""
+    """The figures of the shipped MagBlend-v0 student on one trial, recorded when it was shipped (retrained on
+    the corrected sensor model): the student still loads and acts the same."""
     agent = registry.make("agent:" + NAME)
     run = evaluation.run_method(agent.name, agent, make_kinematic_trial(seed=3, duration=4.0, disturbance_ut=40.0))
-    assert run.score.total == pytest.approx(0.19872633555783664, rel=1e-9)
-    assert float(np.sum(run.lam)) == pytest.approx(11.278644662997293, rel=1e-9)
+    assert run.score.total == pytest.approx(0.1980237458947489, rel=1e-9)
+    assert float(np.sum(run.lam)) == pytest.approx(0.043689858133437065, rel=1e-9)
 
 
 def test_unknown_pretrained_env_names_the_shipped_ones():
