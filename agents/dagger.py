@@ -29,7 +29,11 @@ Training (Ross et al. 2011, with β = 0 after the first iteration):
    score it closed loop on the validation seeds (5000–5999) by the mean over
    scenarios of its RMSE ratio of means to the continuation rule; keep the best;
 3. roll the student (with probability β per decision the teacher) on new
-   training trials, label every state it visits, add them, repeat.
+   training trials, label every state it visits, add them, repeat;
+4. with ``ensemble: K`` > 1, the student is the K iterations of lowest validation
+   score together, their candidate probabilities averaged (fits of the same data
+   differ from iteration to iteration; their mean is steadier); it is scored on
+   the same validation trials, and run.yaml records its members and score.
 
 Episodes run in the env itself (``gym.make(env_id, **env_kwargs)``, each trial
 through ``reset(options={"trial": …})``), so training sees exactly the
@@ -40,7 +44,7 @@ The run folder holds weights only (``magenv.agents.weights`` format)::
 
     run.yaml             env id, env kwargs, algo "dagger", the config, the student's shape and input constants
     best.safetensors     the student with the best validation score
-    checkpoints/it_N.safetensors   the student of each iteration
+    checkpoints/it_N.safetensors   the student of each iteration (an ensemble's members: run.yaml ``ensemble``)
     iterations.csv       validation RMSE (°) and ratio to the rule per scenario and iteration
 
 ``load_policy(run_dir)`` rebuilds the student as a Policy.
@@ -79,6 +83,7 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "label_every": 1,
     "first": "teacher",
+    "ensemble": 1,
 }
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
 TEACHER_NEEDS = ("env_id", "candidates", "decision_every", "candidate_costs", "continuation_action", "horizon_s")
@@ -95,7 +100,15 @@ def check_config(config: dict | None) -> dict:
     from magenv.scenarios import expand_mixture
 
     cfg["scenarios"] = expand_mixture(cfg["scenarios"])  # "twins:DIR" entries: the twins of DIR's recordings
-    for key in ("iterations", "trials_per_scenario", "decision_every", "fit_steps", "batch_size", "label_every"):
+    for key in (
+        "iterations",
+        "trials_per_scenario",
+        "decision_every",
+        "fit_steps",
+        "batch_size",
+        "label_every",
+        "ensemble",
+    ):
         if isinstance(cfg[key], bool) or not isinstance(cfg[key], int) or cfg[key] < 1:
             raise ValueError(f"DAgger config {key!r} must be a positive integer, got {cfg[key]!r}")
     if not isinstance(cfg["train_seed"], int) or cfg["train_seed"] < HELD_OUT_BELOW:
@@ -105,6 +118,8 @@ def check_config(config: dict | None) -> dict:
         raise ValueError(f"val_seeds must be [start, stop) within the validation seeds 5000–5999, got {[lo, hi]}")
     if not 0.0 <= cfg["beta"] <= 1.0 or not cfg["learning_rate"] > 0:
         raise ValueError("beta must lie in [0, 1] and learning_rate be positive")
+    if cfg["ensemble"] > cfg["iterations"]:
+        raise ValueError(f"ensemble ({cfg['ensemble']}) cannot exceed iterations ({cfg['iterations']})")
     if cfg["first"] not in ("teacher", "rule"):
         raise ValueError(f"first must be 'teacher' or 'rule', got {cfg['first']!r}")
     if not cfg["hidden"] or any(int(h) != h or h < 1 for h in cfg["hidden"]):
@@ -191,6 +206,22 @@ class Student:
             raise RunError(f"{path}: the weights do not fit the student of run.yaml ({n_in} inputs, {widths})")
         meta = {k: v for k, v in student.items() if k not in _SHAPE_KEYS}
         return cls(layers, mu, sd, student["candidates"], inputs, meta)
+
+
+class Ensemble(Student):
+    """Students of one run acting together: the mean of their candidate probabilities (members share the
+    inputs, the candidates and the input constants; each keeps its own standardisation)."""
+
+    def __init__(self, members: list[Student]):
+        first = members[0]
+        self.members, self.candidates, self._columns = list(members), first.candidates, first._columns
+        self.feature_fn, self.meta = first.feature_fn, first.meta
+
+    def probabilities(self, x: np.ndarray) -> np.ndarray:
+        return np.mean([m.probabilities(x) for m in self.members], axis=0)
+
+    def tensors(self) -> dict:
+        raise TypeError("an ensemble is saved as its members' checkpoints (run.yaml 'ensemble')")
 
 
 class StudentPolicy:
@@ -344,8 +375,8 @@ def train(
     cands, meta = candidate_matrix(teacher.candidates), inputs.meta(teacher)
     env_kwargs = student_env_kwargs(inputs, teacher, k)
     episodes = Episodes(env_id, env_kwargs, teacher)
-    val = [(sc, make_trial(sc, s)) for sc in cfg["scenarios"] for s in range(*cfg["val_seeds"])]
-    n_obs = episodes.env(val[0][1]).observation_space.shape[0]
+    validation = Validation(episodes, teacher, cfg)
+    n_obs = episodes.env(validation.trials[0][1]).observation_space.shape[0]
     n_in = int(inputs(np.zeros((1, n_obs), np.float32), meta).shape[1])
     student_meta = {"hidden": [int(h) for h in cfg["hidden"]], "candidates": cands.tolist(), **meta, "n_inputs": n_in}
     run = {"env_id": env_id, "algo": ALGO, "env_kwargs": env_kwargs, "teacher": getattr(teacher, "name", "")}
@@ -368,10 +399,8 @@ def train(
         data_r.append(regret.astype(np.float32))
         return rmse
 
-    val_rule: dict[str, list[float]] = {sc: [] for sc in cfg["scenarios"]}
-    for sc, trial in val:
-        val_rule[sc].append(rule_mse(trial) ** 0.5)
-    log(f"rule on validation: {_fmt({sc: np.mean(v) for sc, v in val_rule.items()})}")
+    log(f"rule on validation: {_fmt(validation.rule)}")
+
     t0 = time.time()
 
     def oracle_act(o, runner, costs):
@@ -389,15 +418,7 @@ def train(
         x, r = np.concatenate(data_x), np.concatenate(data_r)
         student = fit(x, r, cfg, cfg["seed"] + it, cands, inputs, meta)
         t_fit = time.time() - t
-        rmse: dict[str, list[float]] = {sc: [] for sc in cfg["scenarios"]}
-
-        def student_act(o, runner, costs, st=student):
-            return st.action(o)
-
-        for sc, trial in val:
-            rmse[sc].append(episodes.run(trial, student_act, label_every=0)[2])
-        ratio = {sc: float(np.mean(rmse[sc]) / np.mean(val_rule[sc])) for sc in cfg["scenarios"]}
-        score = float(np.mean(list(ratio.values())))
+        rmse, ratio, score = validation.score(student)
         info = {"iteration": it, "val_ratio": score, "samples": len(x)}
         student.save(out / CHECKPOINTS / f"it_{it}.safetensors", info)
         if best is None or score < best:
@@ -421,7 +442,61 @@ def train(
             for s in range(first, first + n_per):
                 add(make_trial(sc, s), mixture, cfg["beta"] > 0)
         log(f"   collected {len(cfg['scenarios']) * n_per} student episodes, {time.time() - t:.0f} s")
+    if cfg["ensemble"] > 1:
+        add_ensemble(out, teacher, cfg["ensemble"], log, validation)
     return out
+
+
+class Validation:
+    """Closed-loop scores on the validation trials (seeds ``val_seeds`` of every scenario): per scenario the
+    ratio of the mean RMSE to the continuation rule's, and their mean over scenarios (the score; lower is better)."""
+
+    def __init__(self, episodes: Episodes, teacher, cfg: dict):
+        from magenv.scenarios import make_trial
+
+        self.episodes, self.scenarios = episodes, list(cfg["scenarios"])
+        self.trials = [(sc, make_trial(sc, s)) for sc in self.scenarios for s in range(*cfg["val_seeds"])]
+        rule = self.rmse(lambda o, runner, costs: teacher.continuation_action(runner))
+        self.rule = {sc: float(np.mean(v)) for sc, v in rule.items()}
+
+    def rmse(self, act) -> dict[str, list[float]]:
+        """Per-scenario RMSEs (°) of ``act(obs, runner, costs)`` on the validation trials."""
+        out: dict[str, list[float]] = {sc: [] for sc in self.scenarios}
+        for sc, trial in self.trials:
+            out[sc].append(self.episodes.run(trial, act, label_every=0)[2])
+        return out
+
+    def score(self, student: Student) -> tuple[dict[str, list[float]], dict[str, float], float]:
+        """(per-scenario RMSEs °, per-scenario ratios to the rule, score) of ``student``."""
+        rmse = self.rmse(lambda o, runner, costs: student.action(o))
+        ratio = {sc: float(np.mean(v) / self.rule[sc]) for sc, v in rmse.items()}
+        return rmse, ratio, float(np.mean(list(ratio.values())))
+
+
+def add_ensemble(
+    run_dir: str | Path, teacher, k: int, log: Callable[[str], None] = print, validation: Validation | None = None
+) -> dict:
+    """Make the student of the run in ``run_dir`` the ensemble of its ``k`` iterations of lowest validation
+    score (step 4 of the module docstring): scores it on the run's validation trials and writes its members,
+    score and ``config.ensemble = k`` into run.yaml; returns that ``ensemble`` entry."""
+    run_dir = Path(run_dir)
+    run = yaml.safe_load((run_dir / RUN_FILE).read_text())
+    with open(run_dir / LOG, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not 1 <= k <= len(rows):
+        raise ValueError(f"ensemble of {k} iterations, but {run_dir} has {len(rows)}")
+    chosen = sorted(rows, key=lambda row: float(row["score"]))[:k]
+    members = [f"{CHECKPOINTS}/it_{row['iteration']}.safetensors" for row in chosen]
+    inputs = inputs_for(run["env_id"])
+    ensemble = Ensemble([Student.load(run_dir / m, run["student"], inputs) for m in members])
+    if validation is None:
+        validation = Validation(Episodes(run["env_id"], run["env_kwargs"], teacher), teacher, run["config"])
+    _, ratio, score = validation.score(ensemble)
+    run["config"]["ensemble"] = int(k)
+    run["ensemble"] = {"members": members, "val_ratio": score, **{f"{sc}_ratio": v for sc, v in ratio.items()}}
+    (run_dir / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
+    log(f"ensemble of iterations {[int(row['iteration']) for row in chosen]}: val ratio {score:.3f} {_fmt(ratio)}")
+    return run["ensemble"]
 
 
 def _fmt(d: dict) -> str:
@@ -451,7 +526,8 @@ def is_run(run_dir: Path) -> bool:
 
 
 def load_policy(run_dir: str | Path, name: str | None = None) -> StudentPolicy:
-    """The best student of a DAgger run folder as a Policy (arrays only; RunError if the folder is corrupt)."""
+    """The student of a DAgger run folder as a Policy: its ensemble if run.yaml names one, else the best
+    iteration (arrays only; RunError if the folder is corrupt)."""
     run_dir = Path(run_dir)
     path = run_dir / RUN_FILE
     try:
@@ -463,6 +539,18 @@ def load_policy(run_dir: str | Path, name: str | None = None) -> StudentPolicy:
         inputs = inputs_for(env_id)
     except ValueError as exc:
         raise RunError(f"{path}: {exc}") from None
-    weights = run_dir / BEST
-    student = Student.load(weights, student_meta, inputs)
-    return StudentPolicy(student, name or f"agent:{run_dir.name}", env_kwargs, str(weights), env_id)
+    ensemble = run.get("ensemble")
+    members = ensemble.get("members") if isinstance(ensemble, dict) else None
+    if ensemble is not None and (not isinstance(members, list) or not members):
+        raise RunError(f"{path}: 'ensemble' must hold a non-empty list 'members', got {ensemble!r}")
+    files = [run_dir / BEST] if members is None else [_member(run_dir, m, path) for m in members]
+    students = [Student.load(f, student_meta, inputs) for f in files]
+    student = students[0] if members is None else Ensemble(students)
+    return StudentPolicy(student, name or f"agent:{run_dir.name}", env_kwargs, str(files[0]), env_id)
+
+
+def _member(run_dir: Path, member, where: Path) -> Path:
+    """The checkpoint file of an ensemble member named in run.yaml (inside ``run_dir/checkpoints``, else RunError)."""
+    if not isinstance(member, str) or not member.startswith(f"{CHECKPOINTS}/") or ".." in member:
+        raise RunError(f"{where}: ensemble member {member!r} is not a file in {CHECKPOINTS}/")
+    return run_dir / member

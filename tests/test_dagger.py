@@ -85,6 +85,39 @@ def test_weights_that_do_not_fit_are_refused(run_dir, tmp_path):
         load_agent(tmp_path)
 
 
+def test_an_ensemble_of_iterations_acts_with_their_mean_probabilities(run_dir, tmp_path, make_kinematic_trial):
+    """``add_ensemble``: the run's iterations by validation score, scored, recorded in run.yaml; the loaded policy
+    averages the members' candidate probabilities; a bad member name is refused."""
+    import shutil
+
+    ens_dir = tmp_path / "ens"
+    shutil.copytree(run_dir, ens_dir)
+    entry = dagger.add_ensemble(ens_dir, registry.make("oracle"), 2, log=lambda s: None)
+    run = yaml.safe_load((ens_dir / "run.yaml").read_text())
+    assert run["config"]["ensemble"] == 2 and run["ensemble"] == entry
+    assert sorted(entry["members"]) == ["checkpoints/it_0.safetensors", "checkpoints/it_1.safetensors"]
+    assert entry["val_ratio"] == pytest.approx(entry["dynamic_clean_ratio"])
+    policy = load_agent(ens_dir)
+    assert isinstance(policy.student, dagger.Ensemble)
+    inputs = inputs_for(BLEND_ID)
+    members = [dagger.Student.load(ens_dir / m, run["student"], inputs) for m in entry["members"]]
+    x = np.random.default_rng(0).normal(size=(4, run["student"]["n_inputs"])).astype(np.float32)
+    mean = (members[0].probabilities(x) + members[1].probabilities(x)) / 2
+    np.testing.assert_allclose(policy.student.probabilities(x), mean, rtol=1e-6)
+    assert not np.allclose(members[0].probabilities(x), members[1].probabilities(x))  # two different fits
+    trial = make_kinematic_trial(seed=1, duration=3.0)
+    a, b = (evaluation.run_method(n, load_agent(ens_dir), trial) for n in "ab")
+    np.testing.assert_array_equal(a.q, b.q)
+    for bad in ({"members": ["../run.yaml"]}, {"members": []}, ["checkpoints/it_0.safetensors"]):
+        (ens_dir / "run.yaml").write_text(yaml.safe_dump({**run, "ensemble": bad}))
+        with pytest.raises(RunError, match="ensemble"):
+            load_agent(ens_dir)
+    with pytest.raises(ValueError, match="ensemble of 3 iterations"):
+        dagger.add_ensemble(ens_dir, registry.make("oracle"), 3)
+    with pytest.raises(ValueError, match="cannot exceed iterations"):
+        dagger.check_config({"iterations": 2, "ensemble": 3})
+
+
 def test_rule_inputs_are_the_continuation_rule(make_kinematic_trial):
     """The λ column after each block of the student's input is the Fan rule on that block's observation."""
     oracle = registry.make("oracle")
