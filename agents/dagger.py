@@ -12,8 +12,10 @@ layer does not import baselines) follows the oracle interface:
 
 The student is an MLP over inputs built from the env's extended observation
 (``magenv.agents.student_inputs``: per env the observation options and the
-feature function); its logits score the C candidates, and it acts with the
-probability-weighted mean candidate action.
+feature function); its logits score the C candidates, and it acts (config ``act``) with the
+probability-weighted mean candidate action (``mean``, the default) or with its most probable candidate
+(``argmax``: for an action with a discrete part, e.g. MagQSF-v0's none/keep/start code, whose mean of "none"
+and "start" would be "keep").
 
 Training (Ross et al. 2011, with β = 0 after the first iteration):
 
@@ -35,17 +37,24 @@ Training (Ross et al. 2011, with β = 0 after the first iteration):
    differ from iteration to iteration; their mean is steadier); it is scored on
    the same validation trials, and run.yaml records its members and score.
 
+A run continues (``train(…, resume=True)``, ``magenv train --teacher NAME --out RUN --resume --iters N``) from
+its folder up to N iterations in all, with the run's own config: the labelled data of each iteration are kept
+in ``data/``, and data missing there (a run from before they were kept) are rebuilt by rolling the run's
+checkpoints on the same trials. Same config, same chain: a resumed run's students are bit for bit those of
+one run of N iterations.
+
 Episodes run in the env itself (``gym.make(env_id, **env_kwargs)``, each trial
 through ``reset(options={"trial": …})``), so training sees exactly the
 observations and action handling of evaluation; the teacher reads the env's
 runner.
 
-The run folder holds weights only (``magenv.agents.weights`` format)::
+The run folder holds weights and arrays only (``magenv.agents.weights`` format, numpy ``.npz``; no pickles)::
 
     run.yaml             env id, env kwargs, algo "dagger", the config, the student's shape and input constants
     best.safetensors     the student with the best validation score
     checkpoints/it_N.safetensors   the student of each iteration (an ensemble's members: run.yaml ``ensemble``)
     iterations.csv       validation RMSE (°) and ratio to the rule per scenario and iteration
+    data/it_N.npz        the labelled states added at iteration N: ``obs`` (D, n_obs) float32, ``regret`` (D, C)
 
 ``load_policy(run_dir)`` rebuilds the student as a Policy.
 """
@@ -67,7 +76,7 @@ from magenv.envs import BLEND_ID
 from magenv.seeding import HELD_OUT_BELOW
 
 ALGO = "dagger"
-RUN_FILE, BEST, CHECKPOINTS, LOG = "run.yaml", "best.safetensors", "checkpoints", "iterations.csv"
+RUN_FILE, BEST, CHECKPOINTS, LOG, DATA = "run.yaml", "best.safetensors", "checkpoints", "iterations.csv", "data"
 DEFAULTS: dict[str, Any] = {
     "iterations": 6,
     "trials_per_scenario": 20,
@@ -83,11 +92,14 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "label_every": 1,
     "first": "teacher",
+    "act": "mean",
     "ensemble": 1,
 }
+RESUMABLE = ("iterations", "ensemble")  # the config keys a resumed run may change
+ACTS = ("mean", "argmax")  # how the student turns its candidate probabilities into an action
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
 TEACHER_NEEDS = ("env_id", "candidates", "decision_every", "candidate_costs", "continuation_action", "horizon_s")
-_SHAPE_KEYS = ("hidden", "candidates", "n_inputs")  # run.yaml student keys that are not input constants
+_SHAPE_KEYS = ("hidden", "candidates", "n_inputs", "act")  # run.yaml student keys that are not input constants
 
 
 def check_config(config: dict | None) -> dict:
@@ -122,6 +134,8 @@ def check_config(config: dict | None) -> dict:
         raise ValueError(f"ensemble ({cfg['ensemble']}) cannot exceed iterations ({cfg['iterations']})")
     if cfg["first"] not in ("teacher", "rule"):
         raise ValueError(f"first must be 'teacher' or 'rule', got {cfg['first']!r}")
+    if cfg["act"] not in ACTS:
+        raise ValueError(f"act must be one of {list(ACTS)}, got {cfg['act']!r}")
     if not cfg["hidden"] or any(int(h) != h or h < 1 for h in cfg["hidden"]):
         raise ValueError(f"hidden must be a list of positive layer widths, got {cfg['hidden']!r}")
     return cfg
@@ -147,14 +161,17 @@ class Student:
         layers: [(W (out, in), b (out,)), …] float32, the last one the logits over ``candidates``.
         mu, sd: (n_in,) input standardisation. candidates: (C, action_dim) env actions (or (C,) scalars).
         inputs: the env's feature function (``magenv.agents.student_inputs``); meta: its per-run constants.
+        act: ``mean`` (the probability-weighted mean candidate) or ``argmax`` (the most probable one).
     """
 
-    def __init__(self, layers, mu, sd, candidates, inputs: StudentInputs, meta: dict):
+    def __init__(self, layers, mu, sd, candidates, inputs: StudentInputs, meta: dict, act: str = "mean"):
+        if act not in ACTS:
+            raise ValueError(f"act must be one of {list(ACTS)}, got {act!r}")
         self.layers = [(np.asarray(w, np.float32), np.asarray(b, np.float32)) for w, b in layers]
         self.mu, self.sd = np.asarray(mu, np.float32), np.asarray(sd, np.float32)
         self.candidates = candidate_matrix(candidates)
         self._columns = [np.ascontiguousarray(c) for c in self.candidates.T]
-        self.feature_fn, self.meta = inputs, dict(meta)
+        self.feature_fn, self.meta, self.act = inputs, dict(meta), act
 
     def inputs(self, obs: np.ndarray) -> np.ndarray:
         """(D, n_obs) observations → (D, n_in) network inputs."""
@@ -172,8 +189,11 @@ class Student:
         return p / p.sum(1, keepdims=True)
 
     def action(self, obs: np.ndarray) -> np.ndarray:
-        """(action_dim,) float64 for one observation: the probability-weighted mean of the candidates."""
+        """(action_dim,) float64 for one observation: the probability-weighted mean of the candidates
+        (``act="mean"``) or the most probable candidate (``"argmax"``, the first on ties)."""
         p = self.probabilities(self.inputs(obs))[0]
+        if self.act == "argmax":
+            return self.candidates[int(np.argmax(p))].copy()
         return np.array([p @ col for col in self._columns])
 
     def tensors(self) -> dict:
@@ -205,17 +225,20 @@ class Student:
         if mu.shape != (n_in,) or [w.shape[0] for w, _ in layers] != widths or layers[0][0].shape[1] != n_in:
             raise RunError(f"{path}: the weights do not fit the student of run.yaml ({n_in} inputs, {widths})")
         meta = {k: v for k, v in student.items() if k not in _SHAPE_KEYS}
-        return cls(layers, mu, sd, student["candidates"], inputs, meta)
+        act = student.get("act", "mean")  # run folders from before ``act`` act with the mean
+        if act not in ACTS:
+            raise RunError(f"{path}: run.yaml's student act {act!r} is not one of {list(ACTS)}")
+        return cls(layers, mu, sd, student["candidates"], inputs, meta, act)
 
 
 class Ensemble(Student):
     """Students of one run acting together: the mean of their candidate probabilities (members share the
-    inputs, the candidates and the input constants; each keeps its own standardisation)."""
+    inputs, the candidates, the input constants and ``act``; each keeps its own standardisation)."""
 
     def __init__(self, members: list[Student]):
         first = members[0]
         self.members, self.candidates, self._columns = list(members), first.candidates, first._columns
-        self.feature_fn, self.meta = first.feature_fn, first.meta
+        self.feature_fn, self.meta, self.act = first.feature_fn, first.meta, first.act
 
     def probabilities(self, x: np.ndarray) -> np.ndarray:
         return np.mean([m.probabilities(x) for m in self.members], axis=0)
@@ -279,7 +302,7 @@ def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inp
             sched.step()
     linear = [m for m in net if isinstance(m, torch.nn.Linear)]
     weights = [(m.weight.detach().numpy().copy(), m.bias.detach().numpy().copy()) for m in linear]
-    return Student(weights, mu, sd, candidates, inputs, meta)
+    return Student(weights, mu, sd, candidates, inputs, meta, cfg["act"])
 
 
 # ----------------------------------------------------------------- episodes
@@ -355,20 +378,24 @@ def train(
     config: dict | None = None,
     log: Callable[[str], None] = print,
     env_id: str | None = None,
+    resume: bool = False,
 ) -> Path:
     """Run DAgger from ``teacher`` (in ``env_id``, default the teacher's env) into the new run folder ``out``
-    (see the module docstring); returns ``out``."""
+    (see the module docstring); returns ``out``. With ``resume`` ``out`` is an existing run that continues with
+    its own config, ``config`` giving only a new ``iterations`` (in all) or ``ensemble`` (any other key that
+    differs from the run's raises ValueError)."""
     from magenv.scenarios import make_trial
 
     env_id = check_teacher(teacher, env_id)
-    cfg = check_config(config)
+    out = Path(out)
+    run = _resumed_run(out, teacher, env_id, config) if resume else None
+    cfg = check_config(run["config"] if run else config)
     if cfg["decision_every"] != teacher.decision_every:
         raise ValueError(
             f"DAgger config decision_every {cfg['decision_every']} differs from the teacher's {teacher.decision_every}"
         )
-    out = Path(out)
-    if (out / RUN_FILE).exists():
-        raise ValueError(f"{out} already holds a run; choose another --out")
+    if not resume and (out / RUN_FILE).exists():
+        raise ValueError(f"{out} already holds a run; choose another --out (or continue it with --resume)")
     out.mkdir(parents=True, exist_ok=True)
     k, n_per = cfg["decision_every"], cfg["trials_per_scenario"]
     inputs = inputs_for(env_id)
@@ -379,9 +406,15 @@ def train(
     n_obs = episodes.env(validation.trials[0][1]).observation_space.shape[0]
     n_in = int(inputs(np.zeros((1, n_obs), np.float32), meta).shape[1])
     student_meta = {"hidden": [int(h) for h in cfg["hidden"]], "candidates": cands.tolist(), **meta, "n_inputs": n_in}
-    run = {"env_id": env_id, "algo": ALGO, "env_kwargs": env_kwargs, "teacher": getattr(teacher, "name", "")}
-    run.update({"config": cfg, "student": student_meta})
-    (out / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
+    if cfg["act"] != "mean":  # run folders of mean-acting students stay as they were
+        student_meta["act"] = cfg["act"]
+    new_run = {"env_id": env_id, "algo": ALGO, "env_kwargs": env_kwargs, "teacher": getattr(teacher, "name", "")}
+    new_run.update({"config": cfg, "student": student_meta})
+    if run is not None:
+        differ = [key for key in ("env_kwargs", "student") if yaml.safe_load(yaml.safe_dump(new_run[key])) != run[key]]
+        if differ:
+            raise ValueError(f"{out}: the teacher's {' and '.join(differ)} differ from the run's; cannot resume it")
+    (out / RUN_FILE).write_text(yaml.safe_dump(new_run, sort_keys=False))
 
     def rule_act(o, runner, costs):
         return teacher.continuation_action(runner)
@@ -389,31 +422,58 @@ def train(
     def rule_mse(trial) -> float:
         return episodes.run(trial, rule_act, label_every=0)[2] ** 2
 
-    data_x, data_r = [], []
-
-    def add(trial, act, needs_costs):
-        obs, costs, rmse = episodes.run(trial, act, cfg["label_every"], needs_costs)
-        horizon = int(round(teacher.horizon_s * trial.rate))
-        regret = REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rule_mse(trial))
-        data_x.append(inputs(obs, meta))
-        data_r.append(regret.astype(np.float32))
-        return rmse
-
-    log(f"rule on validation: {_fmt(validation.rule)}")
-
-    t0 = time.time()
-
     def oracle_act(o, runner, costs):
         return cands[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
 
-    first_act, first_needs = (oracle_act, True) if cfg["first"] == "teacher" else (rule_act, False)
-    for sc in cfg["scenarios"]:
-        for s in range(cfg["train_seed"], cfg["train_seed"] + n_per):
-            add(make_trial(sc, s), first_act, first_needs)
-    log(f"iteration 0 data: {len(data_x)} {cfg['first']} episodes, {time.time() - t0:.0f} s")
-    rng = np.random.default_rng(cfg["seed"])
-    rows, best = [], None
-    for it in range(cfg["iterations"]):
+    def collect(j: int, student: Student | None) -> tuple[np.ndarray, np.ndarray]:
+        """The labelled states of iteration j: the teacher's (or rule's) episodes for j = 0, else ``student``'s
+        (the student of iteration j − 1; with probability β per decision the teacher) on new training trials."""
+        obs_parts, regret_parts = [], []
+        if j == 0:
+            act, needs = (oracle_act, True) if cfg["first"] == "teacher" else (rule_act, False)
+        else:
+            rng = np.random.default_rng([cfg["seed"], j])
+
+            def act(o, runner, costs, st=student):
+                action = st.action(o)
+                return oracle_act(o, runner, costs) if cfg["beta"] > 0 and rng.random() < cfg["beta"] else action
+
+            needs = cfg["beta"] > 0
+        first = cfg["train_seed"] + n_per * j
+        for sc in cfg["scenarios"]:
+            for s in range(first, first + n_per):
+                trial = make_trial(sc, s)
+                o, costs, _ = episodes.run(trial, act, cfg["label_every"], needs)
+                horizon = int(round(teacher.horizon_s * trial.rate))
+                obs_parts.append(o)
+                regret_parts.append(REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rule_mse(trial)))
+        obs = np.concatenate(obs_parts).astype(np.float32)
+        regret = np.concatenate(regret_parts).astype(np.float32)
+        _save_data(out / DATA / f"it_{j}.npz", obs, regret)
+        return obs, regret
+
+    log(f"rule on validation: {_fmt(validation.rule)}")
+    rows = _read_log(out / LOG) if run is not None else []
+    if len(rows) > cfg["iterations"]:
+        raise ValueError(f"{out} holds {len(rows)} iterations already; ask for more than that")
+    best = float(rows[-1]["best"]) if rows else None
+    data_x: list[np.ndarray] = []
+    data_r: list[np.ndarray] = []
+    student = None
+    for it in range(len(rows), cfg["iterations"]):
+        for j in range(len(data_x), it + 1):  # the data of iterations 0..it: kept, or collected now
+            t = time.time()
+            path = out / DATA / f"it_{j}.npz"
+            if path.is_file():
+                obs, regret = _load_data(path, len(cands))
+            else:  # the student of iteration j − 1: the one just fitted, or (resuming) its checkpoint
+                previous = student if student is not None and j == it else None
+                if j > 0 and previous is None:
+                    previous = Student.load(out / CHECKPOINTS / f"it_{j - 1}.safetensors", student_meta, inputs)
+                obs, regret = collect(j, previous)
+                log(f"   iteration {j} data: {len(obs)} labelled states, {time.time() - t:.0f} s")
+            data_x.append(inputs(obs, meta))
+            data_r.append(regret)
         t = time.time()
         x, r = np.concatenate(data_x), np.concatenate(data_r)
         student = fit(x, r, cfg, cfg["seed"] + it, cands, inputs, meta)
@@ -429,19 +489,6 @@ def train(
         rows[-1].update({f"{sc}_ratio": v for sc, v in ratio.items()})
         _write_log(out / LOG, rows)
         log(f"iteration {it}: {len(x)} samples, fit {t_fit:.0f} s, val ratio {score:.3f} {_fmt(ratio)}")
-        if it == cfg["iterations"] - 1:
-            break
-        t = time.time()
-        first = cfg["train_seed"] + n_per * (it + 1)
-
-        def mixture(o, runner, costs, student=student):
-            action = student.action(o)
-            return oracle_act(o, runner, costs) if cfg["beta"] > 0 and rng.random() < cfg["beta"] else action
-
-        for sc in cfg["scenarios"]:
-            for s in range(first, first + n_per):
-                add(make_trial(sc, s), mixture, cfg["beta"] > 0)
-        log(f"   collected {len(cfg['scenarios']) * n_per} student episodes, {time.time() - t:.0f} s")
     if cfg["ensemble"] > 1:
         add_ensemble(out, teacher, cfg["ensemble"], log, validation)
     return out
@@ -481,8 +528,7 @@ def add_ensemble(
     score and ``config.ensemble = k`` into run.yaml; returns that ``ensemble`` entry."""
     run_dir = Path(run_dir)
     run = yaml.safe_load((run_dir / RUN_FILE).read_text())
-    with open(run_dir / LOG, newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = _read_log(run_dir / LOG)
     if not 1 <= k <= len(rows):
         raise ValueError(f"ensemble of {k} iterations, but {run_dir} has {len(rows)}")
     chosen = sorted(rows, key=lambda row: float(row["score"]))[:k]
@@ -497,6 +543,55 @@ def add_ensemble(
     (run_dir / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
     log(f"ensemble of iterations {[int(row['iteration']) for row in chosen]}: val ratio {score:.3f} {_fmt(ratio)}")
     return run["ensemble"]
+
+
+def _resumed_run(out: Path, teacher, env_id: str, config: dict | None) -> dict:
+    """run.yaml of the run in ``out``, its config's ``iterations`` replaced by ``config``'s; ValueError if it is
+    not a DAgger run of this teacher and env, or if ``config`` changes any other key."""
+    path = out / RUN_FILE
+    if not is_run(out):
+        raise ValueError(f"{out} holds no DAgger run to resume (no {RUN_FILE} of algo {ALGO!r})")
+    run = yaml.safe_load(path.read_text())
+    name = getattr(teacher, "name", "")
+    if run.get("env_id") != env_id or run.get("teacher") != name:
+        raise ValueError(
+            f"{out} is a run of {run.get('teacher')!r} in {run.get('env_id')}, not of {name!r} in {env_id}"
+        )
+    stored = check_config(run["config"])
+    merged = check_config({**stored, **(config or {})})
+    refused = sorted(key for key in merged if key not in RESUMABLE and merged[key] != stored[key])
+    if refused:
+        raise ValueError(f"a resumed run keeps its config; {refused} differ from {path}'s")
+    run["config"] = merged
+    return run
+
+
+def _save_data(path: Path, obs: np.ndarray, regret: np.ndarray) -> None:
+    """``obs`` and ``regret`` into ``path`` (.npz; written whole, then renamed: an interrupted run leaves none)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, obs=obs, regret=regret)
+    tmp.replace(path)
+
+
+def _load_data(path: Path, n_candidates: int) -> tuple[np.ndarray, np.ndarray]:
+    """(obs, regret) of a data file; RunError if it is not one of this run's."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            obs, regret = z["obs"], z["regret"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise RunError(f"{path}: not a DAgger data file ({type(exc).__name__}: {exc})") from None
+    if obs.ndim != 2 or regret.shape != (len(obs), n_candidates):
+        raise RunError(f"{path}: obs {obs.shape} and regret {regret.shape} do not fit {n_candidates} candidates")
+    return obs, regret
+
+
+def _read_log(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
 
 
 def _fmt(d: dict) -> str:

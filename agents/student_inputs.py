@@ -124,11 +124,38 @@ class ConstraintInputs(StudentInputs):
 
 
 class QSFInputs(StudentInputs):
-    """MagQSF-v0: the extended observation as it is (``magenv.envs.qsf_memory``: base and extra causal features,
-    and their copies 10 and 40 decisions earlier; the detector's start/keep codes are base features)."""
+    """MagQSF-v0: the extended observation (``magenv.envs.qsf_memory``: base and extra causal features, and their
+    copies 10 and 40 decisions earlier), each block followed by the tuned rule's decision d recomputed from that
+    block (the detector policy ``qsf_detector_tuned``: d = 1 (start) where ``det_start``; where ``det_keep``,
+    0 (keep) if a period is ``active`` and its ``age`` is below the detector's ``max_period_s``, else 1; −1 (none)
+    otherwise). Runs from before this column (no ``rule_max_age`` in run.yaml's student) see the observation
+    as it is."""
 
     env_id = QSF_ID
     env_kwargs = {"features": "extended"}
+
+    def meta(self, teacher) -> dict:
+        from magenv.envs.qsf import AGE_SCALE_S, EXTENDED
+        from magenv.envs.qsf_memory import LAGS
+
+        max_age = float(teacher.detector.max_period_s) / AGE_SCALE_S  # in the age feature's unit
+        return {"rule_max_age": max_age, "block": len(EXTENDED) // (1 + len(LAGS))}
+
+    def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        from magenv.envs.qsf import FEATURES
+
+        obs = np.atleast_2d(np.asarray(obs, np.float32))
+        if "rule_max_age" not in meta:
+            return obs
+        max_age, block = float(meta["rule_max_age"]), int(meta["block"])
+        i_s, i_k, i_a, i_age = (FEATURES.index(n) for n in ("det_start", "det_keep", "active", "age"))
+        parts = []
+        for start in range(0, obs.shape[1], block):
+            blk = obs[:, start : start + block]
+            keep = (blk[:, i_a] > 0.5) & (blk[:, i_age] < max_age)
+            d = np.where(blk[:, i_s] > 0.5, 1.0, np.where(blk[:, i_k] > 0.5, np.where(keep, 0.0, 1.0), -1.0))
+            parts += [blk, d[:, None].astype(np.float32)]
+        return np.concatenate(parts, 1)
 
 
 #: env id → what its student sees

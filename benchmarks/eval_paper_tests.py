@@ -1,7 +1,7 @@
 """Held-out evaluation on the paper tests of MagConstraint-v0 or MagQSF-v0: tuned rule, oracle headroom, an agent.
 
     .venv/bin/python benchmarks/eval_paper_tests.py --env constraint|qsf [--seeds 0:20] [--agent RUN|pretrained:ID]
-        [--scenarios a,b] [--no-oracle] [--json FILE]
+        [--scenarios a,b] [--no-oracle] [--no-others] [--json FILE] [--validation]
 
 For every paper test (``constraint_test1–3``; ``handheld_texting/swinging/corridor/free``) and held-out seed it
 runs, on the same trial, the env's tuned rule (the reference: ``cf_constraint_tuned``; ``qsf_detector_tuned``),
@@ -9,7 +9,9 @@ the other rules listed in ``OTHERS``, the privileged oracle (``oracle_constraint
 bound that reads truth) and, with ``--agent``, a trained agent; it prints a Markdown table of mean total RMSE
 (°) and, for the oracle and the agent, the paired ratio to the rule (``magenv.stats.paired_ratio``: geometric
 mean of the per-trial ratios, bootstrap 95 % interval over the trials, 10 000 resamples, seed 0) with the win
-rate. ``--json`` writes every per-trial RMSE. It prints what it measures; nothing here is a test.
+rate. ``--agent`` may be given more than once (each compared on the same trials; named by its argument).
+``--json`` writes every per-trial RMSE. ``--validation`` takes validation seeds (5000–5999) instead, for model
+selection (never reported figures). It prints what it measures; nothing here is a test.
 """
 
 from __future__ import annotations
@@ -43,18 +45,23 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--env", required=True, choices=sorted(TESTS))
     p.add_argument("--seeds", type=seeds_arg, default="0:20")
-    p.add_argument("--agent", default=None, help="run folder or pretrained:ENV_ID")
+    p.add_argument("--agent", action="append", default=[], help="run folder or pretrained:ENV_ID (repeatable)")
     p.add_argument("--scenarios", default=None, help="comma list (default: the env's paper tests)")
     p.add_argument("--no-oracle", action="store_true")
+    p.add_argument("--no-others", action="store_true", help=f"only the tuned rule of {sorted(RULE.values())}")
+    p.add_argument("--validation", action="store_true", help="validation seeds 5000–5999 (model selection)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
-    if max(args.seeds) >= 5000:
-        raise SystemExit("reported figures use held-out seeds below 5000")
+    if args.validation and not (min(args.seeds) >= 5000 and max(args.seeds) < 6000):
+        raise SystemExit("validation seeds lie in 5000–5999")
+    if not args.validation and max(args.seeds) >= 5000:
+        raise SystemExit("reported figures use held-out seeds below 5000 (--validation: model selection)")
     rule, oracle = RULE[args.env], ORACLE[args.env]
-    names = [rule, *OTHERS[args.env]] + ([] if args.no_oracle else [oracle])
+    names = [rule, *([] if args.no_others else OTHERS[args.env])] + ([] if args.no_oracle else [oracle])
     methods = {m: registry.make(m) for m in names}
-    if args.agent:
-        methods["agent"] = registry.make(registry.AGENT_PREFIX + args.agent)
+    agents = {("agent" if len(args.agent) == 1 else a): a for a in args.agent}
+    for name, agent in agents.items():
+        methods[name] = registry.make(registry.AGENT_PREFIX + agent)
     scenarios = args.scenarios.split(",") if args.scenarios else TESTS[args.env]
     per_trial: dict = {}
     t0 = time.time()
@@ -68,8 +75,9 @@ def main() -> None:
                 json.dump(
                     {"env": args.env, "agent": args.agent, "seeds": list(args.seeds), "per_trial_rmse": per_trial}, f
                 )
-    paired = [m for m in ("agent", oracle) if m in methods]
-    print(f"held-out seeds {args.seeds[0]}:{args.seeds[-1] + 1} ({len(args.seeds)} per test); RMSE °, mean over trials")
+    paired = [m for m in (*agents, oracle) if m in methods]
+    kind = "validation" if args.validation else "held-out"
+    print(f"{kind} seeds {args.seeds[0]}:{args.seeds[-1] + 1} ({len(args.seeds)} per test); RMSE °, mean over trials")
     head = " | ".join(list(methods) + [f"{m}/{rule} [95% CI] (win)" for m in paired])
     print(f"| test | {head} |")
     print("|---" * (1 + len(methods) + len(paired)) + "|")

@@ -10,6 +10,7 @@ from magenv import evaluation, registry
 from magenv.agents import dagger
 from magenv.agents.loading import RunError, load_agent
 from magenv.agents.student_inputs import StudentInputs, inputs_for
+from magenv.agents.weights import read
 from magenv.baselines.rules import FanLambda
 from magenv.envs import BLEND_ID
 from magenv.envs.blend import BlendRunner
@@ -37,7 +38,10 @@ def run_dir(tmp_path_factory):
 def test_run_folder_holds_weights_only(run_dir):
     files = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.rglob("*") if p.is_file())
     assert files == ["best.safetensors", "checkpoints/it_0.safetensors", "checkpoints/it_1.safetensors",
-                     "iterations.csv", "run.yaml"]  # fmt: skip
+                     "data/it_0.npz", "data/it_1.npz", "iterations.csv", "run.yaml"]  # fmt: skip
+    with np.load(run_dir / "data" / "it_1.npz", allow_pickle=False) as data:
+        assert data["obs"].dtype == np.float32 and data["regret"].shape == (len(data["obs"]), 5)
+        assert data["regret"].min() == 0.0  # the regret of each state's cheapest candidate
     run = yaml.safe_load((run_dir / "run.yaml").read_text())
     assert run["algo"] == "dagger" and run["env_kwargs"]["features"] == "extended"
     assert run["config"]["train_seed"] >= 10000 and run["teacher"] == "oracle"
@@ -152,6 +156,66 @@ def test_student_acts_with_the_probability_weighted_candidate():
     np.testing.assert_allclose(student.action(np.zeros(2)), [0.25 * 0 + 0.5 * 1 + 0.25 * 0.5, 0.25 + 0.125])
     with pytest.raises(ValueError, match="candidates"):
         dagger.candidate_matrix(np.zeros((2, 2, 2)))
+
+
+def test_an_argmax_student_acts_with_its_most_probable_candidate(run_dir, tmp_path):
+    """``act: argmax``: the candidate of the largest probability (MagQSF-v0's none/start are not averaged into
+    keep); a run.yaml student with ``act: argmax`` loads as such, one without it acts with the mean."""
+    layers = [(np.zeros((3, 2)), np.log([1.0, 1.5, 2.0]))]
+    cands = [[-1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
+    student = dagger.Student(layers, [0, 0], [1, 1], cands, StudentInputs(), {}, act="argmax")
+    np.testing.assert_array_equal(student.action(np.zeros(2)), [1.0, 1.0])
+    with pytest.raises(ValueError, match="act must be one of"):
+        dagger.Student(layers, [0, 0], [1, 1], cands, StudentInputs(), {}, act="median")
+    with pytest.raises(ValueError, match="act must be one of"):
+        dagger.check_config({"act": "max"})
+    run = yaml.safe_load((run_dir / "run.yaml").read_text())
+    assert "act" not in run["student"] and load_agent(run_dir).student.act == "mean"
+    run["student"]["act"] = "argmax"
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(run))
+    (tmp_path / "best.safetensors").write_bytes((run_dir / "best.safetensors").read_bytes())
+    assert load_agent(tmp_path).student.act == "argmax"
+
+
+def _same_chain(a, b):
+    """Two run folders with the same students, data and validation log (all but the fit times); safetensors
+    files compared by content (their metadata's order varies from one write to the next)."""
+    for name in ["run.yaml", *(f"data/it_{i}.npz" for i in range(3))]:
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    for name in ["best.safetensors", *(f"checkpoints/it_{i}.safetensors" for i in range(3))]:
+        (ta, ma), (tb, mb) = read(a / name), read(b / name)
+        assert ma == mb and sorted(ta) == sorted(tb), name
+        for key in ta:
+            np.testing.assert_array_equal(ta[key].numpy(), tb[key].numpy())
+
+    def log(run):
+        lines = (run / "iterations.csv").read_text().splitlines()
+        col = lines[0].split(",").index("fit_s")
+        return [[v for i, v in enumerate(line.split(",")) if i != col] for line in lines]
+
+    assert log(a) == log(b)
+
+
+def test_a_resumed_run_is_bit_for_bit_the_uninterrupted_one(tmp_path):
+    """Two iterations resumed to three — with the run's data kept, or with them deleted (rebuilt from its
+    checkpoints) — give the three-iteration run's students, data and log exactly."""
+    oracle, quiet = registry.make("oracle"), (lambda line: None)
+    whole = dagger.train(tmp_path / "whole", oracle, {**TINY, "iterations": 3}, log=quiet)
+    kept = dagger.train(tmp_path / "kept", oracle, TINY, log=quiet)
+    assert main(["train", "--teacher", "oracle", "--out", str(kept), "--resume", "--iters", "3"]) == 0
+    _same_chain(whole, kept)
+    rebuilt = dagger.train(tmp_path / "rebuilt", oracle, {**TINY, "iterations": 1}, log=quiet)
+    (rebuilt / "data" / "it_0.npz").unlink()
+    dagger.train(rebuilt, oracle, {"iterations": 3}, log=quiet, resume=True)
+    _same_chain(whole, rebuilt)
+    with pytest.raises(ValueError, match=r"keeps its config; \['fit_steps'\]"):
+        dagger.train(kept, oracle, {"iterations": 4, "fit_steps": 99}, resume=True)
+    with pytest.raises(ValueError, match="holds 3 iterations already"):
+        dagger.train(kept, oracle, {"iterations": 2}, resume=True)
+    with pytest.raises(ValueError, match="no DAgger run to resume"):
+        dagger.train(tmp_path / "none", oracle, {"iterations": 2}, resume=True)
+    with pytest.raises(ValueError, match="not of 'oracle_kalman'"):
+        dagger.train(kept, registry.make("oracle_kalman"), {"iterations": 4}, resume=True)
 
 
 def test_a_kalman_student_from_oracle_kalman(tmp_path):

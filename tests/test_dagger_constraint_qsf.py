@@ -58,3 +58,36 @@ def test_tiny_run_loads_and_acts_in_the_teachers_env(tmp_path, teacher, scenario
     agent = registry.make(f"agent:{out}")
     trial = sc.make_trial(scenario, 0, duration=5.0)
     assert np.isfinite(evaluation.run_method("agent", agent, trial).score.total)
+
+
+def test_qsf_inputs_follow_each_block_with_the_tuned_rules_decision():
+    """The column after each block is the decision of ``qsf_detector_tuned`` on that block's base features, on
+    observations of a detector-driven episode (starts, keeps, nones and age restarts); a run without
+    ``rule_max_age`` (the shipped student's) sees the observation as it is."""
+    import gymnasium as gym
+
+    from magenv.envs.qsf import EXTENDED, FEATURES
+
+    oracle, rule = registry.make("oracle_qsf"), registry.make("qsf_detector_tuned")
+    inputs = inputs_for(QSF_ID)
+    meta = inputs.meta(oracle)
+    env = gym.make(QSF_ID, disable_env_checker=True, **dagger.student_env_kwargs(inputs, oracle, 1)).unwrapped
+    trial = sc.make_trial("handheld_texting", 0, duration=50.0)
+    o, _ = env.reset(seed=0, options={"trial": trial})
+    obs = []
+    for _ in range(4000):
+        obs.append(o)
+        o, _, terminated, truncated, _ = env.step(rule(o[: len(FEATURES)]))
+        if terminated or truncated:
+            break
+    obs = np.array(obs)
+    x, block = inputs(obs, meta), meta["block"]
+    assert x.shape == (len(obs), len(EXTENDED) + len(EXTENDED) // block)
+    for b in range(len(EXTENDED) // block):
+        np.testing.assert_array_equal(
+            x[:, b * (block + 1) : b * (block + 1) + block], obs[:, b * block : (b + 1) * block]
+        )
+        want = [rule(row)[0] for row in obs[:, b * block : b * block + len(FEATURES)]]
+        np.testing.assert_array_equal(x[:, b * (block + 1) + block], want)
+    assert set(np.unique(x[:, block])) == {-1.0, 0.0, 1.0}
+    np.testing.assert_array_equal(inputs(obs, {}), obs)

@@ -6,7 +6,8 @@
 With ``--teacher NAME`` it runs DAgger instead (``magenv.agents.dagger``: an MLP student imitating the
 privileged oracle NAME — ``oracle`` for MagBlend-v0, ``oracle_kalman`` … — on the env's extended
 observation; ``--env`` defaults to the teacher's env; ``--config`` a YAML file of the DAgger keys per env
-id, default ``agents/configs/dagger.yaml``; ``--iters`` overrides its iterations); the run folder is
+id, default ``agents/configs/dagger.yaml``; ``--iters`` overrides its iterations; ``--resume`` continues
+the DAgger run in ``--out`` with its own config up to ``--iters`` iterations in all); the run folder is
 loadable with ``--agent RUN`` like any other.
 
 Progress bar, TensorBoard logs (``runs/NAME/tb``), periodic evaluation on
@@ -104,6 +105,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "SB3 agent",
     )
     p.add_argument("--iters", type=rule_arg(POSITIVE_INT), default=None, help="DAgger iterations (default: config's)")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="with --teacher: continue the DAgger run in --out (its config, --iters iterations in all)",
+    )
 
 
 def run_dagger(args: argparse.Namespace) -> int:
@@ -121,8 +127,8 @@ def run_dagger(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from None
     env_id = args.env or getattr(teacher, "env_id", BLEND_ID)
     path = args.config or str(resources.files("magenv.agents") / "configs" / "dagger.yaml")
-    try:
-        config = dict((yaml.safe_load(Path(path).read_text()) or {}).get(env_id) or {})
+    try:  # a resumed run keeps its own config
+        config = {} if args.resume else dict((yaml.safe_load(Path(path).read_text()) or {}).get(env_id) or {})
     except (OSError, yaml.YAMLError, AttributeError, TypeError, ValueError) as exc:
         raise CommandError(f"cannot read the DAgger config {path}: {exc}") from None
     if args.iters is not None:
@@ -132,7 +138,9 @@ def run_dagger(args: argparse.Namespace) -> int:
     if args.eval_scenarios is not None:
         config["scenarios"] = args.eval_scenarios.split(",")
     try:
-        out = dagger.train(args.out, teacher, config, log=lambda line: print(line, flush=True), env_id=env_id)
+        out = dagger.train(
+            args.out, teacher, config, log=lambda line: print(line, flush=True), env_id=env_id, resume=args.resume
+        )
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     print(f"DAgger run in {out}; best student {out / dagger.BEST}")
