@@ -67,7 +67,7 @@ def reset_cost(every: int, resets: int = 20) -> tuple[float, float, int]:
     from magenv.sim import gimbal
 
     spent = [0.0]
-    rollout = gimbal.mj_rollout.rollout
+    rollout = gimbal.rollout_sensors
 
     def timed(*a, **kw):
         t = time.perf_counter()
@@ -78,14 +78,14 @@ def reset_cost(every: int, resets: int = 20) -> tuple[float, float, int]:
 
     env = gym.make("magenv/MagBlend-v0", decision_every=every)
     env.reset(seed=1)
-    gimbal.mj_rollout.rollout = timed
+    gimbal.rollout_sensors = timed
     try:
         t0 = time.perf_counter()
         for _ in range(resets):
             _, info = env.reset()
         total = time.perf_counter() - t0
     finally:
-        gimbal.mj_rollout.rollout = rollout
+        gimbal.rollout_sensors = rollout
     return total / resets, spent[0] / resets, -(-info["n_samples"] // every)
 
 

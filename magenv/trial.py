@@ -50,17 +50,23 @@ def unit_truth(q: np.ndarray, what: str) -> np.ndarray:
     a row off unit norm by more than ``UNIT_QUIET`` and at most ``UNIT_TOL`` is normalised, with a warning;
     farther off, or ±inf, is a TrialError naming ``what`` and the first bad row."""
     q = np.asarray(q, float)
-    inf_rows = np.flatnonzero(np.isinf(q).any(axis=1))
-    if inf_rows.size:
-        raise TrialError(f"{what}: truth quaternion row {inf_rows[0]} is infinite ({q[inf_rows[0]].tolist()})")
+    if np.isinf(q).any():
+        row = int(np.flatnonzero(np.isinf(q).any(axis=1))[0])
+        raise TrialError(f"{what}: truth quaternion row {row} is infinite ({q[row].tolist()})")
     present = ~np.isnan(q).any(axis=1)
+    whole = bool(present.all())  # the common case: truth everywhere, the masks change nothing
     norm = np.ones(len(q))
     for a in range(0, len(q), 1 << 16):  # in blocks: a long trial's temporaries stay small
         b = a + (1 << 16)
-        norm[a:b] = np.where(present[a:b], np.linalg.norm(np.where(present[a:b, None], q[a:b], 0.0), axis=1), 1.0)
-    dev = np.round(np.abs(norm - 1.0), 12)  # a truth scaled by exactly 1 + UNIT_TOL is within it
-    worst = float(dev.max(initial=0.0))
+        if whole:
+            norm[a:b] = np.linalg.norm(q[a:b], axis=1)
+        else:
+            norm[a:b] = np.where(present[a:b], np.linalg.norm(np.where(present[a:b, None], q[a:b], 0.0), axis=1), 1.0)
+    # a truth scaled by exactly 1 + UNIT_TOL is within it: deviations rounded to 12 decimals (the largest first,
+    # as rounding keeps the order; all of them only to report a refused truth)
+    worst = float(np.round(np.abs(norm - 1.0).max(initial=0.0), 12))
     if worst > UNIT_TOL:
+        dev = np.round(np.abs(norm - 1.0), 12)
         row = int(np.argmax(dev))
         raise TrialError(
             f"{what}: truth quaternions must have unit norm; row {row} has norm {norm[row]:.6g} "
