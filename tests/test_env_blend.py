@@ -92,6 +92,21 @@ def test_env_steps_equal_one_whole_trial_run(disturbed):
     assert np.all(env.lambdas == np.float32(0.3))
 
 
+@pytest.mark.parametrize("extended", [False, True])
+def test_runner_keeps_per_call_rows_of_one_call(disturbed, extended):
+    """The dip and candidate angle are kept for one call's samples (not N rows) and widen for a longer call:
+    calls of 1 … 300 samples and the rest in one give the estimates of calls of 7."""
+    ref = BlendRunner(disturbed, extended=extended)
+    while not ref.done:
+        ref.advance(7, 0.4)
+    runner = BlendRunner(disturbed, extended=extended)
+    for k in (1, 6, 64, 65, 300):
+        runner.advance(k, 0.4)
+    assert len(runner.out.dip) == len(runner.out.cand_angle) == 300 < disturbed.n
+    np.testing.assert_array_equal(runner.run_all(0.4), ref.est)
+    np.testing.assert_array_equal(runner.lam, ref.lam)
+
+
 def test_runners_of_same_typed_trials_share_one_compiled_kernel(disturbed, short_trials):
     """``TrialRunner.compiled``: one entry point per argument types, found again without numba's typeof."""
     a, b = BlendRunner(disturbed), BlendRunner(short_trials[0], hold=False)

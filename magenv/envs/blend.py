@@ -84,6 +84,7 @@ F = FEATURES.ix  # named kernel indices
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
 LAGS = (8, 32)  # decisions: the memory of the extended observation
+WINDOW_ROWS = 64  # a runner's per-call rows to begin with (Outputs.dip, cand_angle); widened for longer calls
 _CURRENT = (*FEATURES.features, *blend_memory.EXTRA.features)
 EXTENDED = lagged.extended_table(_CURRENT, LAGS)
 _LAGS = np.array(LAGS, np.int64)
@@ -97,23 +98,25 @@ class Site(NamedTuple):
 
 
 class Outputs(NamedTuple):
-    """What :func:`advance` writes: per-sample histories (N rows) and the last step's sums and observation."""
+    """What :func:`advance` writes: per-sample histories (N rows), the per-sample values of the samples fused by
+    the last call only (row r: sample start + r; read within the call), the last step's sums and observation."""
 
     est: np.ndarray  # (N, 4) estimate after each sample, sensor → ENU (NaN where not fused yet)
     lam: np.ndarray  # (N,) λ applied to each sample (NaN where not fused yet)
-    dip: np.ndarray  # (N,) dip of m_i with the estimate before it (eq. 18), degrees
-    cand_angle: np.ndarray  # (N,) angle between the IMU and MIMU candidates, degrees
+    dip: np.ndarray  # (W,) dip of m_i with the estimate before it (eq. 18), degrees; W ≥ the samples of a call
+    cand_angle: np.ndarray  # (W,) angle between the IMU and MIMU candidates, degrees
     stationary: np.ndarray  # (N,) bool, sample detected stationary (eqs. 11–13)
     err: np.ndarray  # (N_ERR,) error sums of the last step (magenv.metrics.E_*)
     feat: np.ndarray  # (len(FEATURES),) observation of the next sample j
 
     @classmethod
-    def empty(cls, n: int) -> Outputs:
+    def empty(cls, n: int, window: int) -> Outputs:
+        """Outputs of a trial of ``n`` samples fused at most ``window`` samples a call."""
         return cls(
             np.full((n, 4), np.nan),
             np.full(n, np.nan),
-            np.zeros(n),
-            np.zeros(n),
+            np.zeros(window),
+            np.zeros(window),
             np.zeros(n, np.bool_),
             np.zeros(N_ERR),
             np.zeros(len(FEATURES)),
@@ -164,8 +167,8 @@ def advance(p, site, state, sensors, truth, out, lam_const, start, stop):
         if lam_const >= 0.0:
             lam[i] = lam_const
         m = mag[i]
-        dip[i] = dip_deg(q, m)  # eq. 18 with the current estimate
-        cand_angle[i], still[i] = blend.step1(p, state, gyr[i], acc[i], m, lam[i])
+        dip[i - start] = dip_deg(q, m)  # eq. 18 with the current estimate
+        cand_angle[i - start], still[i] = blend.step1(p, state, gyr[i], acc[i], m, lam[i])
         est[i, 0], est[i, 1], est[i, 2], est[i, 3] = q[0], q[1], q[2], q[3]
     error_sums(est, truth.q_true, truth.dist, start, stop, out.err)  # against truth, as magenv.metrics
     _features(p, site, state, sensors, out, start, stop)
@@ -196,11 +199,11 @@ def _features(p, site, state, sensors, out, start, stop):
     sfrac = feat[F.stationary]
     cand_angle, dip, still_i = out.cand_angle, out.dip, out.stationary
     for i in range(start, stop):
-        ang += cand_angle[i]
+        ang += cand_angle[i - start]
         ndi = (_norm3(mag[i]) - m0) / m0
         nmax = max(nmax, abs(ndi))
         nsum += ndi
-        dmax = max(dmax, abs(dip[i] - dip0) / DIP_SCALE_DEG)
+        dmax = max(dmax, abs(dip[i - start] - dip0) / DIP_SCALE_DEG)
         sfrac += 1.0 if still_i[i] else 0.0
     cnt = stop - start
     ang_scale = np.rad2deg(4.0 * p.beta * p.dt)
@@ -262,7 +265,7 @@ class BlendRunner(TrialRunner):
         self.site = Site(trial.field_norm, trial.field_dip)
         self.state = blend.make_state(trial, t0, q0)
         self.q0 = self.state.q.copy()
-        self.out = Outputs.empty(trial.n)
+        self.out = Outputs.empty(trial.n, WINDOW_ROWS)
         self.est, self.lam, self.err, self.feat = self.out.est, self.out.lam, self.out.err, self.out.feat
         self._args = (self.params, self.site, self.state, self.sensors, self.truth, self.out)
         self.extended = bool(extended)
@@ -278,6 +281,10 @@ class BlendRunner(TrialRunner):
         self._fuse(0, 0, 0.0)  # the observation of sample 0, nothing fused
 
     def _fuse(self, start: int, stop: int, lam: float) -> None:
+        if stop - start > len(self.out.dip):  # a call of more samples than ever (run_all): wider per-call rows
+            rows = max(stop - start, 2 * len(self.out.dip))
+            self.out = self.out._replace(dip=np.zeros(rows), cand_angle=np.zeros(rows))
+            self._args = (*self._args[:-1], self.out)
         self._advance(*self._args, lam, start, stop, *self._more)
 
     def run_all(self, lam) -> np.ndarray:

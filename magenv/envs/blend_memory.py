@@ -200,7 +200,8 @@ def update(p, site, sensors, est, dip, still_flags, q0, mem, start, stop):
     Args:
         p: ``magenv.filters.blend.Params``. site: ``magenv.envs.blend.Site`` (m0 µT, θ0 °).
         sensors: the trial's ``magenv.filters.sensors.Sensors``.
-        est: (N, 4) the env's estimates; dip: (N,) dip of each sample with the estimate before it (°);
+        est: (N, 4) the env's estimates; dip: dip of each sample fused with the estimate before it (°), sample
+            i at row i − start;
         still_flags: (N,) bool, stationary samples. q0: (4,) the initial estimate (before sample 0).
         mem: :class:`Memory`, updated in place.
     """
@@ -219,7 +220,7 @@ def update(p, site, sensors, est, dip, still_flags, q0, mem, start, stop):
         m = mag[i]
         mx, my, mz = m[0], m[1], m[2]
         nd = (np.sqrt(mx * mx + my * my + mz * mz) - m0) / m0
-        dd = dip[i] - dip0
+        dd = dip[i - start] - dip0
         # pull of the MIMU candidate relative to the IMU one, q_M ⊗ q_I* (earth frame), from q_{i−1}
         iw, ix, iy, iz = step(q_prev, gyr[i], acc[i], m, MODE_IMU, NO_REF, beta, dt)
         mw, mx_, my_, mz_ = step(q_prev, gyr[i], acc[i], m, MODE_MIMU, NO_REF, beta, dt)

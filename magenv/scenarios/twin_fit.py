@@ -42,8 +42,6 @@ import dataclasses
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.signal import medfilt
 
 from magenv import quaternion as quat
 from magenv.recordings import initial_rest
@@ -145,6 +143,8 @@ class TwinFit:
 
 def fit_gyro(rec: Trial, mo: Motion, window_s: float = 1.0):
     """(lag samples, K (3, 3), bias trajectory (N, 3) rad/s) by eq. (1) of the module docstring."""
+    from scipy.signal import medfilt  # here: scipy.signal's import is ~40 MB, needed by twin fits only
+
     n, rate = rec.n, rec.rate
     W = int(round(window_s * rate))
     g = rec.gyr - mo.gyr_bias0
@@ -302,6 +302,8 @@ def dipole_e(p: np.ndarray, p_m: np.ndarray, mu: np.ndarray) -> np.ndarray:
 def fit_dipole(rE: np.ndarray, p: np.ndarray, ok: np.ndarray, rate: float, thresh_ut: float = 3.0, pad_s: float = 1.0):
     """(p_m (3,) m, μ (3,) A·m²) of a point dipole at rest fitted to the earth-frame residual ``rE`` at
     positions ``p`` over the ``ok`` samples near those where |rE| > ``thresh_ut`` (module docstring)."""
+    from scipy.optimize import least_squares  # here: scipy's import is large, needed by twin fits only
+
     rn = np.linalg.norm(rE, axis=1)
     strong = (rn > thresh_ut) & ok
     if strong.sum() < 10:

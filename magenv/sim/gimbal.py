@@ -28,7 +28,7 @@ Speed design (a trial is made at every environment reset):
   while, the model is stepped until it is at rest (servos settled, magnet
   stopped), and the rest of the pause repeats that state (a test checks
   this changes nothing beyond 1e-6);
-* one ``mujoco.rollout`` call per stretch of motion, no Python per step;
+* one ``mujoco.rollout`` call per stretch of motion (:func:`rollout_sensors`), no Python per step;
   post-processing in numba kernels.
 
 The model is loaded once per process and is not thread-safe (one MjData):
@@ -293,6 +293,33 @@ def gimbal_blocks(
         raise SimulationError(f"MuJoCo instability in the gimbal model: warnings {bad}, finite=True")
 
 
+_ROLLOUT: list = []  # the process's one-thread mujoco.rollout.Rollout, made at the first rollout_sensors call
+
+
+def rollout_sensors(model, data, state: np.ndarray, ctrl: np.ndarray, warmstart: np.ndarray) -> np.ndarray:
+    """MuJoCo's sensor rows (n, nsensordata) of n = ``len(ctrl)`` steps from ``state`` (FULLPHYSICS, (nstate,))
+    with warm start ``warmstart`` (nv,) and controls ``ctrl`` (n, nu), C-contiguous float64: one
+    ``mujoco.rollout`` call without its argument checks and without recording the states (the same numbers).
+    ``data`` is left in the state reached (read it with ``mj_getState``) and holds its warm start."""
+    if not _ROLLOUT:
+        _ROLLOUT.append(mj_rollout.Rollout(nthread=0))
+    n = len(ctrl)
+    sd = np.empty((1, n, model.nsensordata))
+    _ROLLOUT[0].rollout(
+        [model],
+        [data],
+        state[None],
+        ctrl[None],
+        control_spec=mujoco.mjtState.mjSTATE_CTRL.value,
+        skip_checks=True,
+        nstep=n,
+        initial_warmstart=warmstart[None],
+        state=None,
+        sensordata=sd,
+    )
+    return sd[0]
+
+
 class _Rollout:
     """The model rolled out from ``state`` (FULLPHYSICS), call after call; ``state`` is the state reached."""
 
@@ -306,14 +333,13 @@ class _Rollout:
         warmstart = np.zeros(self.model.nv)
         for c in range(a, b, self.block_rows):
             d = min(b, c + self.block_rows)
-            st, sd = mj_rollout.rollout(
-                self.model, self.data, self.state[None], ctrl_of(c, d)[None], initial_warmstart=warmstart[None]
-            )
-            self.state = st[0, -1].copy()
+            sd = rollout_sensors(self.model, self.data, self.state, ctrl_of(c, d), warmstart)
+            self.state = np.empty_like(self.state)
+            mujoco.mj_getState(self.model, self.data, self.state, _STATE)
             warmstart = self.data.qacc_warmstart.copy()
             if not np.all(np.isfinite(sd)):
                 raise SimulationError("MuJoCo instability in the gimbal model: non-finite sensor data")
-            yield sd[0], d
+            yield sd, d
 
 
 def _physics_rows(model, data, qadr: dict, profile: DriveProfile, tube: Tube, base, block_rows: int):

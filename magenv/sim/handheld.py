@@ -28,7 +28,6 @@ the device lies flat in front of the walker.
 from __future__ import annotations
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from magenv import quaternion as quat
 from magenv.quaternion import GRAVITY
@@ -59,6 +58,8 @@ class FigureEight:
     """A figure-eight ``[a sin φ, b sin 2φ]`` (m) walked at arc length s (m); heading along the tangent."""
 
     def __init__(self, a: float, b: float):
+        from scipy.interpolate import CubicSpline  # here: scipy's import is ~25 MB, needed by few trials
+
         phi = np.linspace(0.0, 2 * np.pi, 20001)
         speed = np.hypot(a * np.cos(phi), 2 * b * np.cos(2 * phi))
         s = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(phi))])

@@ -68,9 +68,7 @@ def add_move(profile: DriveProfile, axis: int, start: float, duration: float, an
 
     Rate ω(t) = angle/T·(1 − cos(2πt/T)) for 0 ≤ t ≤ T (peak 2·angle/T).
     """
-    # Only the steps near the move are looked at (the same t values as over the whole profile).
-    a = min(profile.n, max(0, int(math.floor(start * profile.rate)) - 1))
-    b = min(profile.n, max(a, int(math.ceil((start + duration) * profile.rate)) + 2))
+    a, b = _steps_near(profile, start, start + duration)
     t = np.arange(a, b) / profile.rate - start
     inside = (t >= 0.0) & (t <= duration)
     tt = t[inside]
@@ -82,14 +80,23 @@ def add_spin(profile: DriveProfile, axis: int, start: float, stop: float, rate: 
 
     The rate rises and falls over ``ramp`` s with a half-cosine shape.
     """
-    t = np.arange(profile.n) / profile.rate
-    w = np.zeros(profile.n)
+    a, b = _steps_near(profile, start, stop)
+    t = np.arange(a, b) / profile.rate
+    w = np.zeros(b - a)
     up = (t >= start) & (t < start + ramp)
     w[up] = 0.5 * (1.0 - np.cos(np.pi * (t[up] - start) / ramp))
     w[(t >= start + ramp) & (t <= stop - ramp)] = 1.0
     down = (t > stop - ramp) & (t <= stop)
     w[down] = 0.5 * (1.0 - np.cos(np.pi * (stop - t[down]) / ramp))
-    profile.omega[:, axis] += rate * w
+    profile.omega[a:b, axis] += rate * w
+
+
+def _steps_near(profile: DriveProfile, start: float, stop: float) -> tuple[int, int]:
+    """The steps a … b−1 that hold every step in [start, stop] s, with a step to spare at each end: a move
+    or spin looks at these only (the same time values t = i/rate as over the whole profile; elsewhere it
+    adds nothing)."""
+    a = min(profile.n, max(0, int(math.floor(start * profile.rate)) - 1))
+    return a, min(profile.n, max(a, int(math.ceil(stop * profile.rate)) + 2))
 
 
 def intermittent_moves(

@@ -21,7 +21,6 @@ edges held), the way the twin's sensors lag behind the truth.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import butter, filtfilt
 
 from magenv import quaternion as quat
 
@@ -111,6 +110,8 @@ def lowpass(x: np.ndarray, rate: float, fc: float, order: int = 4) -> np.ndarray
     """Zero-phase Butterworth low-pass of ``x`` along axis 0 (cut-off ``fc`` Hz; a copy if fc ≥ rate/2)."""
     if not 0 < fc < 0.5 * rate:
         return np.array(x, float, copy=True)
+    from scipy.signal import butter, filtfilt  # here: scipy.signal's import is ~40 MB
+
     b, a = butter(order, fc / (0.5 * rate))
     return filtfilt(b, a, x, axis=0)
 
