@@ -55,6 +55,8 @@ The run folder holds weights and arrays only (``magenv.agents.weights`` format, 
     checkpoints/it_N.safetensors   the student of each iteration (an ensemble's members: run.yaml ``ensemble``)
     iterations.csv       validation RMSE (°) and ratio to the rule per scenario and iteration
     data/it_N.npz        the labelled states added at iteration N: ``obs`` (D, n_obs) float32, ``regret`` (D, C)
+                         float32 in % of the trial's rule MSE (compressed; for resuming only, never shipped;
+                         a MagBlend iteration's is ~150 k states × 126 features)
 
 ``load_policy(run_dir)`` rebuilds the student as a Policy.
 """
@@ -410,11 +412,22 @@ def train(
         student_meta["act"] = cfg["act"]
     new_run = {"env_id": env_id, "algo": ALGO, "env_kwargs": env_kwargs, "teacher": getattr(teacher, "name", "")}
     new_run.update({"config": cfg, "student": student_meta})
+    rows = _read_log(out / LOG) if run is not None else []
     if run is not None:
         differ = [key for key in ("env_kwargs", "student") if yaml.safe_load(yaml.safe_dump(new_run[key])) != run[key]]
         if differ:
             raise ValueError(f"{out}: the teacher's {' and '.join(differ)} differ from the run's; cannot resume it")
-    (out / RUN_FILE).write_text(yaml.safe_dump(new_run, sort_keys=False))
+        if len(rows) > cfg["iterations"]:
+            raise ValueError(f"{out} holds {len(rows)} iterations already; ask for more than that")
+        lost = [j for j in range(1, len(rows) + 1) if not (out / DATA / f"it_{j}.npz").is_file()
+                and not (out / CHECKPOINTS / f"it_{j - 1}.safetensors").is_file()]  # fmt: skip
+        if lost:
+            raise ValueError(f"{out}: cannot rebuild the data of iterations {lost} (neither data nor checkpoints)")
+        if "ensemble" in run:  # still valid until the chain's end replaces it
+            new_run["ensemble"] = run["ensemble"]
+    elif (out / DATA).is_dir() and any((out / DATA).iterdir()):
+        raise ValueError(f"{out / DATA} holds another run's data; choose another --out")
+    _write_run(out / RUN_FILE, new_run)
 
     def rule_act(o, runner, costs):
         return teacher.continuation_action(runner)
@@ -453,9 +466,6 @@ def train(
         return obs, regret
 
     log(f"rule on validation: {_fmt(validation.rule)}")
-    rows = _read_log(out / LOG) if run is not None else []
-    if len(rows) > cfg["iterations"]:
-        raise ValueError(f"{out} holds {len(rows)} iterations already; ask for more than that")
     best = float(rows[-1]["best"]) if rows else None
     data_x: list[np.ndarray] = []
     data_r: list[np.ndarray] = []
@@ -465,7 +475,7 @@ def train(
             t = time.time()
             path = out / DATA / f"it_{j}.npz"
             if path.is_file():
-                obs, regret = _load_data(path, len(cands))
+                obs, regret = _load_data(path, len(cands), n_obs)
             else:  # the student of iteration j − 1: the one just fitted, or (resuming) its checkpoint
                 previous = student if student is not None and j == it else None
                 if j > 0 and previous is None:
@@ -528,8 +538,11 @@ def add_ensemble(
     score and ``config.ensemble = k`` into run.yaml; returns that ``ensemble`` entry."""
     run_dir = Path(run_dir)
     run = yaml.safe_load((run_dir / RUN_FILE).read_text())
+    check_teacher(teacher, run["env_id"])
+    if getattr(teacher, "name", "") != run["teacher"]:
+        raise ValueError(f"{run_dir} was taught by {run['teacher']!r}, not {getattr(teacher, 'name', teacher)!r}")
     rows = _read_log(run_dir / LOG)
-    if not 1 <= k <= len(rows):
+    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= len(rows):
         raise ValueError(f"ensemble of {k} iterations, but {run_dir} has {len(rows)}")
     chosen = sorted(rows, key=lambda row: float(row["score"]))[:k]
     members = [f"{CHECKPOINTS}/it_{row['iteration']}.safetensors" for row in chosen]
@@ -540,7 +553,7 @@ def add_ensemble(
     _, ratio, score = validation.score(ensemble)
     run["config"]["ensemble"] = int(k)
     run["ensemble"] = {"members": members, "val_ratio": score, **{f"{sc}_ratio": v for sc, v in ratio.items()}}
-    (run_dir / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
+    _write_run(run_dir / RUN_FILE, run)
     log(f"ensemble of iterations {[int(row['iteration']) for row in chosen]}: val ratio {score:.3f} {_fmt(ratio)}")
     return run["ensemble"]
 
@@ -566,24 +579,35 @@ def _resumed_run(out: Path, teacher, env_id: str, config: dict | None) -> dict:
     return run
 
 
+def _write_run(path: Path, run: dict) -> None:
+    """run.yaml written whole, then renamed (an interrupted write leaves the old one)."""
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(yaml.safe_dump(run, sort_keys=False))
+    tmp.replace(path)
+
+
 def _save_data(path: Path, obs: np.ndarray, regret: np.ndarray) -> None:
     """``obs`` and ``regret`` into ``path`` (.npz; written whole, then renamed: an interrupted run leaves none)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
     with open(tmp, "wb") as f:
-        np.savez(f, obs=obs, regret=regret)
+        np.savez_compressed(f, obs=obs, regret=regret)
     tmp.replace(path)
 
 
-def _load_data(path: Path, n_candidates: int) -> tuple[np.ndarray, np.ndarray]:
-    """(obs, regret) of a data file; RunError if it is not one of this run's."""
+def _load_data(path: Path, n_candidates: int, n_obs: int) -> tuple[np.ndarray, np.ndarray]:
+    """(obs (D, n_obs) float32, regret (D, C) float32 in % of the trial's rule MSE) of a data file; RunError if
+    it is not one of this run's."""
     try:
         with np.load(path, allow_pickle=False) as z:
             obs, regret = z["obs"], z["regret"]
-    except (OSError, ValueError, KeyError) as exc:
+    except Exception as exc:  # zip, npy or key errors alike: not one of ours
         raise RunError(f"{path}: not a DAgger data file ({type(exc).__name__}: {exc})") from None
-    if obs.ndim != 2 or regret.shape != (len(obs), n_candidates):
-        raise RunError(f"{path}: obs {obs.shape} and regret {regret.shape} do not fit {n_candidates} candidates")
+    if obs.ndim != 2 or obs.shape[1] != n_obs or regret.shape != (len(obs), n_candidates):
+        raise RunError(
+            f"{path}: obs {obs.shape} and regret {regret.shape} do not fit {n_obs} observations and "
+            f"{n_candidates} candidates"
+        )
     return obs, regret
 
 
@@ -641,7 +665,8 @@ def load_policy(run_dir: str | Path, name: str | None = None) -> StudentPolicy:
     files = [run_dir / BEST] if members is None else [_member(run_dir, m, path) for m in members]
     students = [Student.load(f, student_meta, inputs) for f in files]
     student = students[0] if members is None else Ensemble(students)
-    return StudentPolicy(student, name or f"agent:{run_dir.name}", env_kwargs, str(files[0]), env_id)
+    source = str(files[0]) if members is None else f"ensemble of {', '.join(str(f) for f in files)}"
+    return StudentPolicy(student, name or f"agent:{run_dir.name}", env_kwargs, source, env_id)
 
 
 def _member(run_dir: Path, member, where: Path) -> Path:

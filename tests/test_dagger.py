@@ -112,6 +112,13 @@ def test_an_ensemble_of_iterations_acts_with_their_mean_probabilities(run_dir, t
     trial = make_kinematic_trial(seed=1, duration=3.0)
     a, b = (evaluation.run_method(n, load_agent(ens_dir), trial) for n in "ab")
     np.testing.assert_array_equal(a.q, b.q)
+    log_rows = (ens_dir / "iterations.csv").read_text().splitlines()
+    scores = [float(r.split(",")[3]) for r in log_rows[1:]]
+    single = dagger.add_ensemble(ens_dir, registry.make("oracle"), 1, log=lambda s: None)
+    assert single["members"] == [f"checkpoints/it_{int(np.argmin(scores))}.safetensors"]  # the lowest score
+    assert entry["members"][0] == single["members"][0]  # members in score order
+    with pytest.raises(ValueError, match="not 'oracle_kalman'|searches"):
+        dagger.add_ensemble(ens_dir, registry.make("oracle_kalman"), 1)
     for bad in ({"members": ["../run.yaml"]}, {"members": []}, ["checkpoints/it_0.safetensors"]):
         (ens_dir / "run.yaml").write_text(yaml.safe_dump({**run, "ensemble": bad}))
         with pytest.raises(RunError, match="ensemble"):
@@ -210,8 +217,19 @@ def test_a_resumed_run_is_bit_for_bit_the_uninterrupted_one(tmp_path):
     _same_chain(whole, rebuilt)
     with pytest.raises(ValueError, match=r"keeps its config; \['fit_steps'\]"):
         dagger.train(kept, oracle, {"iterations": 4, "fit_steps": 99}, resume=True)
+    before = (kept / "run.yaml").read_bytes()
     with pytest.raises(ValueError, match="holds 3 iterations already"):
         dagger.train(kept, oracle, {"iterations": 2}, resume=True)
+    (rebuilt / "data" / "it_2.npz").unlink()
+    (rebuilt / "checkpoints" / "it_1.safetensors").unlink()
+    with pytest.raises(ValueError, match=r"cannot rebuild the data of iterations \[2\]"):
+        dagger.train(rebuilt, oracle, {"iterations": 4}, resume=True)
+    assert (kept / "run.yaml").read_bytes() == before  # a refused resume leaves the run as it was
+    (tmp_path / "stale" / "data").mkdir(parents=True)
+    (tmp_path / "stale" / "data" / "it_0.npz").write_bytes((kept / "data" / "it_0.npz").read_bytes())
+    with pytest.raises(ValueError, match="holds another run's data"):
+        dagger.train(tmp_path / "stale", oracle, TINY, log=quiet)
+    assert main(["train", "--out", str(kept), "--resume"]) == 2  # --resume without --teacher
     with pytest.raises(ValueError, match="no DAgger run to resume"):
         dagger.train(tmp_path / "none", oracle, {"iterations": 2}, resume=True)
     with pytest.raises(ValueError, match="not of 'oracle_kalman'"):

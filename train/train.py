@@ -127,6 +127,8 @@ def run_dagger(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from None
     env_id = args.env or getattr(teacher, "env_id", BLEND_ID)
     path = args.config or str(resources.files("magenv.agents") / "configs" / "dagger.yaml")
+    if args.resume and args.config:
+        raise CommandError("--resume continues a run with its own config; drop --config (only --iters may change)")
     try:  # a resumed run keeps its own config
         config = {} if args.resume else dict((yaml.safe_load(Path(path).read_text()) or {}).get(env_id) or {})
     except (OSError, yaml.YAMLError, AttributeError, TypeError, ValueError) as exc:
@@ -143,7 +145,7 @@ def run_dagger(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise CommandError(str(exc)) from None
-    print(f"DAgger run in {out}; best student {out / dagger.BEST}")
+    print(f"DAgger run in {out}; its student: {dagger.load_policy(out).source}")
     return 0
 
 
@@ -155,6 +157,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.teacher is not None:
         return run_dagger(args)
+    if args.resume:
+        raise CommandError("--resume continues a DAgger run: give its --teacher too")
     args.env = args.env or BLEND_ID
     if args.env not in gym.registry:
         known = ", ".join(k for k in gym.registry if k.startswith("magenv/"))

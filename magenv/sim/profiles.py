@@ -78,8 +78,11 @@ def add_move(profile: DriveProfile, axis: int, start: float, duration: float, an
 def add_spin(profile: DriveProfile, axis: int, start: float, stop: float, rate: float, ramp: float = 0.5) -> None:
     """Add a spin of frame ``axis`` at ``rate`` rad/s from ``start`` to ``stop`` s.
 
-    The rate rises and falls over ``ramp`` s with a half-cosine shape.
+    The rate rises and falls over ``ramp`` s with a half-cosine shape (0 < ``ramp`` ≤ ``stop`` − ``start``, else
+    ValueError: the spin stays within [start, stop]).
     """
+    if not 0.0 < ramp <= stop - start:
+        raise ValueError(f"spin ramp must lie in (0, stop - start = {stop - start:g}] s, got {ramp!r}")
     a, b = _steps_near(profile, start, stop)
     t = np.arange(a, b) / profile.rate
     w = np.zeros(b - a)
