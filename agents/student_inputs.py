@@ -68,10 +68,12 @@ class BlendInputs(StudentInputs):
 
 class KalmanInputs(StudentInputs):
     """MagKalman-v0: the extended observation (``features="extended"``: the 19 base and the extra causal features,
-    and their copies 8 and 32 decisions earlier), each block followed by the teacher's continuation rule γ
-    recomputed from that block (``magenv.baselines.oracle_kalman``):
-    γ = 1 / (1 + (‖d̂‖/σ_d)² + (Δm/σ_m)² + (Δθ/σ_θ)²), ‖d̂‖ = 50 µT·field_ref·model_dist,
-    Δm = 50 µT·field_ref·norm_dev, Δθ = 90°·dip_dev (σ = inf: the term is absent)."""
+    and their copies 8 and 32 decisions earlier), each block followed by the γ of the teacher's continuation rule
+    and then of each of its ``proposal_scales`` rules (``magenv.baselines.oracle_kalman``; e.g. kf_adaptive_tuned:
+    the best rule of ``stationary_magnet`` where the continuation kf_model_tuned is that of ``dynamic_magnet``),
+    recomputed from that block: γ = 1 / (1 + (‖d̂‖/σ_d)² + (Δm/σ_m)² + (Δθ/σ_θ)²),
+    ‖d̂‖ = 50 µT·field_ref·model_dist, Δm = 50 µT·field_ref·norm_dev, Δθ = 90°·dip_dev (σ = inf: the term is
+    absent) — the causal rules' own proposals, from which the student can learn deviations."""
 
     env_id = KALMAN_ID
     env_kwargs = {"features": "extended"}
@@ -79,22 +81,28 @@ class KalmanInputs(StudentInputs):
     def meta(self, teacher) -> dict:
         from magenv.envs.kalman import EXTENDED, LAGS
 
-        return {"scales": [float(v) for v in teacher.scales], "block": len(EXTENDED) // (1 + len(LAGS))}
+        out = {"scales": [float(v) for v in teacher.scales], "block": len(EXTENDED) // (1 + len(LAGS))}
+        proposals = getattr(teacher, "proposal_scales", [])
+        if len(proposals):
+            out["proposals"] = [[float(v) for v in p] for p in proposals]
+        return out
 
     def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
         from magenv.envs.kalman import FEATURES, FIELD_SCALE_UT
 
         obs = np.atleast_2d(np.asarray(obs, np.float32))
-        sd, sm, sth = (float(v) for v in meta["scales"])
+        rules = [meta["scales"], *meta.get("proposals", [])]
         block = int(meta["block"])
         i_nd, i_dd, i_md, i_m0 = (FEATURES.index(n) for n in ("norm_dev", "dip_dev", "model_dist", "field_ref"))
         parts = []
         for start in range(0, obs.shape[1], block):
             blk = obs[:, start : start + block]
             m0 = FIELD_SCALE_UT * blk[:, i_m0].astype(np.float64)
-            s = (m0 * blk[:, i_md] / sd) ** 2 + (m0 * blk[:, i_nd] / sm) ** 2
-            s += (DIP_SCALE_DEG * blk[:, i_dd] / sth) ** 2
-            parts += [blk, (1.0 / (1.0 + s))[:, None].astype(np.float32)]
+            parts.append(blk)
+            for sd, sm, sth in ([float(v) for v in r] for r in rules):
+                s = (m0 * blk[:, i_md] / sd) ** 2 + (m0 * blk[:, i_nd] / sm) ** 2
+                s += (DIP_SCALE_DEG * blk[:, i_dd] / sth) ** 2
+                parts.append((1.0 / (1.0 + s))[:, None].astype(np.float32))
         return np.concatenate(parts, 1)
 
 

@@ -114,6 +114,9 @@ class KalmanOracle:
             the env's default features (None: ``kf_model`` at its default σ_d).
         candidates: γ levels searched at each decision (``levels`` (C,); ``candidates`` is them as (C, 1)).
         horizon_s: look-ahead, s. decision_every: samples per decision (k).
+        proposals: further ``kf_model`` / ``kf_adaptive`` rules whose γ a DAgger student sees as inputs
+            (``proposal_scales``: their (σ_d, σ_m, σ_θ); ``magenv.agents.student_inputs.KalmanInputs``); they
+            do not change the oracle's search.
     """
 
     name = "oracle_kalman"
@@ -126,11 +129,13 @@ class KalmanOracle:
         candidates=CANDIDATES,
         horizon_s: float = HORIZON_S,
         decision_every: int = DECISION_EVERY,
+        proposals: tuple[KalmanRule, ...] = (),
     ):
         self.rule = ModelTrust() if rule is None else rule
         if self.rule.features != ModelTrust().features:
             raise ValueError("the continuation rule must read the env's default observation (features=None)")
         self.scales = rule_scales(self.rule)
+        self.proposal_scales = [rule_scales(p) for p in proposals]
         cands = np.asarray(candidates, float)
         if cands.ndim != 1 or cands.size == 0 or not np.all((cands >= 0) & (cands <= 1)):
             raise ValueError(f"candidates must be a non-empty list of γ in [0, 1], got {candidates!r}")
@@ -142,9 +147,10 @@ class KalmanOracle:
         self.horizon_s, self.decision_every = float(horizon_s), int(decision_every)
 
     @classmethod
-    def from_model_params(cls, params: dict) -> KalmanOracle:
-        """Privileged γ search (reads truth: an upper bound) continuing with the kf_model rule of ``params``."""
-        return cls(ModelTrust(params["sigma_dist_ut"]))
+    def from_model_params(cls, params: dict, proposals: tuple[KalmanRule, ...] = ()) -> KalmanOracle:
+        """Privileged γ search (reads truth: an upper bound) continuing with the kf_model rule of ``params``;
+        ``proposals``: rules whose γ a student sees (see the class)."""
+        return cls(ModelTrust(params["sigma_dist_ut"]), proposals=proposals)
 
     def candidate_costs(self, runner: KalmanRunner) -> np.ndarray:
         """(len(candidates),) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state."""

@@ -57,12 +57,22 @@ AGENT_PREFIX = "agent:"
 TUNED_SUFFIX = "_tuned"
 DATA_DIR_ENV = "MAGENV_DATA_DIR"
 METHOD_MODULES = (rules, kalman, kalman_policies, constraint, qsf, reference, vqf_rules)
+
+
+def _kalman_oracle(params: dict) -> oracle_kalman.KalmanOracle:
+    """``oracle_kalman``: continuing with kf_model at ``params``; its student also sees kf_adaptive_tuned's γ
+    (when a tuned kf_adaptive file exists), so that it can fall back on the best rule of each protocol."""
+    adaptive = kalman_policies.AdaptiveTrust
+    proposals = (adaptive.from_params(tuned_params("kf_adaptive")),) if tuned_file("kf_adaptive") else ()
+    return oracle_kalman.KalmanOracle.from_model_params(params, proposals)
+
+
 #: methods that act with another rule's tuned parameters: name → (the rule whose file, factory(params))
 TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "qsf_detector_tuned": ("delay_magyq", qsf.tuned_detector_policy),
     # privileged (reads truth): an upper bound shown as the headroom row, never a baseline
     "oracle": ("fan_lambda", oracle.BlendOracle.from_fan_params),
-    "oracle_kalman": ("kf_model", oracle_kalman.KalmanOracle.from_model_params),
+    "oracle_kalman": ("kf_model", _kalman_oracle),
     "oracle_constraint": ("cf_constraint", oracle_constraint.ConstraintOracle.from_constraint_params),
     "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),
 }

@@ -9,6 +9,7 @@ from conftest import kinematic_trial
 
 from magenv import evaluation, registry
 from magenv.agents import dagger
+from magenv.agents.student_inputs import inputs_for
 from magenv.baselines.kalman_policies import AdaptiveTrust, ModelTrust
 from magenv.baselines.oracle_kalman import KalmanOracle
 from magenv.envs import KALMAN_ID
@@ -62,6 +63,28 @@ def test_continuation_action_is_the_rule_on_the_observation(trial):
         for _ in range(40):
             assert oracle.continuation_action(runner)[0] == rule.weight(runner.feat[:19].astype(np.float32))
             runner.advance(8, 0.7)
+
+
+def test_student_sees_the_rules_proposals(trial):
+    """The packaged oracle's student gets, after each block of the extended observation, the γ of the
+    continuation rule (kf_model_tuned) and of its proposal kf_adaptive_tuned, as those rules act on the
+    observation (base block and its lagged copies)."""
+    oracle = registry.make("oracle_kalman")
+    rules = [registry.make("kf_model_tuned"), registry.make("kf_adaptive_tuned")]
+    inputs = inputs_for(KALMAN_ID)
+    meta = inputs.meta(oracle)
+    runner = KalmanRunner(trial, extended=True)
+    block, base = meta["block"], len(rules[0].features)
+    for _ in range(60):
+        obs = runner.feat.astype(np.float32)
+        x = inputs(obs, meta)[0]
+        assert x.shape == (obs.size + 2 * obs.size // block,)
+        for b in range(obs.size // block):
+            got = x[b * (block + 2) + block : (b + 1) * (block + 2)]
+            want = [r.weight(obs[b * block : b * block + base]) for r in rules]
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+        runner.advance(8, 0.7)
+    assert rules[1].weight(obs[:base]) != rules[0].weight(obs[:base])
 
 
 def test_teacher_interface_registry_and_bad_arguments():
