@@ -1,7 +1,7 @@
 """MuJoCo simulation of the two-link system of Jung & Lee 2019 (``twolink.xml``).
 
 ``simulate_twolink(command, sample_rate, n_samples)`` rolls the model out
-open-loop with ``mujoco.rollout`` (servo commands = the commanded joint
+open-loop with ``mujoco.rollout`` (``gimbal.rollout_sensors``; servo commands = the commanded joint
 positions and rates) and returns MuJoCo's own readings of both MIMUs at the
 sample times: gyro (rad/s) and accelerometer (specific force, m/s²) in each
 sensor's frame, each sensor's orientation (sensor → world = ENU) and
@@ -28,10 +28,9 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from mujoco import rollout as mj_rollout
 
 from magenv import quaternion as quat
-from magenv.sim.gimbal import SimulationError, resample_cubic
+from magenv.sim.gimbal import SimulationError, resample_cubic, rollout_sensors
 
 MODEL_PATH = Path(__file__).with_name("twolink.xml")
 JOINTS = ("tx", "ty", "tz", "jz", "jy", "jx", "iz", "iy", "ix")
@@ -226,14 +225,13 @@ def simulate_twolink(command: Command, sample_rate: float, n_samples: int) -> Tw
         w.number = 0
     state = np.empty(mujoco.mj_stateSize(model, _STATE))
     mujoco.mj_getState(model, data, state, _STATE)
-    warm = np.zeros((1, model.nv))
+    warm = np.zeros(model.nv)
     settle = int(round(INITIAL_SETTLE_S * phys))
     hold = np.concatenate([command.pos[0], np.zeros(N_JOINTS)])
-    st, _ = mj_rollout.rollout(model, data, state[None], np.tile(hold, (1, settle, 1)), initial_warmstart=warm)
-    state = st[0, -1].copy()
+    rollout_sensors(model, data, state, np.tile(hold, (settle, 1)), warm)
+    mujoco.mj_getState(model, data, state, _STATE)  # the settled state, its clock set back to t = 0
     state[0] = 0.0
-    _, sens = mj_rollout.rollout(model, data, state[None], ctrl[None], initial_warmstart=warm)
-    sens = sens[0]
+    sens = rollout_sensors(model, data, state, ctrl, warm)
     bad = [mujoco.mjtWarning(i).name for i, w in enumerate(data.warning) if w.number > 0]
     if bad or not np.all(np.isfinite(sens)):
         raise SimulationError(
