@@ -24,3 +24,12 @@ def test_readme_links_every_docs_page():
 )
 def test_snippet_runs(page, code):
     exec(compile(code, str(page), "exec"), {"__name__": "readme"})
+
+
+def test_cli_page_lists_every_dagger_config_key():
+    from magenv.agents.dagger import DEFAULTS
+
+    text = (ROOT / "docs" / "cli.md").read_text()
+    section = text[text.index("### Teacher–student training (DAgger)") :].split("\n### ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| `")]
+    assert [key for key in DEFAULTS if not any(f"`{key}`" in row.split(" | ")[0] for row in rows)] == []
