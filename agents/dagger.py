@@ -33,7 +33,9 @@ Training (Ross et al. 2011, with β = 0 after the first iteration):
 2. each iteration: fit a fresh student on all data so far, with the
    cost-sensitive "regret" loss Σ_c softmax(logits)_c · r_c, where
    r_c = 100 · (cost_c − min cost) / (H · MSE of the continuation rule on that
-   trial) (H = look-ahead samples: a unit of r is 1 % of the trial's rule MSE);
+   trial) (H = look-ahead samples: a unit of r is 1 % of the trial's rule MSE; ``regret_scale: best_rule``:
+   of the lowest MSE of the teacher's rules, ``rule_actions(runner)`` (R, action_dim), each acting alone, so
+   that a protocol whose continuation rule is poor is not weighted down);
    score it closed loop on the validation seeds (5000–5999) by the mean over
    scenarios of its RMSE ratio of means to the continuation rule; keep the best;
 3. roll the student (with probability β per decision the teacher) on new
@@ -102,9 +104,11 @@ DEFAULTS: dict[str, Any] = {
     "first": "teacher",
     "act": "mean",
     "ensemble": 1,
+    "regret_scale": "rule",
 }
 RESUMABLE = ("iterations", "ensemble")  # the config keys a resumed run may change
 ACTS = ("mean", "argmax")  # how the student turns its candidate probabilities into an action
+REGRET_SCALES = ("rule", "best_rule")  # the trial MSE a unit of regret is 1 % of
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
 TEACHER_NEEDS = ("env_id", "candidates", "decision_every", "candidate_costs", "continuation_action", "horizon_s")
 _SHAPE_KEYS = ("hidden", "candidates", "n_inputs", "act")  # run.yaml student keys that are not input constants
@@ -144,6 +148,8 @@ def check_config(config: dict | None) -> dict:
         raise ValueError(f"first must be 'teacher' or 'rule', got {cfg['first']!r}")
     if cfg["act"] not in ACTS:
         raise ValueError(f"act must be one of {list(ACTS)}, got {cfg['act']!r}")
+    if cfg["regret_scale"] not in REGRET_SCALES:
+        raise ValueError(f"regret_scale must be one of {list(REGRET_SCALES)}, got {cfg['regret_scale']!r}")
     if not cfg["hidden"] or any(int(h) != h or h < 1 for h in cfg["hidden"]):
         raise ValueError(f"hidden must be a list of positive layer widths, got {cfg['hidden']!r}")
     return cfg
@@ -433,6 +439,8 @@ def train(
         raise ValueError(
             f"DAgger config decision_every {cfg['decision_every']} differs from the teacher's {teacher.decision_every}"
         )
+    if cfg["regret_scale"] == "best_rule" and not hasattr(teacher, "rule_actions"):
+        raise ValueError(f"regret_scale best_rule needs a teacher with rule_actions; {teacher.name!r} has none")
     if not resume and (out / RUN_FILE).exists():
         raise ValueError(f"{out} already holds a run; choose another --out (or continue it with --resume)")
     out.mkdir(parents=True, exist_ok=True)
@@ -475,7 +483,19 @@ def train(
         return teacher.continuation_action(runner)
 
     def rule_mse(trial) -> float:
-        return episodes.run(trial, rule_act, label_every=0)[2] ** 2
+        if cfg["regret_scale"] == "rule":
+            return episodes.run(trial, rule_act, label_every=0)[2] ** 2
+        mses, n_rules = [], [1]
+        while len(mses) < n_rules[0]:  # each of the teacher's rules alone (their number: from the first)
+            r = len(mses)
+
+            def act(o, runner, costs, r=r):
+                actions = teacher.rule_actions(runner)
+                n_rules[0] = len(actions)
+                return actions[r]
+
+            mses.append(episodes.run(trial, act, label_every=0)[2] ** 2)
+        return min(mses)
 
     def oracle_act(o, runner, costs):
         return cands_of(o)[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)

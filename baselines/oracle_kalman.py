@@ -174,15 +174,17 @@ class KalmanOracle:
         (see the class)."""
         return cls(ModelTrust(params["sigma_dist_ut"]), proposals=proposals, **options)
 
-    def state_candidates(self, runner: KalmanRunner) -> np.ndarray:
-        """(S, 1) the state-dependent candidates at ``runner``'s state: with ``rule_candidates`` the γ of the
-        continuation rule and of each proposal on the env's observation of the next sample (float64; the same
-        numbers as ``magenv.agents.student_inputs.KalmanInputs.candidate_actions`` on that observation), else
-        none (S = 0)."""
-        if not self.rule_candidates:
-            return np.empty((0, 1))
+    def rule_actions(self, runner: KalmanRunner) -> np.ndarray:
+        """(R, 1) the γ of the continuation rule and of each proposal on the env's observation of ``runner``'s
+        next sample (float64; the same numbers as ``magenv.agents.student_inputs.KalmanInputs.candidate_actions``
+        on that observation)."""
         obs = runner.feat.astype(np.float32)
         return np.array([[r.weight(obs)] for r in (self.rule, *self.proposals)])
+
+    def state_candidates(self, runner: KalmanRunner) -> np.ndarray:
+        """(S, 1) the state-dependent candidates at ``runner``'s state: ``rule_actions`` with
+        ``rule_candidates``, else none (S = 0)."""
+        return self.rule_actions(runner) if self.rule_candidates else np.empty((0, 1))
 
     def candidate_costs(self, runner: KalmanRunner, candidates=None) -> np.ndarray:
         """(C,) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state: of ``candidates``

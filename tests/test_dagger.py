@@ -277,3 +277,23 @@ def test_a_kalman_student_with_the_rules_gamma_as_candidates(tmp_path):
     obs = seen[-1][0]
     p = student.probabilities(student.inputs(obs))[0]
     assert student.action(obs)[0] == pytest.approx(p @ student.candidates_at(obs)[:, 0], rel=1e-12)
+
+
+def test_regret_scale_best_rule_scales_by_the_best_rules_mse(tmp_path):
+    """``regret_scale: best_rule``: the same labels, in % of the lowest MSE of the teacher's rules (each alone)
+    instead of the continuation rule's: one factor ≥ 1 per trial; teachers without rules are refused."""
+    cfg = {**TINY, "iterations": 1, "label_every": 64, "first": "rule", "scenarios": ["stationary_magnet"]}
+    teacher = registry.make("oracle_kalman_rules")
+    regrets = []
+    for scale in ("rule", "best_rule"):
+        out = dagger.train(tmp_path / scale, teacher, {**cfg, "regret_scale": scale}, log=lambda line: None)
+        with np.load(out / "data" / "it_0.npz") as z:
+            regrets.append(z["regret"])
+    positive = regrets[0] > 0
+    factor = regrets[1][positive] / regrets[0][positive]
+    np.testing.assert_allclose(factor, factor[0], rtol=1e-5)
+    assert factor[0] > 1.01  # kf_adaptive_tuned beats the continuation kf_model_tuned on stationary_magnet
+    with pytest.raises(ValueError, match="rule_actions"):
+        dagger.train(tmp_path / "b", registry.make("oracle"), {**TINY, "regret_scale": "best_rule"})
+    with pytest.raises(ValueError, match="regret_scale"):
+        dagger.check_config({"regret_scale": "median"})
