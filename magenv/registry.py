@@ -71,13 +71,17 @@ def _kalman_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     return oracle_kalman.KalmanOracle.from_model_params(params, _kalman_proposals())
 
 
+RULES_ORACLE_HORIZON_S = 1.0  # s, look-ahead of oracle_kalman_rules
+
+
 def _kalman_rules_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     """``oracle_kalman_rules``: ``oracle_kalman`` that also searches the γ of kf_model_tuned and
-    kf_adaptive_tuned at each state (``rule_candidates``), continuing with the cheaper of the two rules
-    (the DAgger teacher of MagKalman-v0's rule-candidate student)."""
+    kf_adaptive_tuned at each state (``rule_candidates``), continuing with the cheaper of the two rules, with a
+    1 s look-ahead (0.25 s does not see what refusing the magnetometer costs in gyro drift); the DAgger teacher
+    of the shipped MagKalman-v0 student."""
     proposals = _kalman_proposals()
     oracle = oracle_kalman.KalmanOracle.from_model_params(
-        params, proposals, rule_candidates=True, continuations=proposals
+        params, proposals, rule_candidates=True, continuations=proposals, horizon_s=RULES_ORACLE_HORIZON_S
     )
     oracle.name = "oracle_kalman_rules"
     return oracle
