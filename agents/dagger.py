@@ -485,7 +485,8 @@ def train(
     def rule_mse(trial) -> float:
         if cfg["regret_scale"] == "rule":
             return episodes.run(trial, rule_act, label_every=0)[2] ** 2
-        mses, n_rules = [], [1]
+        mses: list[float] = []
+        n_rules = [1]
         while len(mses) < n_rules[0]:  # each of the teacher's rules alone (their number: from the first)
             r = len(mses)
 
