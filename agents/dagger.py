@@ -10,6 +10,12 @@ layer does not import baselines) follows the oracle interface:
 * ``continuation_action(runner) -> (action_dim,)`` — the continuation rule's action at the next decision;
 * ``horizon_s`` — the look-ahead, s (the unit of the regret below).
 
+State-dependent candidates: where the env's student inputs give them (``StudentInputs.candidate_actions``,
+e.g. MagKalman-v0's rules' own γ with a teacher of ``rule_candidates``), the student scores the C fixed
+candidates followed by the S actions computed from the observation, and the teacher costs the same C + S
+actions at the same state (``candidate_costs(runner, candidates)``, candidates (C + S, action_dim)); the
+student can then always fall back on a rule and learns where to deviate from it.
+
 The student is an MLP over inputs built from the env's extended observation
 (``magenv.agents.student_inputs``: per env the observation options and the
 feature function); its logits score the C candidates, and it acts (config ``act``) with the
@@ -27,7 +33,9 @@ Training (Ross et al. 2011, with β = 0 after the first iteration):
 2. each iteration: fit a fresh student on all data so far, with the
    cost-sensitive "regret" loss Σ_c softmax(logits)_c · r_c, where
    r_c = 100 · (cost_c − min cost) / (H · MSE of the continuation rule on that
-   trial) (H = look-ahead samples: a unit of r is 1 % of the trial's rule MSE);
+   trial) (H = look-ahead samples: a unit of r is 1 % of the trial's rule MSE; ``regret_scale: best_rule``:
+   of the lowest MSE of the teacher's rules, ``rule_actions(runner)`` (R, action_dim), each acting alone, so
+   that a protocol whose continuation rule is poor is not weighted down);
    score it closed loop on the validation seeds (5000–5999) by the mean over
    scenarios of its RMSE ratio of means to the continuation rule; keep the best;
 3. roll the student (with probability β per decision the teacher) on new
@@ -96,9 +104,11 @@ DEFAULTS: dict[str, Any] = {
     "first": "teacher",
     "act": "mean",
     "ensemble": 1,
+    "regret_scale": "rule",
 }
 RESUMABLE = ("iterations", "ensemble")  # the config keys a resumed run may change
 ACTS = ("mean", "argmax")  # how the student turns its candidate probabilities into an action
+REGRET_SCALES = ("rule", "best_rule")  # the trial MSE a unit of regret is 1 % of
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
 TEACHER_NEEDS = ("env_id", "candidates", "decision_every", "candidate_costs", "continuation_action", "horizon_s")
 _SHAPE_KEYS = ("hidden", "candidates", "n_inputs", "act")  # run.yaml student keys that are not input constants
@@ -138,6 +148,8 @@ def check_config(config: dict | None) -> dict:
         raise ValueError(f"first must be 'teacher' or 'rule', got {cfg['first']!r}")
     if cfg["act"] not in ACTS:
         raise ValueError(f"act must be one of {list(ACTS)}, got {cfg['act']!r}")
+    if cfg["regret_scale"] not in REGRET_SCALES:
+        raise ValueError(f"regret_scale must be one of {list(REGRET_SCALES)}, got {cfg['regret_scale']!r}")
     if not cfg["hidden"] or any(int(h) != h or h < 1 for h in cfg["hidden"]):
         raise ValueError(f"hidden must be a list of positive layer widths, got {cfg['hidden']!r}")
     return cfg
@@ -162,7 +174,8 @@ class Student:
     Args:
         layers: [(W (out, in), b (out,)), …] float32, the last one the logits over ``candidates``.
         mu, sd: (n_in,) input standardisation. candidates: (C, action_dim) env actions (or (C,) scalars).
-        inputs: the env's feature function (``magenv.agents.student_inputs``); meta: its per-run constants.
+        inputs: the env's feature function (``magenv.agents.student_inputs``); meta: its per-run constants
+            (with them, ``inputs.n_state_candidates(meta)`` state-dependent candidates follow the fixed ones).
         act: ``mean`` (the probability-weighted mean candidate) or ``argmax`` (the most probable one).
     """
 
@@ -174,10 +187,15 @@ class Student:
         self.candidates = candidate_matrix(candidates)
         self._columns = [np.ascontiguousarray(c) for c in self.candidates.T]
         self.feature_fn, self.meta, self.act = inputs, dict(meta), act
+        self.n_state = state_candidate_count(inputs, self.meta)
 
     def inputs(self, obs: np.ndarray) -> np.ndarray:
         """(D, n_obs) observations → (D, n_in) network inputs."""
         return self.feature_fn(obs, self.meta)
+
+    def candidates_at(self, obs: np.ndarray) -> np.ndarray:
+        """(C + S, action_dim) the candidates for one observation: the fixed ones, then the state-dependent."""
+        return candidates_at(self.candidates, self.feature_fn, self.meta, obs)
 
     def probabilities(self, x: np.ndarray) -> np.ndarray:
         """Softmax over the candidates for inputs ``x`` (D, n_in)."""
@@ -194,9 +212,13 @@ class Student:
         """(action_dim,) float64 for one observation: the probability-weighted mean of the candidates
         (``act="mean"``) or the most probable candidate (``"argmax"``, the first on ties)."""
         p = self.probabilities(self.inputs(obs))[0]
+        cands, columns = self.candidates, self._columns
+        if self.n_state:  # (fixed-candidate students: the arithmetic of before, bit for bit)
+            cands = self.candidates_at(obs)
+            columns = [np.ascontiguousarray(c) for c in cands.T]
         if self.act == "argmax":
-            return self.candidates[int(np.argmax(p))].copy()
-        return np.array([p @ col for col in self._columns])
+            return cands[int(np.argmax(p))].copy()
+        return np.array([p @ col for col in columns])
 
     def tensors(self) -> dict:
         import torch
@@ -223,10 +245,10 @@ class Student:
         except KeyError as exc:
             raise RunError(f"{path}: missing tensor {exc}") from None
         n_in = student["n_inputs"]
-        widths = [*student["hidden"], len(student["candidates"])]
+        meta = {k: v for k, v in student.items() if k not in _SHAPE_KEYS}
+        widths = [*student["hidden"], len(student["candidates"]) + state_candidate_count(inputs, meta)]
         if mu.shape != (n_in,) or [w.shape[0] for w, _ in layers] != widths or layers[0][0].shape[1] != n_in:
             raise RunError(f"{path}: the weights do not fit the student of run.yaml ({n_in} inputs, {widths})")
-        meta = {k: v for k, v in student.items() if k not in _SHAPE_KEYS}
         act = student.get("act", "mean")  # run folders from before ``act`` act with the mean
         if act not in ACTS:
             raise RunError(f"{path}: run.yaml's student act {act!r} is not one of {list(ACTS)}")
@@ -240,7 +262,7 @@ class Ensemble(Student):
     def __init__(self, members: list[Student]):
         first = members[0]
         self.members, self.candidates, self._columns = list(members), first.candidates, first._columns
-        self.feature_fn, self.meta, self.act = first.feature_fn, first.meta, first.act
+        self.feature_fn, self.meta, self.act, self.n_state = first.feature_fn, first.meta, first.act, first.n_state
 
     def probabilities(self, x: np.ndarray) -> np.ndarray:
         return np.mean([m.probabilities(x) for m in self.members], axis=0)
@@ -307,6 +329,19 @@ def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inp
     return Student(weights, mu, sd, candidates, inputs, meta, cfg["act"])
 
 
+def state_candidate_count(inputs: StudentInputs | None, meta: dict) -> int:
+    """S, the state-dependent candidates of the inputs ``inputs`` with constants ``meta`` (0 without inputs)."""
+    return 0 if inputs is None else int(inputs.n_state_candidates(meta))
+
+
+def candidates_at(fixed: np.ndarray, inputs: StudentInputs, meta: dict, obs: np.ndarray) -> np.ndarray:
+    """(C + S, action_dim) float64: the fixed candidates (C, action_dim), then the S state-dependent ones of
+    one observation (``inputs.candidate_actions``); the same numbers at label time and at act time."""
+    if not state_candidate_count(inputs, meta):
+        return fixed
+    return np.concatenate([fixed, inputs.candidate_actions(obs, meta)[0]])
+
+
 # ----------------------------------------------------------------- episodes
 
 
@@ -316,11 +351,19 @@ class Episodes:
     ``run(trial, act, label_every, needs_costs)``: ``act(obs, runner, costs)`` → the action (action_dim,) at
     each decision, ``costs`` the teacher's (C,) candidate costs at that state on the labelled decisions (every
     ``label_every``-th from the first; 0 = none) and, with ``needs_costs``, on all (else None). Returns
-    (labelled observations (D, n_obs) float32, their costs (D, C), RMSE °)."""
+    (labelled observations (D, n_obs) float32, their costs (D, C), RMSE °). With ``candidates_at``
+    (obs → (C + S, action_dim)) the teacher costs those candidates of each state (state-dependent ones)."""
 
-    def __init__(self, env_id: str, env_kwargs: dict, teacher):
+    def __init__(self, env_id: str, env_kwargs: dict, teacher, candidates_at: Callable | None = None):
         self.env_id, self.env_kwargs, self.teacher = env_id, dict(env_kwargs), teacher
+        self.candidates_at = candidates_at
         self._env = None
+
+    def costs(self, obs: np.ndarray, runner) -> np.ndarray:
+        """The teacher's candidate costs at ``runner``'s state, whose observation is ``obs``."""
+        if self.candidates_at is None:
+            return self.teacher.candidate_costs(runner)
+        return self.teacher.candidate_costs(runner, self.candidates_at(obs))
 
     def env(self, trial):
         if self._env is None:
@@ -342,7 +385,7 @@ class Episodes:
         done, d = False, 0
         while not done:
             label = label_every > 0 and d % label_every == 0
-            c = self.teacher.candidate_costs(env._runner) if label or needs_costs else None
+            c = self.costs(o, env._runner) if label or needs_costs else None
             if label:
                 obs.append(o)
                 costs.append(c)
@@ -396,14 +439,21 @@ def train(
         raise ValueError(
             f"DAgger config decision_every {cfg['decision_every']} differs from the teacher's {teacher.decision_every}"
         )
+    if cfg["regret_scale"] == "best_rule" and not hasattr(teacher, "rule_actions"):
+        raise ValueError(f"regret_scale best_rule needs a teacher with rule_actions; {teacher.name!r} has none")
     if not resume and (out / RUN_FILE).exists():
         raise ValueError(f"{out} already holds a run; choose another --out (or continue it with --resume)")
     out.mkdir(parents=True, exist_ok=True)
     k, n_per = cfg["decision_every"], cfg["trials_per_scenario"]
     inputs = inputs_for(env_id)
     cands, meta = candidate_matrix(teacher.candidates), inputs.meta(teacher)
+    n_cands = len(cands) + state_candidate_count(inputs, meta)
+
+    def cands_of(o):  # the fixed candidates, then the state-dependent ones of observation o
+        return candidates_at(cands, inputs, meta, o)
+
     env_kwargs = student_env_kwargs(inputs, teacher, k)
-    episodes = Episodes(env_id, env_kwargs, teacher)
+    episodes = Episodes(env_id, env_kwargs, teacher, cands_of if n_cands > len(cands) else None)
     validation = Validation(episodes, teacher, cfg)
     n_obs = episodes.env(validation.trials[0][1]).observation_space.shape[0]
     n_in = int(inputs(np.zeros((1, n_obs), np.float32), meta).shape[1])
@@ -433,10 +483,23 @@ def train(
         return teacher.continuation_action(runner)
 
     def rule_mse(trial) -> float:
-        return episodes.run(trial, rule_act, label_every=0)[2] ** 2
+        if cfg["regret_scale"] == "rule":
+            return episodes.run(trial, rule_act, label_every=0)[2] ** 2
+        mses: list[float] = []
+        n_rules = [1]
+        while len(mses) < n_rules[0]:  # each of the teacher's rules alone (their number: from the first)
+            r = len(mses)
+
+            def act(o, runner, costs, r=r):
+                actions = teacher.rule_actions(runner)
+                n_rules[0] = len(actions)
+                return actions[r]
+
+            mses.append(episodes.run(trial, act, label_every=0)[2] ** 2)
+        return min(mses)
 
     def oracle_act(o, runner, costs):
-        return cands[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
+        return cands_of(o)[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
 
     def collect(j: int, student: Student | None) -> tuple[np.ndarray, np.ndarray]:
         """The labelled states of iteration j: the teacher's (or rule's) episodes for j = 0, else ``student``'s
@@ -475,7 +538,7 @@ def train(
             t = time.time()
             path = out / DATA / f"it_{j}.npz"
             if path.is_file():
-                obs, regret = _load_data(path, len(cands), n_obs)
+                obs, regret = _load_data(path, n_cands, n_obs)
             else:  # the student of iteration j − 1: the one just fitted, or (resuming) its checkpoint
                 previous = student if student is not None and j == it else None
                 if j > 0 and previous is None:

@@ -34,6 +34,14 @@ class StudentInputs:
         """(D, n_obs) observations → (D, n_in) float32 inputs."""
         return np.atleast_2d(np.asarray(obs, np.float32))
 
+    def n_state_candidates(self, meta: dict) -> int:
+        """S, the number of state-dependent candidates of a run with input constants ``meta`` (0: none)."""
+        return 0
+
+    def candidate_actions(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        """(D, S, action_dim) float64 state-dependent candidate actions for (D, n_obs) observations."""
+        raise ValueError(f"{type(self).__name__} has no state-dependent candidates")
+
 
 class BlendInputs(StudentInputs):
     """MagBlend-v0: the extended observation (``features="extended"``: base and extra causal features, and their
@@ -73,7 +81,11 @@ class KalmanInputs(StudentInputs):
     the best rule of ``stationary_magnet`` where the continuation kf_model_tuned is that of ``dynamic_magnet``),
     recomputed from that block: γ = 1 / (1 + (‖d̂‖/σ_d)² + (Δm/σ_m)² + (Δθ/σ_θ)²),
     ‖d̂‖ = 50 µT·field_ref·model_dist, Δm = 50 µT·field_ref·norm_dev, Δθ = 90°·dip_dev (σ = inf: the term is
-    absent) — the causal rules' own proposals, from which the student can learn deviations."""
+    absent) — the causal rules' own proposals, from which the student can learn deviations.
+
+    With a teacher of ``rule_candidates`` (run.yaml student ``rule_candidates: true``), these rules' γ on the
+    current block are also state-dependent candidates (``candidate_actions``, float64: bit for bit the
+    teacher's ``state_candidates`` and the rules' ``weight`` on the observation)."""
 
     env_id = KALMAN_ID
     env_kwargs = {"features": "extended"}
@@ -85,25 +97,43 @@ class KalmanInputs(StudentInputs):
         proposals = getattr(teacher, "proposal_scales", [])
         if len(proposals):
             out["proposals"] = [[float(v) for v in p] for p in proposals]
+        if getattr(teacher, "rule_candidates", False):
+            out["rule_candidates"] = True
         return out
 
-    def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+    @staticmethod
+    def rule_terms(blk: np.ndarray, meta: dict) -> list[tuple]:
+        """Per rule (the continuation rule, then each proposal) the terms ((‖d̂‖/σ_d)², (Δm/σ_m)², (Δθ/σ_θ)²),
+        each (D,), of (D, ≥ 19) base features (a float32 ``blk`` computes the dip term in float32)."""
         from magenv.envs.kalman import FEATURES, FIELD_SCALE_UT
 
-        obs = np.atleast_2d(np.asarray(obs, np.float32))
-        rules = [meta["scales"], *meta.get("proposals", [])]
-        block = int(meta["block"])
         i_nd, i_dd, i_md, i_m0 = (FEATURES.index(n) for n in ("norm_dev", "dip_dev", "model_dist", "field_ref"))
+        m0 = FIELD_SCALE_UT * blk[:, i_m0].astype(np.float64)
+        return [
+            ((m0 * blk[:, i_md] / sd) ** 2, (m0 * blk[:, i_nd] / sm) ** 2, (DIP_SCALE_DEG * blk[:, i_dd] / sth) ** 2)
+            for sd, sm, sth in ([float(v) for v in r] for r in [meta["scales"], *meta.get("proposals", [])])
+        ]
+
+    def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        obs = np.atleast_2d(np.asarray(obs, np.float32))
+        block = int(meta["block"])
         parts = []
         for start in range(0, obs.shape[1], block):
             blk = obs[:, start : start + block]
-            m0 = FIELD_SCALE_UT * blk[:, i_m0].astype(np.float64)
             parts.append(blk)
-            for sd, sm, sth in ([float(v) for v in r] for r in rules):
-                s = (m0 * blk[:, i_md] / sd) ** 2 + (m0 * blk[:, i_nd] / sm) ** 2
-                s += (DIP_SCALE_DEG * blk[:, i_dd] / sth) ** 2
-                parts.append((1.0 / (1.0 + s))[:, None].astype(np.float32))
+            for a, b, c in self.rule_terms(blk, meta):
+                parts.append((1.0 / (1.0 + (a + b + c)))[:, None].astype(np.float32))
         return np.concatenate(parts, 1)
+
+    def n_state_candidates(self, meta: dict) -> int:
+        return 1 + len(meta.get("proposals", [])) if meta.get("rule_candidates") else 0
+
+    def candidate_actions(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        if not self.n_state_candidates(meta):
+            return super().candidate_actions(obs, meta)
+        blk = np.atleast_2d(np.asarray(obs, np.float32)).astype(np.float64)  # the rules' arithmetic: float64,
+        gammas = [1.0 / (1.0 + a + b + c) for a, b, c in self.rule_terms(blk, meta)]  # summed from 1 (``weight``)
+        return np.stack(gammas, 1)[:, :, None]
 
 
 class ConstraintInputs(StudentInputs):

@@ -27,6 +27,17 @@ Cost of a candidate = Σ over the horizon of (total error Δθ, degrees)², the
 error of eq. 22 (``magenv.metrics.errors1``; samples without truth add 0):
 what the trial's RMSE adds up. The cheapest candidate is applied for k
 samples, then the search repeats from the new state.
+
+Two options (both off in the packaged ``oracle_kalman``):
+
+* ``rule_candidates``: the γ that the continuation rule and each ``proposals``
+  rule give on the env's observation of the current state are searched as
+  further (state-dependent) candidates, after the fixed levels
+  (``state_candidates``); a DAgger student choosing among the same
+  candidates can always fall back on a rule;
+* ``continuations``: further continuation rules; a candidate's cost is then the
+  lowest over the roll-outs continuing with each rule (the continuation rule
+  and these).
 """
 
 from __future__ import annotations
@@ -116,7 +127,11 @@ class KalmanOracle:
         horizon_s: look-ahead, s. decision_every: samples per decision (k).
         proposals: further ``kf_model`` / ``kf_adaptive`` rules whose γ a DAgger student sees as inputs
             (``proposal_scales``: their (σ_d, σ_m, σ_θ); ``magenv.agents.student_inputs.KalmanInputs``); they
-            do not change the oracle's search.
+            do not change the oracle's search unless ``rule_candidates``.
+        rule_candidates: also search, at each decision, the γ of the continuation rule and of each proposal
+            on the env's observation (``state_candidates``).
+        continuations: further continuation rules (kf_model / kf_adaptive); each candidate costs the lowest
+            of its roll-outs continuing with ``rule`` and with each of these.
     """
 
     name = "oracle_kalman"
@@ -130,12 +145,18 @@ class KalmanOracle:
         horizon_s: float = HORIZON_S,
         decision_every: int = DECISION_EVERY,
         proposals: tuple[KalmanRule, ...] = (),
+        rule_candidates: bool = False,
+        continuations: tuple[KalmanRule, ...] = (),
     ):
         self.rule = ModelTrust() if rule is None else rule
-        if self.rule.features != ModelTrust().features:
-            raise ValueError("the continuation rule must read the env's default observation (features=None)")
+        default = ModelTrust().features
+        if any(r.features != default for r in (self.rule, *proposals, *continuations)):
+            raise ValueError("the continuation and proposal rules must read the env's default observation")
         self.scales = rule_scales(self.rule)
+        self.proposals = tuple(proposals)
         self.proposal_scales = [rule_scales(p) for p in proposals]
+        self.rule_candidates = bool(rule_candidates)
+        self.continuation_scales = [self.scales, *(rule_scales(r) for r in continuations)]
         cands = np.asarray(candidates, float)
         if cands.ndim != 1 or cands.size == 0 or not np.all((cands >= 0) & (cands <= 1)):
             raise ValueError(f"candidates must be a non-empty list of γ in [0, 1], got {candidates!r}")
@@ -147,25 +168,49 @@ class KalmanOracle:
         self.horizon_s, self.decision_every = float(horizon_s), int(decision_every)
 
     @classmethod
-    def from_model_params(cls, params: dict, proposals: tuple[KalmanRule, ...] = ()) -> KalmanOracle:
+    def from_model_params(cls, params: dict, proposals: tuple[KalmanRule, ...] = (), **options) -> KalmanOracle:
         """Privileged γ search (reads truth: an upper bound) continuing with the kf_model rule of ``params``;
-        ``proposals``: rules whose γ a student sees (see the class)."""
-        return cls(ModelTrust(params["sigma_dist_ut"]), proposals=proposals)
+        ``proposals``: rules whose γ a student sees; ``options``: ``rule_candidates``, ``continuations``
+        (see the class)."""
+        return cls(ModelTrust(params["sigma_dist_ut"]), proposals=proposals, **options)
 
-    def candidate_costs(self, runner: KalmanRunner) -> np.ndarray:
-        """(len(candidates),) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state."""
+    def rule_actions(self, runner: KalmanRunner) -> np.ndarray:
+        """(R, 1) the γ of the continuation rule and of each proposal on the env's observation of ``runner``'s
+        next sample (float64; the same numbers as ``magenv.agents.student_inputs.KalmanInputs.candidate_actions``
+        on that observation)."""
+        obs = runner.feat.astype(np.float32)
+        return np.array([[r.weight(obs)] for r in (self.rule, *self.proposals)])
+
+    def state_candidates(self, runner: KalmanRunner) -> np.ndarray:
+        """(S, 1) the state-dependent candidates at ``runner``'s state: ``rule_actions`` with
+        ``rule_candidates``, else none (S = 0)."""
+        return self.rule_actions(runner) if self.rule_candidates else np.empty((0, 1))
+
+    def candidate_costs(self, runner: KalmanRunner, candidates=None) -> np.ndarray:
+        """(C,) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state: of ``candidates``
+        ((C, 1) or (C,) γ) if given, else of the fixed levels then ``state_candidates(runner)``; with
+        ``continuations`` the lowest over the continuation rules."""
+        if candidates is None:
+            gammas = np.concatenate([self.levels, self.state_candidates(runner)[:, 0]])
+        else:
+            gammas = np.ascontiguousarray(np.asarray(candidates, np.float64).reshape(-1))
         horizon = int(round(self.horizon_s * runner.trial.rate))
         state = runner.state
         scratch = kt.State(np.empty_like(state.q), np.empty_like(state.p))
         peek = kt.State(np.empty_like(state.q), np.empty_like(state.p))
-        costs, sig = np.empty(self.levels.size), np.empty(kt.NSIG)
-        candidate_costs(runner.params, state, runner.sensors, runner.q_true, runner.mdist, runner.pos, horizon,
-                        self.decision_every, self.levels, self.scales, scratch, peek, sig, costs)  # fmt: skip
-        return costs
+        costs, sig = np.empty(gammas.size), np.empty(kt.NSIG)
+        best = np.full(gammas.size, np.inf)
+        for scales in self.continuation_scales:
+            candidate_costs(runner.params, state, runner.sensors, runner.q_true, runner.mdist, runner.pos, horizon,
+                            self.decision_every, gammas, scales, scratch, peek, sig, costs)  # fmt: skip
+            best = np.minimum(best, costs) if len(self.continuation_scales) > 1 else costs.copy()
+        return best
 
     def best_gamma(self, runner: KalmanRunner) -> float:
-        """The candidate with the lowest cost from ``runner``'s state (the first on ties)."""
-        return float(self.levels[int(np.argmin(self.candidate_costs(runner)))])
+        """The candidate (fixed level or, with ``rule_candidates``, a rule's γ) with the lowest cost from
+        ``runner``'s state (the first on ties)."""
+        gammas = np.concatenate([self.levels, self.state_candidates(runner)[:, 0]])
+        return float(gammas[int(np.argmin(self.candidate_costs(runner, gammas)))])
 
     def continuation_action(self, runner: KalmanRunner) -> np.ndarray:
         """(1,) the continuation rule's γ on the env's observation of ``runner``'s next sample."""

@@ -59,12 +59,32 @@ DATA_DIR_ENV = "MAGENV_DATA_DIR"
 METHOD_MODULES = (rules, kalman, kalman_policies, constraint, qsf, reference, vqf_rules)
 
 
+def _kalman_proposals() -> tuple:
+    """(kf_adaptive_tuned,) when a tuned kf_adaptive file exists, else ()."""
+    adaptive = kalman_policies.AdaptiveTrust
+    return (adaptive.from_params(tuned_params("kf_adaptive")),) if tuned_file("kf_adaptive") else ()
+
+
 def _kalman_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     """``oracle_kalman``: continuing with kf_model at ``params``; its student also sees kf_adaptive_tuned's γ
     (when a tuned kf_adaptive file exists), so that it can fall back on the best rule of each protocol."""
-    adaptive = kalman_policies.AdaptiveTrust
-    proposals = (adaptive.from_params(tuned_params("kf_adaptive")),) if tuned_file("kf_adaptive") else ()
-    return oracle_kalman.KalmanOracle.from_model_params(params, proposals)
+    return oracle_kalman.KalmanOracle.from_model_params(params, _kalman_proposals())
+
+
+RULES_ORACLE_HORIZON_S = 1.0  # s, look-ahead of oracle_kalman_rules
+
+
+def _kalman_rules_oracle(params: dict) -> oracle_kalman.KalmanOracle:
+    """``oracle_kalman_rules``: ``oracle_kalman`` that also searches the γ of kf_model_tuned and
+    kf_adaptive_tuned at each state (``rule_candidates``), continuing with the cheaper of the two rules, with a
+    1 s look-ahead (0.25 s does not see what refusing the magnetometer costs in gyro drift); the DAgger teacher
+    of the shipped MagKalman-v0 student."""
+    proposals = _kalman_proposals()
+    oracle = oracle_kalman.KalmanOracle.from_model_params(
+        params, proposals, rule_candidates=True, continuations=proposals, horizon_s=RULES_ORACLE_HORIZON_S
+    )
+    oracle.name = "oracle_kalman_rules"
+    return oracle
 
 
 #: methods that act with another rule's tuned parameters: name → (the rule whose file, factory(params))
@@ -73,6 +93,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     # privileged (reads truth): an upper bound shown as the headroom row, never a baseline
     "oracle": ("fan_lambda", oracle.BlendOracle.from_fan_params),
     "oracle_kalman": ("kf_model", _kalman_oracle),
+    "oracle_kalman_rules": ("kf_model", _kalman_rules_oracle),
     "oracle_constraint": ("cf_constraint", oracle_constraint.ConstraintOracle.from_constraint_params),
     "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),
 }

@@ -247,3 +247,53 @@ def test_a_kalman_student_from_oracle_kalman(tmp_path):
     assert agent.env_id == "magenv/MagKalman-v0" and agent.env_kwargs["features"] == "extended"
     with pytest.raises(ValueError, match="first"):
         dagger.check_config({"first": "oracle"})
+
+
+def test_a_kalman_student_with_the_rules_gamma_as_candidates(tmp_path):
+    """With ``oracle_kalman_rules`` the student scores the fixed γ levels and then the rules' γ of each state;
+    the teacher costs, at label time, exactly the candidates the student acts with at that observation, and
+    the student's action is its probability-weighted mean of them."""
+    teacher = registry.make("oracle_kalman_rules")
+    seen = []
+
+    class Recording:  # the teacher, recording what it is asked to cost
+        def __getattr__(self, name):
+            return getattr(teacher, name)
+
+        def candidate_costs(self, runner, candidates=None):
+            seen.append((runner.feat.astype(np.float32), np.array(candidates), teacher.state_candidates(runner)))
+            return teacher.candidate_costs(runner, candidates)
+
+    cfg = {**TINY, "iterations": 1, "label_every": 64, "first": "rule", "scenarios": ["dynamic_clean"]}
+    out = dagger.train(tmp_path / "kr", Recording(), cfg, log=lambda line: None)
+    run = yaml.safe_load((out / "run.yaml").read_text())
+    assert run["teacher"] == "oracle_kalman_rules" and run["student"]["rule_candidates"] is True
+    student = load_agent(out).student
+    assert student.n_state == 2 and student.layers[-1][0].shape[0] == len(teacher.levels) + 2
+    assert len(seen) > 5
+    for obs, cands, own in seen:
+        np.testing.assert_array_equal(cands, student.candidates_at(obs))
+        np.testing.assert_array_equal(cands[len(teacher.levels) :], own)
+    obs = seen[-1][0]
+    p = student.probabilities(student.inputs(obs))[0]
+    assert student.action(obs)[0] == pytest.approx(p @ student.candidates_at(obs)[:, 0], rel=1e-12)
+
+
+def test_regret_scale_best_rule_scales_by_the_best_rules_mse(tmp_path):
+    """``regret_scale: best_rule``: the same labels, in % of the lowest MSE of the teacher's rules (each alone)
+    instead of the continuation rule's: one factor ≥ 1 per trial; teachers without rules are refused."""
+    cfg = {**TINY, "iterations": 1, "label_every": 64, "first": "rule", "scenarios": ["stationary_magnet"]}
+    teacher = registry.make("oracle_kalman_rules")
+    regrets = []
+    for scale in ("rule", "best_rule"):
+        out = dagger.train(tmp_path / scale, teacher, {**cfg, "regret_scale": scale}, log=lambda line: None)
+        with np.load(out / "data" / "it_0.npz") as z:
+            regrets.append(z["regret"])
+    positive = regrets[0] > 0
+    factor = regrets[1][positive] / regrets[0][positive]
+    np.testing.assert_allclose(factor, factor[0], rtol=1e-5)
+    assert factor[0] > 1.01  # kf_adaptive_tuned beats the continuation kf_model_tuned on stationary_magnet
+    with pytest.raises(ValueError, match="rule_actions"):
+        dagger.train(tmp_path / "b", registry.make("oracle"), {**TINY, "regret_scale": "best_rule"})
+    with pytest.raises(ValueError, match="regret_scale"):
+        dagger.check_config({"regret_scale": "median"})

@@ -102,3 +102,42 @@ def test_teacher_interface_registry_and_bad_arguments():
         KalmanOracle(horizon_s=0.0)
     with pytest.raises(ValueError, match="kf_model or kf_adaptive"):
         KalmanOracle(registry.make("kf_gate"))
+
+
+def test_rule_candidates_are_the_rules_gamma_bit_for_bit(trial):
+    """``oracle_kalman_rules`` searches, after the fixed levels, the γ of kf_model_tuned and kf_adaptive_tuned
+    on the env's observation; the student's state-dependent candidates (computed from that observation at
+    act time) are the very same numbers as the teacher's (at label time) and as the rules' ``weight``."""
+    oracle = registry.make("oracle_kalman_rules")
+    rules = [registry.make("kf_model_tuned"), registry.make("kf_adaptive_tuned")]
+    inputs = inputs_for(KALMAN_ID)
+    meta = inputs.meta(oracle)
+    assert meta["rule_candidates"] and inputs.n_state_candidates(meta) == 2
+    assert inputs.n_state_candidates(inputs.meta(registry.make("oracle_kalman"))) == 0
+    runner = KalmanRunner(trial, extended=True)
+    seen = set()
+    for _ in range(60):
+        obs = runner.feat.astype(np.float32)
+        student = inputs.candidate_actions(obs, meta)[0]
+        np.testing.assert_array_equal(student, oracle.state_candidates(runner))
+        np.testing.assert_array_equal(student[:, 0], [r.weight(obs[: len(r.features)]) for r in rules])
+        seen.add(tuple(student[:, 0]))
+        runner.advance(8, 0.7)
+    assert len(seen) > 10  # the candidates move with the state
+
+
+def test_continuations_cost_the_cheaper_roll_out(trial):
+    """With ``continuations`` a candidate costs the lowest of its roll-outs continuing with each rule; explicit
+    ``candidates`` are costed as given, the default being the levels then the state candidates."""
+    adaptive = AdaptiveTrust(2.7, 0.74)
+    both = KalmanOracle(RULE, proposals=(adaptive,), rule_candidates=True, continuations=(adaptive,))
+    runner = KalmanRunner(trial, extended=True)
+    runner.advance(200, 0.5)
+    gammas = np.array([0.0, 0.3, 1.0])
+    model, adapt = (KalmanOracle(r).candidate_costs(runner, gammas) for r in (RULE, adaptive))
+    np.testing.assert_array_equal(both.candidate_costs(runner, gammas[:, None]), np.minimum(model, adapt))
+    assert np.any(model != adapt)
+    default = np.concatenate([both.levels, both.state_candidates(runner)[:, 0]])
+    np.testing.assert_array_equal(both.candidate_costs(runner), both.candidate_costs(runner, default))
+    trust = both.run(trial).trust[1:]
+    assert np.any(~np.isin(trust[np.isfinite(trust)], both.levels))  # it follows a rule's γ at some decisions
