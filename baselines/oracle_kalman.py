@@ -203,7 +203,7 @@ class KalmanOracle:
         for scales in self.continuation_scales:
             candidate_costs(runner.params, state, runner.sensors, runner.q_true, runner.mdist, runner.pos, horizon,
                             self.decision_every, gammas, scales, scratch, peek, sig, costs)  # fmt: skip
-            best = np.minimum(best, costs) if len(self.continuation_scales) > 1 else costs.copy()
+            np.minimum(best, costs, out=best)
         return best
 
     def best_gamma(self, runner: KalmanRunner) -> float:
