@@ -31,11 +31,14 @@ def test_pretrained_agent_acts_in_compare(make_kinematic_trial):
 
 def test_shipped_student_scores_as_when_it_was_trained(make_kinematic_trial):
     """The figures of the shipped MagBlend-v0 student on one trial, recorded when it was shipped (an ensemble of
-    four DAgger iterations trained on the corrected sensor model): the student still loads and acts the same."""
+    four DAgger iterations trained on the corrected sensor model): the student still loads and acts the same.
+    The student's λ is float32 arithmetic through BLAS, whose kernels round differently on other CPUs (an AMD
+    machine gives the λ sum 1e-8 apart), so the pins allow float32 rounding; other weights or inputs move them
+    by orders of magnitude more."""
     agent = registry.make("agent:" + NAME)
     run = evaluation.run_method(agent.name, agent, make_kinematic_trial(seed=3, duration=4.0, disturbance_ut=40.0))
-    assert run.score.total == pytest.approx(0.19725064989505714, rel=1e-9)
-    assert float(np.sum(run.lam)) == pytest.approx(79.84507237715201, rel=1e-9)
+    assert run.score.total == pytest.approx(0.19725064989505714, rel=1e-6)
+    assert float(np.sum(run.lam)) == pytest.approx(79.84507237715201, rel=1e-6)
 
 
 def test_unknown_pretrained_env_names_the_shipped_ones():
