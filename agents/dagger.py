@@ -28,8 +28,10 @@ Training (Ross et al. 2011, with β = 0 after the first iteration):
 1. iteration 0's data: the teacher's own trajectories (at each decision the
    cheapest candidate; ``first: rule``: the continuation rule's) on
    ``trials_per_scenario`` training trials (seeds ≥ ``train_seed`` ≥ 10000)
-   per scenario, the visited states labelled with the candidate costs (every
-   decision, or one in ``label_every``: the labels are the expensive part);
+   per scenario (an integer, or a mapping scenario → n: iteration j then takes
+   seeds ``train_seed`` + n·j … + n·j + n − 1 of that scenario), the visited
+   states labelled with the candidate costs (every decision, or one in
+   ``label_every``: the labels are the expensive part);
 2. each iteration: fit a fresh student on all data so far, with the
    cost-sensitive "regret" loss Σ_c softmax(logits)_c · r_c, where
    r_c = 100 · (cost_c − min cost) / (H · MSE of the continuation rule on that
@@ -124,9 +126,20 @@ def check_config(config: dict | None) -> dict:
     from magenv.scenarios import expand_mixture
 
     cfg["scenarios"] = expand_mixture(cfg["scenarios"])  # "twins:DIR" entries: the twins of DIR's recordings
+    per = cfg["trials_per_scenario"]
+    if isinstance(per, dict):  # scenario → trials: more distinct trials where the student needs them
+        if set(per) != set(cfg["scenarios"]):
+            raise ValueError(
+                f"trials_per_scenario names scenarios {sorted(per)}; it must name exactly {sorted(cfg['scenarios'])}"
+            )
+        counts = per.values()
+    else:
+        counts = [per]
+    if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in counts):
+        raise ValueError(f"DAgger config 'trials_per_scenario' must be a positive integer (or a scenario → positive "
+                         f"integer mapping), got {per!r}")  # fmt: skip
     for key in (
         "iterations",
-        "trials_per_scenario",
         "decision_every",
         "fit_steps",
         "batch_size",
@@ -444,7 +457,7 @@ def train(
     if not resume and (out / RUN_FILE).exists():
         raise ValueError(f"{out} already holds a run; choose another --out (or continue it with --resume)")
     out.mkdir(parents=True, exist_ok=True)
-    k, n_per = cfg["decision_every"], cfg["trials_per_scenario"]
+    k, per = cfg["decision_every"], cfg["trials_per_scenario"]
     inputs = inputs_for(env_id)
     cands, meta = candidate_matrix(teacher.candidates), inputs.meta(teacher)
     n_cands = len(cands) + state_candidate_count(inputs, meta)
@@ -515,8 +528,9 @@ def train(
                 return oracle_act(o, runner, costs) if cfg["beta"] > 0 and rng.random() < cfg["beta"] else action
 
             needs = cfg["beta"] > 0
-        first = cfg["train_seed"] + n_per * j
         for sc in cfg["scenarios"]:
+            n_per = per[sc] if isinstance(per, dict) else per
+            first = cfg["train_seed"] + n_per * j
             for s in range(first, first + n_per):
                 trial = make_trial(sc, s)
                 o, costs, _ = episodes.run(trial, act, cfg["label_every"], needs)

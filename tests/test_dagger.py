@@ -203,6 +203,32 @@ def _same_chain(a, b):
     assert log(a) == log(b)
 
 
+def test_trials_per_scenario_may_differ_by_scenario(tmp_path, monkeypatch):
+    """A mapping scenario → n gives each scenario its own count of new, distinct training trials per iteration
+    (iteration j: seeds train_seed + n·j …); a mapping that misses a listed scenario or holds a non-count is
+    refused."""
+    import magenv.scenarios
+
+    drawn, make = [], magenv.scenarios.make_trial
+
+    def recording(name, seed, **kwargs):
+        if seed >= 10000:
+            drawn.append((name, seed))
+        return make(name, seed, **kwargs)
+
+    monkeypatch.setattr(magenv.scenarios, "make_trial", recording)
+    per = {"dynamic_clean": 2, "stationary_magnet": 1}
+    cfg = {**TINY, "scenarios": list(per), "trials_per_scenario": per, "first": "rule", "label_every": 64}
+    dagger.train(tmp_path / "per", registry.make("oracle"), cfg, log=lambda line: None)
+    assert drawn == [
+        *[("dynamic_clean", 10000), ("dynamic_clean", 10001), ("stationary_magnet", 10000)],
+        *[("dynamic_clean", 10002), ("dynamic_clean", 10003), ("stationary_magnet", 10001)],
+    ]
+    for bad in ({"dynamic_clean": 2}, {"dynamic_clean": 2, "stationary_magnet": 0}, 1.5):
+        with pytest.raises(ValueError, match="trials_per_scenario"):
+            dagger.check_config({"scenarios": list(per), "trials_per_scenario": bad})
+
+
 def test_a_resumed_run_is_bit_for_bit_the_uninterrupted_one(tmp_path):
     """Two iterations resumed to three — with the run's data kept, or with them deleted (rebuilt from its
     checkpoints) — give the three-iteration run's students, data and log exactly."""
