@@ -38,6 +38,8 @@ Training (Ross et al. 2011, with β = 0 after the first iteration):
    trial) (H = look-ahead samples: a unit of r is 1 % of the trial's rule MSE; ``regret_scale: best_rule``:
    of the lowest MSE of the teacher's rules, ``rule_actions(runner)`` (R, action_dim), each acting alone, so
    that a protocol whose continuation rule is poor is not weighted down);
+   with ``regret_clip: R`` each r_c is clipped at R in the loss (regrets are heavy-tailed: the states of a
+   diverged roll-out cost 10³–10⁵ units and otherwise decide the fit; the stored data keep the raw values);
    score it closed loop on the validation seeds (5000–5999) by the mean over
    scenarios of its RMSE ratio of means to the continuation rule; keep the best;
 3. roll the student (with probability β per decision the teacher) on new
@@ -107,6 +109,7 @@ DEFAULTS: dict[str, Any] = {
     "act": "mean",
     "ensemble": 1,
     "regret_scale": "rule",
+    "regret_clip": None,
 }
 RESUMABLE = ("iterations", "ensemble")  # the config keys a resumed run may change
 ACTS = ("mean", "argmax")  # how the student turns its candidate probabilities into an action
@@ -163,6 +166,9 @@ def check_config(config: dict | None) -> dict:
         raise ValueError(f"act must be one of {list(ACTS)}, got {cfg['act']!r}")
     if cfg["regret_scale"] not in REGRET_SCALES:
         raise ValueError(f"regret_scale must be one of {list(REGRET_SCALES)}, got {cfg['regret_scale']!r}")
+    clip = cfg["regret_clip"]
+    if clip is not None and (isinstance(clip, bool) or not isinstance(clip, (int, float)) or not 0 < clip < np.inf):
+        raise ValueError(f"regret_clip must be a positive number (or null: no clip), got {clip!r}")
     if not cfg["hidden"] or any(int(h) != h or h < 1 for h in cfg["hidden"]):
         raise ValueError(f"hidden must be a list of positive layer widths, got {cfg['hidden']!r}")
     return cfg
@@ -317,6 +323,8 @@ def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inp
     mu = x.mean(0).astype(np.float32)
     sd = (x.std(0) + 1e-6).astype(np.float32)
     xt = torch.as_tensor((x - mu) / sd, dtype=torch.float32)
+    if cfg["regret_clip"] is not None:  # a bounded loss per state: diverged roll-outs do not drown the rest
+        regret = np.minimum(regret, np.float32(cfg["regret_clip"]))
     rt = torch.as_tensor(regret, dtype=torch.float32)
     layers, width = [], x.shape[1]
     for h in cfg["hidden"]:

@@ -268,7 +268,7 @@ def test_a_kalman_student_from_oracle_kalman(tmp_path):
     cfg = {**TINY, "iterations": 1, "label_every": 64, "first": "rule", "scenarios": ["dynamic_clean"]}
     out = dagger.train(tmp_path / "k", registry.make("oracle_kalman"), cfg, log=lambda line: None)
     run = yaml.safe_load((out / "run.yaml").read_text())
-    assert run["env_id"] == "magenv/MagKalman-v0" and run["student"]["n_inputs"] == 114 + 3 * 2  # 2 rules, 3 blocks
+    assert run["env_id"] == "magenv/MagKalman-v0" and run["student"]["n_inputs"] == 120 + 3 * 2  # 2 rules, 3 blocks
     agent = load_agent(out)
     assert agent.env_id == "magenv/MagKalman-v0" and agent.env_kwargs["features"] == "extended"
     with pytest.raises(ValueError, match="first"):
@@ -323,3 +323,26 @@ def test_regret_scale_best_rule_scales_by_the_best_rules_mse(tmp_path):
         dagger.train(tmp_path / "b", registry.make("oracle"), {**TINY, "regret_scale": "best_rule"})
     with pytest.raises(ValueError, match="regret_scale"):
         dagger.check_config({"regret_scale": "median"})
+
+
+def test_regret_clip_bounds_each_states_loss():
+    """``regret_clip: R`` fits exactly the student of the regrets clipped at R (the data keep the raw values);
+    without it a state of huge regret changes the fit. Bad clips are refused."""
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(256, 3)).astype(np.float32)
+    regret = rng.uniform(0.0, 5.0, (256, 2)).astype(np.float32)
+    regret[::17, 0] = 1e5  # the states of a diverged roll-out
+    raw = regret.copy()
+    cfg = dagger.check_config({"fit_steps": 20, "hidden": [4], "batch_size": 64})
+    inputs, cands = StudentInputs(), [0.0, 1.0]
+    clipped = dagger.fit(x, regret, {**cfg, "regret_clip": 10.0}, 0, cands, inputs, {})
+    by_hand = dagger.fit(x, np.minimum(regret, 10.0), cfg, 0, cands, inputs, {})
+    unclipped = dagger.fit(x, regret, cfg, 0, cands, inputs, {})
+    np.testing.assert_array_equal(regret, raw)
+    for (w1, b1), (w2, b2) in zip(clipped.layers, by_hand.layers, strict=True):
+        np.testing.assert_array_equal(w1, w2)
+        np.testing.assert_array_equal(b1, b2)
+    assert not np.array_equal(clipped.layers[-1][0], unclipped.layers[-1][0])
+    for bad in (0, -1.0, float("inf"), True, "10"):
+        with pytest.raises(ValueError, match="regret_clip"):
+            dagger.check_config({"regret_clip": bad})

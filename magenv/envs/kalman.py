@@ -400,7 +400,7 @@ class MagKalmanEnv(TrustEnv):
 
     {observation_table}
 
-    With ``features="extended"`` (``EXTENDED``, 114 features) the observation
+    With ``features="extended"`` (``EXTENDED``, 120 features) the observation
     is these 19, then the extra causal features below
     (``magenv.envs.kalman_memory``: signed mag headings and their EMAs, a
     gyro-only anchor re-set on clean samples and the heading the magnetometer
@@ -447,7 +447,7 @@ class MagKalmanEnv(TrustEnv):
     - `decision_every` (default 8): samples fused per step (k); 1 = a γ per sample.
     - `episode_seconds` (default None): use only the first seconds of each trial; None = whole trial.
     - `features` (default None = the 19 above): names of the observation features to keep, in the given
-      order, or `"extended"` for the extended observation (all 114; today's 19 stay the default).
+      order, or `"extended"` for the extended observation (all 120; today's 19 stay the default).
     - `sigma_gyr`, `sigma_acc`, `sigma_mag` (defaults 0.5 °/s in rad/s, 0.02 m/s², 0.15 µT: the
       survey's sensor noise): the filter's noise model.
     - `th_acc` (default 0.08 m/s², Table A1): accelerometer gate; ``math.inf`` disables it.

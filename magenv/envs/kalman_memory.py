@@ -22,6 +22,15 @@ Conventions (ENU earth frame, angles in degrees, signed, wrapped to ±180):
   (q ← q ⊗ exp(½(ω_{i−1} + ω_i)Δt)) reset to the estimate on clean samples, so
   heading(q̂ ⊗ q_anc*) is the heading the magnetometer has added since the
   field was last clean.
+* The "still anchor" q_still is the anchor propagated only by samples whose
+  ‖ω_i‖ ≥ 2 °/s (``STILL_RATE_DPS``: far above the gyro noise, 0.1–0.5 °/s
+  per axis, and its bias, 0.2 °/s): while the MIMU is still it holds the
+  orientation of the last clean sample, so the gyro bias (which the filter
+  does not estimate, and which drifts a refused-magnetometer heading by up to
+  ~0.5 °/s) does not enter it. heading(q̂ ⊗ q_still*) is then a causal estimate
+  of the signed heading error of a still MIMU under a steady disturbance, and
+  ``pull_still`` says whether the magnetometer pulls the estimate toward the
+  anchor (> 0) or away from it.
 """
 
 from __future__ import annotations
@@ -59,17 +68,27 @@ EXTRA = FeatureTable(
     Feature("trust_ema_1", 0.0, 1.0, "–", "EMA (τ 1 s) of the trust γ applied"),
     Feature("nis_ema_1", 0.0, 10.0, "decades", "log10(1 + EMA (τ 1 s) of the NIS)"),
     Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
+    Feature("d_still", *_HEADING, _DEG, "heading(q̂ ⊗ q_still*), q_still the still anchor"),
+    Feature(
+        "pull_still",
+        *_HEADING,
+        _DEG,
+        "−sign(d_still)·ν_m,j,east/(m0 cos θ0): a full update's heading correction toward the still anchor",
+    ),
 )
 X = EXTRA.ix
 _LOW, _HIGH = EXTRA.low64, EXTRA.high64
 CLEAN_NORM_UT, CLEAN_DIP_DEG, CLEAN_DIST_UT = 1.0, 1.0, 1.0
 T_ANCHOR_SCALE_S = 10.0
+STILL_RATE_DPS = 2.0  # °/s: a sample with a smaller ‖ω‖ leaves the still anchor where it is
+_STILL_RATE = np.deg2rad(STILL_RATE_DPS)
 
-# layout of the state vector: two quaternions, then the EMAs and the time since clean
+# layout of the state vector: two quaternions, the EMAs and the time since clean, then the still anchor
 Q_ANC, Q_GYR = 0, 4
 (S_MH025, S_MH1, S_MH4, S_MHC, S_ND05, S_ND2, S_ND8, S_DD05, S_DD2, S_MD1, S_MD4, S_G1, S_TR1, S_NIS1, S_CLEAN4,
  S_TANC) = range(8, 24)  # fmt: skip
-N_STATE = 24
+Q_STILL = 24
+N_STATE = 28
 
 
 class Memory(NamedTuple):
@@ -84,6 +103,7 @@ class Memory(NamedTuple):
         state = np.zeros(N_STATE)
         state[Q_ANC : Q_ANC + 4] = q0
         state[Q_GYR : Q_GYR + 4] = q0
+        state[Q_STILL : Q_STILL + 4] = q0
         state[S_TR1] = 1.0
         return cls(state, np.zeros(len(EXTRA)))
 
@@ -140,10 +160,13 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
         _propagate(s, Q_GYR, w, dt)
         if clean:
             s[Q_ANC : Q_ANC + 4] = est[i]
+            s[Q_STILL : Q_STILL + 4] = est[i]
             s[S_TANC] = 0.0
             s[S_MHC] = _ema(s[S_MHC], mh, a1)
         else:
             _propagate(s, Q_ANC, w, dt)
+            if np.sqrt(gyr[i, 0] ** 2 + gyr[i, 1] ** 2 + gyr[i, 2] ** 2) >= _STILL_RATE:
+                _propagate(s, Q_STILL, w, dt)
             s[S_TANC] += dt
         s[S_MH025] = _ema(s[S_MH025], mh, a025)
         s[S_MH1] = _ema(s[S_MH1], mh, a1)
@@ -180,3 +203,9 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
     out[X.trust_ema_1] = _clip(s[S_TR1], X.trust_ema_1)
     out[X.nis_ema_1] = _clip(np.log10(1.0 + s[S_NIS1]), X.nis_ema_1)
     out[X.clean_ema_4] = _clip(s[S_CLEAN4], X.clean_ema_4)
+    c = Q_STILL
+    d_still = _heading(q[0], q[1], q[2], q[3], s[c], s[c + 1], s[c + 2], s[c + 3])
+    out[X.d_still] = _clip(d_still, X.d_still)
+    hh = m0 * np.cos(params.dip0)
+    pull = -np.sign(d_still) * np.rad2deg(peek[SIG.nu_e] / hh) if hh > 0.0 else 0.0
+    out[X.pull_still] = _clip(pull, X.pull_still)
