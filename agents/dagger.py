@@ -135,7 +135,7 @@ def check_config(config: dict | None) -> dict:
             raise ValueError(
                 f"trials_per_scenario names scenarios {sorted(per)}; it must name exactly {sorted(cfg['scenarios'])}"
             )
-        counts = per.values()
+        counts = list(per.values())
     else:
         counts = [per]
     if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in counts):
