@@ -157,6 +157,7 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
         md = mdist[i]
         clean = abs(dm) < CLEAN_NORM_UT and abs(dd) < CLEAN_DIP_DEG and md < CLEAN_DIST_UT
         w = 0.5 * (gyr[i - 1] + gyr[i])
+        w_norm = np.sqrt(gyr[i, 0] ** 2 + gyr[i, 1] ** 2 + gyr[i, 2] ** 2)  # ‖ω_i‖, rad/s
         _propagate(s, Q_GYR, w, dt)
         if clean:
             s[Q_ANC : Q_ANC + 4] = est[i]
@@ -165,7 +166,7 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
             s[S_MHC] = _ema(s[S_MHC], mh, a1)
         else:
             _propagate(s, Q_ANC, w, dt)
-            if np.sqrt(gyr[i, 0] ** 2 + gyr[i, 1] ** 2 + gyr[i, 2] ** 2) >= _STILL_RATE:
+            if w_norm >= _STILL_RATE:
                 _propagate(s, Q_STILL, w, dt)
             s[S_TANC] += dt
         s[S_MH025] = _ema(s[S_MH025], mh, a025)
@@ -178,7 +179,7 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
         s[S_DD2] = _ema(s[S_DD2], dd, a2)
         s[S_MD1] = _ema(s[S_MD1], md / m0, a1)
         s[S_MD4] = _ema(s[S_MD4], md / m0, a4)
-        s[S_G1] = _ema(s[S_G1], np.sqrt(gyr[i, 0] ** 2 + gyr[i, 1] ** 2 + gyr[i, 2] ** 2), a1)
+        s[S_G1] = _ema(s[S_G1], w_norm, a1)
         s[S_TR1] = _ema(s[S_TR1], trust[i], a1)
         s[S_NIS1] = _ema(s[S_NIS1], row[SIG.nis], a1)
         s[S_CLEAN4] = _ema(s[S_CLEAN4], 1.0 if clean else 0.0, a4)
