@@ -40,7 +40,7 @@ Training (Ross et al. 2011, with β = 0 after the first iteration):
    that a protocol whose continuation rule is poor is not weighted down);
    with ``regret_clip: R`` each r_c is clipped at R in the loss (regrets are heavy-tailed: the states of a
    diverged roll-out cost 10³–10⁵ units and otherwise decide the fit; the stored data keep the raw values);
-   score it closed loop on the validation seeds (5000–5999) by the mean over
+   score it closed loop on the validation seeds (5000–9999, ``magenv.seeding``) by the mean over
    scenarios of its RMSE ratio of means to the continuation rule; keep the best;
 3. roll the student (with probability β per decision the teacher) on new
    training trials, label every state it visits, add them, repeat;
@@ -87,7 +87,7 @@ import yaml
 from magenv.agents.student_inputs import StudentInputs, inputs_for
 from magenv.agents.weights import RunError, _write, read
 from magenv.envs import BLEND_ID
-from magenv.seeding import HELD_OUT_BELOW
+from magenv.seeding import HELD_OUT_BELOW, VALIDATION_START
 
 ALGO = "dagger"
 RUN_FILE, BEST, CHECKPOINTS, LOG, DATA = "run.yaml", "best.safetensors", "checkpoints", "iterations.csv", "data"
@@ -154,8 +154,11 @@ def check_config(config: dict | None) -> dict:
     if not isinstance(cfg["train_seed"], int) or cfg["train_seed"] < HELD_OUT_BELOW:
         raise ValueError(f"train_seed must be an integer ≥ {HELD_OUT_BELOW}, got {cfg['train_seed']!r}")
     lo, hi = cfg["val_seeds"]
-    if not (5000 <= lo < hi <= 6000):
-        raise ValueError(f"val_seeds must be [start, stop) within the validation seeds 5000–5999, got {[lo, hi]}")
+    if not (VALIDATION_START <= lo < hi <= HELD_OUT_BELOW):
+        raise ValueError(
+            f"val_seeds must be [start, stop) within the validation seeds {VALIDATION_START}–{HELD_OUT_BELOW - 1},"
+            f" got {[lo, hi]}"
+        )
     if not 0.0 <= cfg["beta"] <= 1.0 or not cfg["learning_rate"] > 0:
         raise ValueError("beta must lie in [0, 1] and learning_rate be positive")
     if cfg["ensemble"] > cfg["iterations"]:

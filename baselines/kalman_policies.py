@@ -39,6 +39,18 @@ observation, so rules in µT are exact at any site).
   runs the Gauss–Markov split of the magnetometer causally and shows ‖d̂_j‖
   as ``model_dist``; the rule treats it as the adaptive rule treats the
   measured deviation:  γ = 1 / (1 + (‖d̂‖/σ_d)²),  σ_d = 1.20 µT by default.
+* ``kf_still`` — :class:`StillPullTrust`: magenv's own rule (no paper's), the
+  hand-written use of the still anchor that the extended observation gives
+  the learned students (``magenv.envs.kalman_memory``: ``t_anchor``, the time
+  since the field was last clean; ``pull_still``, a full update's heading
+  correction toward the orientation held since then, ° > 0 toward it):
+      γ = γ_a                          if the field is clean now (t_anchor = 0),
+      γ = max(γ_a, γ_pull)             if pull_still > p_min,
+      γ = 0                            otherwise,
+  with γ_a kf_adaptive's γ (σ_m, σ_θ). The defaults (σ_m = 1.20 µT, σ_θ = 5°,
+  p_min = 0°, γ_pull = 0) use the magnetometer only where it is clean or pulls
+  toward the anchor. It measures how much of a student's gain a rule with the
+  same information already has; it is not one of the protocols' best rules.
 """
 
 from __future__ import annotations
@@ -124,7 +136,7 @@ class AdaptiveTrust(KalmanRule):
 
     name = "kf_adaptive"
     PARAM_BOUNDS = {"sigma_mag_ut": (0.1, 20.0), "sigma_dip_deg": (0.5, 45.0)}
-    NEEDS = ("norm_dev", "dip_dev")
+    NEEDS: tuple[str, ...] = ("norm_dev", "dip_dev")
 
     def __init__(
         self, sigma_mag_ut: float = TH_MAG, sigma_dip_deg: float = TH_DIP, features: Sequence[str] | None = None
@@ -158,11 +170,49 @@ class ModelTrust(KalmanRule):
         return 1.0 / (1.0 + a * a)
 
 
+class StillPullTrust(AdaptiveTrust):
+    """kf_adaptive's γ where the field is clean or the magnetometer pulls toward the still anchor by more
+    than ``pull_min_deg`` (there at least ``gamma_pull``), else 0; reads the extended observation."""
+
+    name = "kf_still"
+    PARAM_BOUNDS = {
+        "sigma_mag_ut": (0.1, 20.0),
+        "sigma_dip_deg": (0.5, 45.0),
+        "pull_min_deg": (-5.0, 5.0),
+        "gamma_pull": (0.0, 1.0),
+    }
+    NEEDS = ("norm_dev", "dip_dev", "t_anchor", "pull_still")
+    #: the observation it reads: the base features and the two memory features it needs
+    FEATURES = (*FEATURES.names, "t_anchor", "pull_still")
+
+    def __init__(
+        self,
+        sigma_mag_ut: float = TH_MAG,
+        sigma_dip_deg: float = TH_DIP,
+        pull_min_deg: float = 0.0,
+        gamma_pull: float = 0.0,
+        features: Sequence[str] | None = None,
+    ):
+        super().__init__(sigma_mag_ut, sigma_dip_deg, self.FEATURES if features is None else features)
+        if not (math.isfinite(pull_min_deg) and 0.0 <= gamma_pull <= 1.0):
+            raise ValueError(f"pull_min_deg must be finite and gamma_pull in [0, 1], got {pull_min_deg}, {gamma_pull}")
+        self.pull_min_deg, self.gamma_pull = float(pull_min_deg), float(gamma_pull)
+
+    def weight(self, obs: np.ndarray) -> float:
+        gamma = super().weight(obs)
+        if float(obs[self._ix["t_anchor"]]) <= 0.0:  # clean now: the anchor is this sample
+            return gamma
+        if float(obs[self._ix["pull_still"]]) > self.pull_min_deg:
+            return max(gamma, self.gamma_pull)
+        return 0.0
+
+
 RULES: dict[str, type[KalmanRule]] = {
     "kf_constant": ConstantTrust,
     "kf_gate": GateTrust,
     "kf_adaptive": AdaptiveTrust,
     "kf_model": ModelTrust,
+    "kf_still": StillPullTrust,
 }
 
 
@@ -197,4 +247,10 @@ def hand_moved(rule: KalmanRule) -> KalmanRule:
 
 def methods() -> dict:
     """Name → factory of the trust rules at their published / default values, for ``compare``."""
-    return {"kf_nominal": ConstantTrust, "kf_gate": GateTrust, "kf_adaptive": AdaptiveTrust, "kf_model": ModelTrust}
+    return {
+        "kf_nominal": ConstantTrust,
+        "kf_gate": GateTrust,
+        "kf_adaptive": AdaptiveTrust,
+        "kf_model": ModelTrust,
+        "kf_still": StillPullTrust,
+    }

@@ -26,7 +26,7 @@ import magenv  # noqa: F401
 from magenv import evaluation, registry
 from magenv.scenarios import make_trial
 from magenv.stats import paired_ratio
-from magenv.train.seeds import seeds_arg
+from magenv.train.seeds import check_report_seeds, seeds_arg
 
 RULE, BASE, ORACLE = "fan_lambda_tuned", "mimu", "oracle"
 
@@ -38,8 +38,7 @@ def main() -> None:
     p.add_argument("--scenarios", default="dynamic_magnet,stationary_magnet,dynamic_clean")
     p.add_argument("--json", default=None)
     args = p.parse_args()
-    if max(args.seeds) >= 5000:
-        raise SystemExit("reported figures use held-out seeds below 5000")
+    check_report_seeds(args.seeds, validation=False)
     methods = {"agent": registry.make(registry.AGENT_PREFIX + args.agent), RULE: registry.make(RULE)}
     methods.update({BASE: registry.make(BASE), ORACLE: registry.make(ORACLE)})
     per_trial: dict = {}

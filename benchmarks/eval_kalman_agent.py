@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/eval_kalman_agent.py [--agent pretrained:magenv/MagKalman-v0] [--seeds 0:20]
         [--scenarios dynamic_magnet,stationary_magnet] [--methods kf_model_tuned,kf_adaptive_tuned,oracle_kalman]
-        [--json FILE]
+        [--json FILE] [--validation]
 
 For every scenario and held-out seed it runs the agent (if given) and the
 methods on the same trial and prints a Markdown table: mean total RMSE (°) of
@@ -12,8 +12,9 @@ stationary_magnet; ``magenv.stats.paired_ratio``: geometric mean of the
 per-trial ratios, bootstrap 95 % interval over the trials, win rate), and the
 share of the rule-to-oracle gap of the mean RMSEs the agent closes.
 ``--json`` writes every per-trial RMSE; with an existing file, methods already
-in it are read back instead of run again (the oracle is the slow one). It
-prints what it measures; nothing here is a test.
+in it are read back instead of run again (the oracle is the slow one).
+``--validation`` takes validation seeds (5000–9999) instead, for model
+selection. It prints what it measures; nothing here is a test.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import magenv  # noqa: F401
 from magenv import evaluation, registry
 from magenv.scenarios import make_trial
 from magenv.stats import paired_ratio
-from magenv.train.seeds import seeds_arg
+from magenv.train.seeds import check_report_seeds, seeds_arg
 
 BEST_RULE = {"dynamic_magnet": "kf_model_tuned", "stationary_magnet": "kf_adaptive_tuned"}
 ORACLE = "oracle_kalman"
@@ -42,9 +43,9 @@ def main() -> None:
     p.add_argument("--scenarios", default="dynamic_magnet,stationary_magnet")
     p.add_argument("--methods", default="kf_model_tuned,kf_adaptive_tuned," + ORACLE)
     p.add_argument("--json", default=None)
+    p.add_argument("--validation", action="store_true", help="validation seeds 5000–9999 (model selection)")
     args = p.parse_args()
-    if max(args.seeds) >= 5000:
-        raise SystemExit("reported figures use held-out seeds below 5000")
+    check_report_seeds(args.seeds, args.validation)
     seeds = list(args.seeds)
     old = {}
     if args.json and os.path.exists(args.json):
@@ -66,7 +67,8 @@ def main() -> None:
         if args.json:
             with open(args.json, "w") as f:
                 json.dump({"agent": args.agent, "seeds": seeds, "per_trial_rmse": per_trial}, f, indent=1)
-    print(f"agent {args.agent}, held-out seeds {seeds[0]}:{seeds[-1] + 1} ({len(seeds)} per scenario)")
+    kind = "validation" if args.validation else "held-out"
+    print(f"agent {args.agent}, {kind} seeds {seeds[0]}:{seeds[-1] + 1} ({len(seeds)} per scenario)")
     cols = [m for m in names if m != ORACLE] + ([ORACLE] if ORACLE in names else [])
     print("| scenario | " + " | ".join(cols) + " | best rule | paired ratio to it [95% CI], win rate | captured |")
     print("|---|" + "---|" * (len(cols) + 3))

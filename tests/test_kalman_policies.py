@@ -13,12 +13,15 @@ from magenv.envs.kalman import FEATURES
 from magenv.protocols import Policy
 from tests.conftest import kinematic_trial
 
-IX = {f: i for i, f in enumerate(FEATURES.names)}
 M0 = 40.0  # µT, deliberately not the default 46: rules must read m0 from the observation
 
 
-def _obs(norm_ut=0.0, dip_deg=0.0, dist_ut=0.0, m0=M0) -> np.ndarray:
-    o = np.zeros(len(FEATURES), np.float32)
+def _obs(norm_ut=0.0, dip_deg=0.0, dist_ut=0.0, m0=M0, names=FEATURES.names, **extra) -> np.ndarray:
+    """An observation over ``names`` (the base table by default); ``extra`` sets further features by name."""
+    IX = {f: i for i, f in enumerate(names)}
+    o = np.zeros(len(names), np.float32)
+    for name, value in extra.items():
+        o[IX[name]] = value
     o[IX["field_ref"]] = m0 / 50.0
     o[IX["norm_dev"]] = norm_ut / m0
     o[IX["dip_dev"]] = dip_deg / 90.0
@@ -64,17 +67,39 @@ def test_model_formula():
         assert _gamma(p, _obs(dist_ut=d, norm_ut=50.0)) == pytest.approx(1.0 / (1.0 + (d / 3.0) ** 2), rel=1e-5)
 
 
+def test_still_pull_rule():
+    """kf_still: kf_adaptive's γ on a clean sample, at least γ_pull where the magnetometer pulls toward the
+    still anchor by more than p_min, else 0."""
+    p = kp.StillPullTrust(sigma_mag_ut=2.0, sigma_dip_deg=4.0, pull_min_deg=0.5, gamma_pull=0.6)
+    assert p.env_kwargs == {"features": list(kp.StillPullTrust.FEATURES)}
+
+    def gamma(t_anchor, pull, norm_ut=3.0):
+        return _gamma(p, _obs(norm_ut=norm_ut, names=p.features, t_anchor=t_anchor, pull_still=pull))
+
+    adaptive = 1.0 / (1.0 + (3.0 / 2.0) ** 2)
+    assert gamma(0.0, -20.0) == pytest.approx(adaptive, rel=1e-5)  # clean now: the adaptive rule
+    assert gamma(0.5, 0.6) == pytest.approx(0.6, rel=1e-5)  # pulled toward the anchor: γ_pull ≥ γ_a
+    assert gamma(0.5, 0.6, norm_ut=0.5) == pytest.approx(1.0 / (1.0 + 0.25**2), rel=1e-5)  # γ_a > γ_pull
+    assert gamma(0.5, 0.4) == 0.0 and gamma(2.0, -3.0) == 0.0  # not clean, no pull toward it: refused
+    with pytest.raises(ValueError, match="gamma_pull"):
+        kp.StillPullTrust(gamma_pull=1.5)
+    with pytest.raises(ValueError, match="pull_still"):
+        kp.StillPullTrust(features=list(FEATURES.names))
+
+
 @pytest.mark.parametrize("cls", list(kp.RULES.values()))
 def test_params_round_trip_and_protocol(cls):
     p = cls()
-    assert isinstance(p, Policy) and p.env_id == "magenv/MagKalman-v0" and p.env_kwargs == {}
+    extended = getattr(cls, "FEATURES", None)  # a rule reading memory features asks the env for them
+    assert isinstance(p, Policy) and p.env_id == "magenv/MagKalman-v0"
+    assert p.env_kwargs == ({} if extended is None else {"features": list(extended)})
     for k, (lo, hi) in cls.PARAM_BOUNDS.items():
         assert lo <= p.params[k] <= hi
     q = cls.from_params(p.params)
     assert q.params == p.params
     rng = np.random.default_rng(0)
     for _ in range(20):
-        o = _obs(norm_ut=rng.normal(0, 5), dip_deg=rng.normal(0, 10), dist_ut=abs(rng.normal(0, 5)))
+        o = _obs(norm_ut=rng.normal(0, 5), dip_deg=rng.normal(0, 10), dist_ut=abs(rng.normal(0, 5)), names=p.features)
         g = _gamma(p, o)
         assert 0.0 <= g <= 1.0 and g == _gamma(q, o)
     with pytest.raises(ValueError, match="no parameter"):
@@ -100,7 +125,7 @@ def test_bad_parameters_and_missing_features():
 
 def test_registry_lists_the_methods():
     names = registry.names()
-    for n in ("kf_nominal", "kf_gate", "kf_adaptive", "kf_model"):
+    for n in ("kf_nominal", "kf_gate", "kf_adaptive", "kf_model", "kf_still"):
         assert n in names
 
 

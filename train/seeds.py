@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from magenv.seeding import HELD_OUT_BELOW, VALIDATION_START
+
 MAX_SEEDS = 10_000  # a longer list is a typo, not an experiment
 
 
@@ -31,3 +33,12 @@ def seeds_arg(text: str) -> list[int]:
         return parse_seeds(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def check_report_seeds(seeds: list[int], validation: bool) -> None:
+    """Refuse seeds outside their use: reported figures take held-out seeds below ``VALIDATION_START``,
+    model selection (``validation``) takes seeds in [VALIDATION_START, HELD_OUT_BELOW)."""
+    if validation and not (min(seeds) >= VALIDATION_START and max(seeds) < HELD_OUT_BELOW):
+        raise SystemExit(f"validation seeds lie in {VALIDATION_START}–{HELD_OUT_BELOW - 1}")
+    if not validation and max(seeds) >= VALIDATION_START:
+        raise SystemExit(f"reported figures use held-out seeds below {VALIDATION_START} (validation: model selection)")

@@ -9,7 +9,7 @@ recordings, which it never saw, and on held-out simulated seeds (< 5000); the
 paired ratios to VQF (``magenv.stats.paired_ratio``) are printed per fold and
 pooled over the folds, so each recording's figure comes from a student that
 did not train on it. Each fold keeps the DAgger round of the lowest
-:func:`validation_ratio` (validation seeds 5000–5999 and its own training
+:func:`validation_ratio` (validation seeds 5000–9999 and its own training
 recordings only). ``--final`` trains on all nine (the shipped
 ``pretrained:magenv/MagVQF-v0``), whose figures on the recordings are
 therefore training figures and are not reported.

@@ -1,0 +1,28 @@
+"""Seed lists on the command line and the use each seed range is for (``magenv.seeding``)."""
+
+import pytest
+
+from magenv.train.seeds import check_report_seeds, parse_seeds
+
+
+def test_parse_seeds_forms():
+    assert parse_seeds("3:6") == [3, 4, 5]
+    assert parse_seeds("3,5,8") == [3, 5, 8]
+    assert parse_seeds("7") == [7]
+
+
+@pytest.mark.parametrize("text", ["5:3", "a", "-1", "0:20000", ""])
+def test_parse_seeds_rejects(text):
+    with pytest.raises(ValueError, match="bad seed list"):
+        parse_seeds(text)
+
+
+def test_report_seeds_are_held_out_and_validation_seeds_select():
+    check_report_seeds([0, 4999], validation=False)
+    check_report_seeds([5000, 9999], validation=True)
+    with pytest.raises(SystemExit, match="held-out seeds below 5000"):
+        check_report_seeds([4999, 5000], validation=False)
+    with pytest.raises(SystemExit, match="validation seeds lie in 5000–9999"):
+        check_report_seeds([4999, 5000], validation=True)
+    with pytest.raises(SystemExit, match="validation seeds lie in 5000–9999"):
+        check_report_seeds([10000], validation=True)
