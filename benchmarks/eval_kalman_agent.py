@@ -1,7 +1,8 @@
 """Held-out evaluation on MagKalman-v0: an agent against the best Kalman rule of each protocol, the oracle as headroom.
 
     .venv/bin/python benchmarks/eval_kalman_agent.py [--agent pretrained:magenv/MagKalman-v0] [--seeds 0:20]
-        [--scenarios dynamic_magnet,stationary_magnet] [--methods kf_model_tuned,kf_adaptive_tuned,oracle_kalman]
+        [--scenarios dynamic_magnet,stationary_magnet]
+        [--methods kf_model_tuned,kf_adaptive_tuned,kf_still_tuned,oracle_kalman]
         [--json FILE] [--validation]
 
 For every scenario and held-out seed it runs the agent (if given) and the
@@ -10,7 +11,11 @@ each and, for the agent and the oracle, the paired ratio to the protocol's
 best rule (``kf_model_tuned`` on dynamic_magnet, ``kf_adaptive_tuned`` on
 stationary_magnet; ``magenv.stats.paired_ratio``: geometric mean of the
 per-trial ratios, bootstrap 95 % interval over the trials, win rate), and the
-share of the rule-to-oracle gap of the mean RMSEs the agent closes.
+share of the rule-to-oracle gap of the mean RMSEs the agent closes. With
+``kf_still_tuned`` among the methods (the default) it also gives the agent's
+paired ratio to that hand rule, which reads the same still anchor as the
+learned students: how much of the agent's gain is learning rather than
+information.
 ``--json`` writes every per-trial RMSE; with an existing file, methods already
 in it are read back instead of run again (the oracle is the slow one).
 ``--validation`` takes validation seeds (5000–9999) instead, for model
@@ -34,6 +39,7 @@ from magenv.train.seeds import check_report_seeds, seeds_arg
 
 BEST_RULE = {"dynamic_magnet": "kf_model_tuned", "stationary_magnet": "kf_adaptive_tuned"}
 ORACLE = "oracle_kalman"
+SAME_INFORMATION = "kf_still_tuned"  # the hand rule on the students' still anchor (baselines/kalman_policies.py)
 
 
 def main() -> None:
@@ -41,7 +47,7 @@ def main() -> None:
     p.add_argument("--agent", default=None, help="run folder or pretrained:ENV_ID")
     p.add_argument("--seeds", type=seeds_arg, default="0:20")
     p.add_argument("--scenarios", default="dynamic_magnet,stationary_magnet")
-    p.add_argument("--methods", default="kf_model_tuned,kf_adaptive_tuned," + ORACLE)
+    p.add_argument("--methods", default=f"kf_model_tuned,kf_adaptive_tuned,{SAME_INFORMATION},{ORACLE}")
     p.add_argument("--json", default=None)
     p.add_argument("--validation", action="store_true", help="validation seeds 5000–9999 (model selection)")
     args = p.parse_args()
@@ -80,6 +86,9 @@ def main() -> None:
             if m in res and rule in res:
                 pr = paired_ratio(res[m], res[rule])
                 cells.append(f"{m}: {pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}], {pr.win_rate:.2f}")
+        if "agent" in res and SAME_INFORMATION in res:
+            pr = paired_ratio(res["agent"], res[SAME_INFORMATION])
+            cells.append(f"agent/{SAME_INFORMATION}: {pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}], {pr.win_rate:.2f}")
         captured = ""
         if "agent" in res and ORACLE in res:
             r, a, o = res[rule].mean(), res["agent"].mean(), res[ORACLE].mean()
