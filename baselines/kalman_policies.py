@@ -50,7 +50,9 @@ observation, so rules in µT are exact at any site).
   with γ_a kf_adaptive's γ (σ_m, σ_θ). The defaults (σ_m = 1.20 µT, σ_θ = 5°,
   p_min = 0°, γ_pull = 0) use the magnetometer only where it is clean or pulls
   toward the anchor. It measures how much of a student's gain a rule with the
-  same information already has; it is not one of the protocols' best rules.
+  same information already has. Tuned, it is the best rule measured on
+  ``stationary_magnet``, but the protocols' reference rules stay kf_model_tuned
+  and kf_adaptive_tuned (the papers' rules).
 """
 
 from __future__ import annotations
