@@ -70,6 +70,11 @@ The run folder holds weights and arrays only (``magenv.agents.weights`` format, 
                          float32 in % of the trial's rule MSE (compressed; for resuming only, never shipped;
                          a MagBlend iteration's is ~150 k states × 126 features)
 
+A refit (``refit(source, out, teacher, changes)``, ``magenv train --teacher NAME --refit SOURCE --out RUN``)
+fits one fresh student on all of a finished run's labelled data with some fit keys changed (``REFIT_KEYS``:
+e.g. a wider ``hidden`` and more ``fit_steps``), scores it on the run's validation trials, and writes it as a
+run of one row; run.yaml's ``refit_of`` names the source and the iterations its data came from.
+
 ``load_policy(run_dir)`` rebuilds the student as a Policy.
 """
 
@@ -112,6 +117,7 @@ DEFAULTS: dict[str, Any] = {
     "regret_clip": None,
 }
 RESUMABLE = ("iterations", "ensemble")  # the config keys a resumed run may change
+REFIT_KEYS = ("hidden", "fit_steps", "batch_size", "learning_rate", "seed", "regret_clip")  # a refit may change
 ACTS = ("mean", "argmax")  # how the student turns its candidate probabilities into an action
 REGRET_SCALES = ("rule", "best_rule")  # the trial MSE a unit of regret is 1 % of
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
@@ -592,6 +598,55 @@ def train(
     return out
 
 
+def refit(source: str | Path, out: str | Path, teacher, changes: dict, log: Callable[[str], None] = print) -> Path:
+    """A fresh student fitted on all the labelled data of the DAgger run ``source`` (its ``data/it_N.npz``) with
+    the fit keys ``changes`` (``REFIT_KEYS``) replacing the run's, scored on the run's validation trials; written
+    as the new run folder ``out`` (run.yaml with ``refit_of``, best.safetensors, iterations.csv of one row);
+    returns ``out``. ValueError if ``source`` is not a finished run of ``teacher`` or a key may not change."""
+    source, out = Path(source), Path(out)
+    run = _resumed_run(source, teacher, str(getattr(teacher, "env_id", "")), None)
+    bad = sorted(set(changes) - set(REFIT_KEYS))
+    if bad:
+        raise ValueError(f"a refit may change only {list(REFIT_KEYS)}, not {bad}")
+    if (out / RUN_FILE).exists():
+        raise ValueError(f"{out} already holds a run; choose another --out")
+    cfg = check_config({**run["config"], **changes, "ensemble": 1})
+    rows = _read_log(source / LOG)
+    files = [source / DATA / f"it_{j}.npz" for j in range(len(rows))]
+    if not rows or not all(f.is_file() for f in files):
+        raise ValueError(f"{source}: a refit needs the labelled data of every iteration in {source / DATA}")
+    inputs = inputs_for(run["env_id"])
+    meta = {k: v for k, v in run["student"].items() if k not in _SHAPE_KEYS}
+    cands = np.asarray(run["student"]["candidates"], np.float64)
+    n_cands = len(cands) + state_candidate_count(inputs, meta)
+
+    def cands_of(o):
+        return candidates_at(cands, inputs, meta, o)
+
+    episodes = Episodes(run["env_id"], run["env_kwargs"], teacher, cands_of if n_cands > len(cands) else None)
+    validation = Validation(episodes, teacher, cfg)
+    n_obs = episodes.env(validation.trials[0][1]).observation_space.shape[0]
+    parts = [_load_data(f, n_cands, n_obs) for f in files]
+    x = inputs(np.concatenate([o for o, _ in parts]), meta)
+    r = np.concatenate([g for _, g in parts])
+    t = time.time()
+    student = fit(x, r, cfg, cfg["seed"], cands, inputs, meta)
+    t_fit = time.time() - t
+    rmse, ratio, score = validation.score(student)
+    out.mkdir(parents=True, exist_ok=True)
+    new_run = {**run, "config": cfg, "student": {**run["student"], "hidden": [int(h) for h in cfg["hidden"]]}}
+    new_run.pop("ensemble", None)
+    new_run["refit_of"] = {"run": str(source), "iterations": len(rows), "samples": int(len(x))}
+    _write_run(out / RUN_FILE, new_run)
+    student.save(out / BEST, {"iteration": len(rows), "val_ratio": score, "samples": len(x)})
+    row = {"iteration": len(rows), "samples": len(x), "fit_s": round(t_fit, 1), "score": score, "best": score}
+    row.update({f"{sc}_rmse": float(np.mean(v)) for sc, v in rmse.items()})
+    row.update({f"{sc}_ratio": v for sc, v in ratio.items()})
+    _write_log(out / LOG, [row])
+    log(f"refit of {source} ({len(x)} samples): fit {t_fit:.0f} s, val ratio {score:.3f} {_fmt(ratio)}")
+    return out
+
+
 class Validation:
     """Closed-loop scores on the validation trials (seeds ``val_seeds`` of every scenario): per scenario the
     ratio of the mean RMSE to the continuation rule's, and their mean over scenarios (the score; lower is better)."""
@@ -758,7 +813,10 @@ def load_policy(run_dir: str | Path, name: str | None = None) -> StudentPolicy:
 
 
 def _member(run_dir: Path, member, where: Path) -> Path:
-    """The checkpoint file of an ensemble member named in run.yaml (inside ``run_dir/checkpoints``, else RunError)."""
+    """The file of an ensemble member named in run.yaml (``best.safetensors`` or inside ``run_dir/checkpoints``,
+    else RunError)."""
+    if member == BEST:
+        return run_dir / BEST
     if not isinstance(member, str) or not member.startswith(f"{CHECKPOINTS}/") or ".." in member:
-        raise RunError(f"{where}: ensemble member {member!r} is not a file in {CHECKPOINTS}/")
+        raise RunError(f"{where}: ensemble member {member!r} is not {BEST} or a file in {CHECKPOINTS}/")
     return run_dir / member

@@ -346,3 +346,62 @@ def test_regret_clip_bounds_each_states_loss():
     for bad in (0, -1.0, float("inf"), True, "10"):
         with pytest.raises(ValueError, match="regret_clip"):
             dagger.check_config({"regret_clip": bad})
+
+
+def test_refit_fits_one_student_on_all_of_a_runs_data(run_dir, tmp_path):
+    """``magenv train --teacher oracle --refit SOURCE``: one fresh student of the changed fit keys on every
+    iteration's data of SOURCE — the same student as ``dagger.fit`` on those data — scored and loadable; keys
+    other than the fit keys, or a run without its data, are refused."""
+    config = tmp_path / "refit.yaml"
+    config.write_text(yaml.safe_dump({"magenv/MagBlend-v0": {"hidden": [6, 6], "fit_steps": 10, "seed": 3}}))
+    out = tmp_path / "refit"
+    argv = ["train", "--teacher", "oracle", "--refit", str(run_dir), "--out", str(out), "--config", str(config)]
+    assert main(argv) == 0
+    run = yaml.safe_load((out / "run.yaml").read_text())
+    assert run["student"]["hidden"] == [6, 6] and run["config"]["fit_steps"] == 10
+    assert run["refit_of"]["run"] == str(run_dir) and run["refit_of"]["iterations"] == 2
+    assert len((out / "iterations.csv").read_text().splitlines()) == 2  # header and one row
+    source = yaml.safe_load((run_dir / "run.yaml").read_text())
+    inputs = inputs_for(source["env_id"])
+    meta = {k: v for k, v in source["student"].items() if k not in dagger._SHAPE_KEYS}
+    obs, regret = [], []
+    for j in range(2):
+        with np.load(run_dir / "data" / f"it_{j}.npz", allow_pickle=False) as z:
+            obs.append(z["obs"])
+            regret.append(z["regret"])
+    cfg = dagger.check_config({**source["config"], "hidden": [6, 6], "fit_steps": 10, "seed": 3, "ensemble": 1})
+    x = inputs(np.concatenate(obs), meta)
+    expected = dagger.fit(x, np.concatenate(regret), cfg, 3, source["student"]["candidates"], inputs, meta)
+    got = dagger.load_policy(out).student
+    for (w1, b1), (w2, b2) in zip(got.layers, expected.layers, strict=True):
+        np.testing.assert_array_equal(w1, w2)
+        np.testing.assert_array_equal(b1, b2)
+    with pytest.raises(ValueError, match="may change only"):
+        dagger.refit(run_dir, tmp_path / "other", registry.make("oracle"), {"scenarios": ["dynamic_magnet"]})
+    with pytest.raises(ValueError, match="already holds a run"):
+        dagger.refit(run_dir, out, registry.make("oracle"), {})
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for name in ("run.yaml", "iterations.csv"):
+        (bare / name).write_bytes((run_dir / name).read_bytes())
+    with pytest.raises(ValueError, match="needs the labelled data"):
+        dagger.refit(bare, tmp_path / "x", registry.make("oracle"), {})
+    assert main(["train", "--teacher", "oracle", "--refit", str(run_dir), "--out", str(tmp_path / "y")]) != 0
+
+
+def test_ensemble_members_are_best_or_checkpoints(run_dir, tmp_path):
+    """run.yaml ``ensemble`` members may name best.safetensors or files in checkpoints/, nothing else."""
+    folder = tmp_path / "ens"
+    for p in run_dir.rglob("*"):
+        if p.is_file() and "data" not in p.parts:
+            (folder / p.relative_to(run_dir)).parent.mkdir(parents=True, exist_ok=True)
+            (folder / p.relative_to(run_dir)).write_bytes(p.read_bytes())
+    run = yaml.safe_load((folder / "run.yaml").read_text())
+    run["ensemble"] = {"members": ["best.safetensors", "checkpoints/it_0.safetensors"]}
+    (folder / "run.yaml").write_text(yaml.safe_dump(run))
+    assert len(dagger.load_policy(folder).student.members) == 2
+    for bad in ("../best.safetensors", "run.yaml", "checkpoints/../../x.safetensors"):
+        run["ensemble"] = {"members": [bad]}
+        (folder / "run.yaml").write_text(yaml.safe_dump(run))
+        with pytest.raises(RunError, match="ensemble member"):
+            dagger.load_policy(folder)

@@ -12,7 +12,7 @@ from magenv.train.cli import main
 NAME = "pretrained:magenv/MagBlend-v0"
 
 
-@pytest.mark.parametrize("env_id", ["magenv/MagBlend-v0", "magenv/MagKalman-v0"])
+@pytest.mark.parametrize("env_id", ["magenv/MagBlend-v0", "magenv/MagKalman-v0", "magenv/MagConstraint-v0"])
 def test_shipped_folder_is_small_and_pickle_free(env_id):
     folder = pretrained_agents()[env_id]
     files = {p.relative_to(folder).as_posix(): p.stat().st_size for p in folder.rglob("*") if p.is_file()}

@@ -7,8 +7,10 @@ With ``--teacher NAME`` it runs DAgger instead (``magenv.agents.dagger``: an MLP
 privileged oracle NAME — ``oracle`` for MagBlend-v0, ``oracle_kalman`` … — on the env's extended
 observation; ``--env`` defaults to the teacher's env; ``--config`` a YAML file of the DAgger keys per env
 id, default ``agents/configs/dagger.yaml``; ``--iters`` overrides its iterations; ``--resume`` continues
-the DAgger run in ``--out`` with its own config up to ``--iters`` iterations in all); the run folder is
-loadable with ``--agent RUN`` like any other.
+the DAgger run in ``--out`` with its own config up to ``--iters`` iterations in all; ``--refit SOURCE``
+fits one fresh student on all of the finished run SOURCE's labelled data into ``--out``, with the fit keys
+of ``--config``'s section — only ``dagger.REFIT_KEYS``, e.g. ``hidden``, ``fit_steps`` — replacing
+SOURCE's); the run folder is loadable with ``--agent RUN`` like any other.
 
 Progress bar, TensorBoard logs (``runs/NAME/tb``), periodic evaluation on
 held-out trials with the best model kept, checkpoints, and resume: running
@@ -110,6 +112,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="with --teacher: continue the DAgger run in --out (its config, --iters iterations in all)",
     )
+    p.add_argument(
+        "--refit",
+        type=Path,
+        default=None,
+        metavar="SOURCE",
+        help="with --teacher and --config: one fresh student on all of the DAgger run SOURCE's data, into --out "
+        "(the config's section: the fit keys to change, e.g. hidden, fit_steps)",
+    )
 
 
 def run_dagger(args: argparse.Namespace) -> int:
@@ -129,6 +139,8 @@ def run_dagger(args: argparse.Namespace) -> int:
     path = args.config or str(resources.files("magenv.agents") / "configs" / "dagger.yaml")
     if args.resume and args.config:
         raise CommandError("--resume continues a run with its own config; drop --config (only --iters may change)")
+    if args.refit is not None and (args.resume or not args.config):
+        raise CommandError("--refit needs --config (the fit keys to change) and no --resume")
     try:  # a resumed run keeps its own config
         config = {} if args.resume else dict((yaml.safe_load(Path(path).read_text()) or {}).get(env_id) or {})
     except (OSError, yaml.YAMLError, AttributeError, TypeError, ValueError) as exc:
@@ -139,10 +151,15 @@ def run_dagger(args: argparse.Namespace) -> int:
         config["val_seeds"] = [args.eval_seeds[0], args.eval_seeds[-1] + 1]
     if args.eval_scenarios is not None:
         config["scenarios"] = args.eval_scenarios.split(",")
+
+    def log(line: str) -> None:
+        print(line, flush=True)
+
     try:
-        out = dagger.train(
-            args.out, teacher, config, log=lambda line: print(line, flush=True), env_id=env_id, resume=args.resume
-        )
+        if args.refit is not None:
+            out = dagger.refit(args.refit, args.out, teacher, config, log)
+        else:
+            out = dagger.train(args.out, teacher, config, log=log, env_id=env_id, resume=args.resume)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     print(f"DAgger run in {out}; its student: {dagger.load_policy(out).source}")
@@ -159,6 +176,8 @@ def run(args: argparse.Namespace) -> int:
         return run_dagger(args)
     if args.resume:
         raise CommandError("--resume continues a DAgger run: give its --teacher too")
+    if args.refit is not None:
+        raise CommandError("--refit refits a DAgger run: give its --teacher too")
     args.env = args.env or BLEND_ID
     if args.env not in gym.registry:
         known = ", ".join(k for k in gym.registry if k.startswith("magenv/"))
