@@ -588,9 +588,7 @@ def train(
         if best is None or score < best:
             best = score
             student.save(out / BEST, info)
-        rows.append({"iteration": it, "samples": len(x), "fit_s": round(t_fit, 1), "score": score, "best": best})
-        rows[-1].update({f"{sc}_rmse": float(np.mean(v)) for sc, v in rmse.items()})
-        rows[-1].update({f"{sc}_ratio": v for sc, v in ratio.items()})
+        rows.append(_log_row(it, len(x), t_fit, score, best, rmse, ratio))
         _write_log(out / LOG, rows)
         log(f"iteration {it}: {len(x)} samples, fit {t_fit:.0f} s, val ratio {score:.3f} {_fmt(ratio)}")
     if cfg["ensemble"] > 1:
@@ -639,10 +637,7 @@ def refit(source: str | Path, out: str | Path, teacher, changes: dict, log: Call
     new_run["refit_of"] = {"run": str(source), "iterations": len(rows), "samples": int(len(x))}
     _write_run(out / RUN_FILE, new_run)
     student.save(out / BEST, {"iteration": len(rows), "val_ratio": score, "samples": len(x)})
-    row = {"iteration": len(rows), "samples": len(x), "fit_s": round(t_fit, 1), "score": score, "best": score}
-    row.update({f"{sc}_rmse": float(np.mean(v)) for sc, v in rmse.items()})
-    row.update({f"{sc}_ratio": v for sc, v in ratio.items()})
-    _write_log(out / LOG, [row])
+    _write_log(out / LOG, [_log_row(len(rows), len(x), t_fit, score, score, rmse, ratio)])
     log(f"refit of {source} ({len(x)} samples): fit {t_fit:.0f} s, val ratio {score:.3f} {_fmt(ratio)}")
     return out
 
@@ -752,6 +747,15 @@ def _load_data(path: Path, n_candidates: int, n_obs: int) -> tuple[np.ndarray, n
             f"{n_candidates} candidates"
         )
     return obs, regret
+
+
+def _log_row(it: int, samples: int, t_fit: float, score: float, best: float, rmse: dict, ratio: dict) -> dict:
+    """One row of iterations.csv: the fit's size and time, its validation score, the best so far, and per
+    scenario the mean RMSE (°) and the ratio to the rule."""
+    row = {"iteration": it, "samples": samples, "fit_s": round(t_fit, 1), "score": score, "best": best}
+    row.update({f"{sc}_rmse": float(np.mean(v)) for sc, v in rmse.items()})
+    row.update({f"{sc}_ratio": v for sc, v in ratio.items()})
+    return row
 
 
 def _read_log(path: Path) -> list[dict]:
