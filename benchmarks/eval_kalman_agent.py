@@ -82,13 +82,11 @@ def main() -> None:
         res = {m: np.array(v) for m, v in per_trial[sc].items()}
         rule = BEST_RULE.get(sc, "kf_model_tuned")
         cells = []
-        for m in ("agent", ORACLE):
-            if m in res and rule in res:
-                pr = paired_ratio(res[m], res[rule])
-                cells.append(f"{m}: {pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}], {pr.win_rate:.2f}")
-        if "agent" in res and SAME_INFORMATION in res:
-            pr = paired_ratio(res["agent"], res[SAME_INFORMATION])
-            cells.append(f"agent/{SAME_INFORMATION}: {pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}], {pr.win_rate:.2f}")
+        for m, ref, label in (("agent", rule, "agent"), (ORACLE, rule, ORACLE), ("agent", SAME_INFORMATION,
+                              f"agent/{SAME_INFORMATION}")):  # fmt: skip
+            if m in res and ref in res:
+                pr = paired_ratio(res[m], res[ref])
+                cells.append(f"{label}: {pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}], {pr.win_rate:.2f}")
         captured = ""
         if "agent" in res and ORACLE in res:
             r, a, o = res[rule].mean(), res["agent"].mean(), res[ORACLE].mean()
