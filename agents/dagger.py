@@ -602,7 +602,7 @@ def refit(source: str | Path, out: str | Path, teacher, changes: dict, log: Call
     as the new run folder ``out`` (run.yaml with ``refit_of``, best.safetensors, iterations.csv of one row);
     returns ``out``. ValueError if ``source`` is not a finished run of ``teacher`` or a key may not change."""
     source, out = Path(source), Path(out)
-    run = _resumed_run(source, teacher, str(getattr(teacher, "env_id", "")), None)
+    run = _resumed_run(source, teacher, str(getattr(teacher, "env_id", "")), None, "refit")
     bad = sorted(set(changes) - set(REFIT_KEYS))
     if bad:
         raise ValueError(f"a refit may change only {list(REFIT_KEYS)}, not {bad}")
@@ -696,12 +696,12 @@ def add_ensemble(
     return run["ensemble"]
 
 
-def _resumed_run(out: Path, teacher, env_id: str, config: dict | None) -> dict:
-    """run.yaml of the run in ``out``, its config's ``iterations`` replaced by ``config``'s; ValueError if it is
-    not a DAgger run of this teacher and env, or if ``config`` changes any other key."""
+def _resumed_run(out: Path, teacher, env_id: str, config: dict | None, purpose: str = "resume") -> dict:
+    """run.yaml of the run in ``out``, its config's ``iterations`` replaced by ``config``'s; ValueError (naming
+    ``purpose``) if it is not a DAgger run of this teacher and env, or if ``config`` changes any other key."""
     path = out / RUN_FILE
     if not is_run(out):
-        raise ValueError(f"{out} holds no DAgger run to resume (no {RUN_FILE} of algo {ALGO!r})")
+        raise ValueError(f"{out} holds no DAgger run to {purpose} (no {RUN_FILE} of algo {ALGO!r})")
     run = yaml.safe_load(path.read_text())
     name = getattr(teacher, "name", "")
     if run.get("env_id") != env_id or run.get("teacher") != name:

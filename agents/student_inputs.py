@@ -81,7 +81,10 @@ class KalmanInputs(StudentInputs):
     the best rule of ``stationary_magnet`` where the continuation kf_model_tuned is that of ``dynamic_magnet``),
     recomputed from that block: γ = 1 / (1 + (‖d̂‖/σ_d)² + (Δm/σ_m)² + (Δθ/σ_θ)²),
     ‖d̂‖ = 50 µT·field_ref·model_dist, Δm = 50 µT·field_ref·norm_dev, Δθ = 90°·dip_dev (σ = inf: the term is
-    absent) — the causal rules' own proposals, from which the student can learn deviations.
+    absent) — the causal rules' own proposals, from which the student can learn deviations. A teacher with a
+    ``still`` rule (run.yaml student ``still``: its σ_m, σ_θ, p_min, γ_pull) adds kf_still's γ on the block's
+    still-anchor features: γ_a (σ_m, σ_θ) where ``t_anchor`` = 0, max(γ_a, γ_pull) where ``pull_still`` > p_min,
+    else 0 (``magenv.baselines.kalman_policies.StillPullTrust``).
 
     With a teacher of ``rule_candidates`` (run.yaml student ``rule_candidates: true``), these rules' γ on the
     current block are also state-dependent candidates (``candidate_actions``, float64: bit for bit the
@@ -99,7 +102,23 @@ class KalmanInputs(StudentInputs):
             out["proposals"] = [[float(v) for v in p] for p in proposals]
         if getattr(teacher, "rule_candidates", False):
             out["rule_candidates"] = True
+        if getattr(teacher, "still_params", None) is not None:
+            out["still"] = [float(v) for v in teacher.still_params]
         return out
+
+    @staticmethod
+    def still_gamma(blk: np.ndarray, meta: dict) -> np.ndarray:
+        """(D,) kf_still's γ (run.yaml student ``still``) on (D, ≥ block) features, in ``blk``'s float type."""
+        from magenv.envs.kalman import EXTENDED, FEATURES, FIELD_SCALE_UT
+
+        sm, sth, p_min, g_pull = (float(v) for v in meta["still"])
+        i_nd, i_dd, i_m0 = (FEATURES.index(n) for n in ("norm_dev", "dip_dev", "field_ref"))
+        i_t, i_p = EXTENDED.index("t_anchor"), EXTENDED.index("pull_still")
+        a = FIELD_SCALE_UT * blk[:, i_m0].astype(np.float64) * blk[:, i_nd] / sm  # the rule's arithmetic
+        b = DIP_SCALE_DEG * blk[:, i_dd].astype(np.float64) / sth
+        g = 1.0 / (1.0 + a * a + b * b)
+        pulled = np.where(blk[:, i_p].astype(np.float64) > p_min, np.maximum(g, g_pull), 0.0)
+        return np.where(blk[:, i_t] <= 0.0, g, pulled)
 
     @staticmethod
     def rule_terms(blk: np.ndarray, meta: dict) -> list[tuple]:
@@ -123,16 +142,21 @@ class KalmanInputs(StudentInputs):
             parts.append(blk)
             for a, b, c in self.rule_terms(blk, meta):
                 parts.append((1.0 / (1.0 + (a + b + c)))[:, None].astype(np.float32))
+            if "still" in meta:
+                parts.append(self.still_gamma(blk, meta)[:, None].astype(np.float32))
         return np.concatenate(parts, 1)
 
     def n_state_candidates(self, meta: dict) -> int:
-        return 1 + len(meta.get("proposals", [])) if meta.get("rule_candidates") else 0
+        n = 1 + len(meta.get("proposals", [])) + ("still" in meta)
+        return n if meta.get("rule_candidates") else 0
 
     def candidate_actions(self, obs: np.ndarray, meta: dict) -> np.ndarray:
         if not self.n_state_candidates(meta):
             return super().candidate_actions(obs, meta)
         blk = np.atleast_2d(np.asarray(obs, np.float32)).astype(np.float64)  # the rules' arithmetic: float64,
         gammas = [1.0 / (1.0 + a + b + c) for a, b, c in self.rule_terms(blk, meta)]  # summed from 1 (``weight``)
+        if "still" in meta:
+            gammas.append(self.still_gamma(blk, meta))
         return np.stack(gammas, 1)[:, :, None]
 
 

@@ -28,7 +28,7 @@ error of eq. 22 (``magenv.metrics.errors1``; samples without truth add 0):
 what the trial's RMSE adds up. The cheapest candidate is applied for k
 samples, then the search repeats from the new state.
 
-Two options (both off in the packaged ``oracle_kalman``):
+Three options (all off in the packaged ``oracle_kalman``):
 
 * ``rule_candidates``: the γ that the continuation rule and each ``proposals``
   rule give on the env's observation of the current state are searched as
@@ -37,7 +37,13 @@ Two options (both off in the packaged ``oracle_kalman``):
   candidates can always fall back on a rule;
 * ``continuations``: further continuation rules; a candidate's cost is then the
   lowest over the roll-outs continuing with each rule (the continuation rule
-  and these).
+  and these);
+* ``still``: a ``kf_still`` rule (``StillPullTrust`` on the extended
+  observation, ``magenv.envs.kalman.EXTENDED``) whose γ is one more
+  state-dependent candidate, searched last (with ``rule_candidates``). It is
+  a candidate only, never a continuation: the roll-outs do not carry the
+  still anchor's memory. Its runners must be extended (``KalmanRunner(trial,
+  extended=True)``).
 """
 
 from __future__ import annotations
@@ -47,9 +53,9 @@ import math
 import numpy as np
 from numba import njit
 
-from magenv.baselines.kalman_policies import AdaptiveTrust, KalmanRule, ModelTrust
+from magenv.baselines.kalman_policies import AdaptiveTrust, KalmanRule, ModelTrust, StillPullTrust
 from magenv.envs import KALMAN_ID
-from magenv.envs.kalman import KalmanRunner
+from magenv.envs.kalman import EXTENDED, KalmanRunner
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_trust import SIG
 from magenv.metrics import errors1
@@ -132,6 +138,8 @@ class KalmanOracle:
             on the env's observation (``state_candidates``).
         continuations: further continuation rules (kf_model / kf_adaptive); each candidate costs the lowest
             of its roll-outs continuing with ``rule`` and with each of these.
+        still: a ``StillPullTrust`` reading ``EXTENDED`` whose γ is the last state candidate (needs
+            ``rule_candidates``; a student sees its γ too: ``still_params``).
     """
 
     name = "oracle_kalman"
@@ -147,11 +155,17 @@ class KalmanOracle:
         proposals: tuple[KalmanRule, ...] = (),
         rule_candidates: bool = False,
         continuations: tuple[KalmanRule, ...] = (),
+        still: StillPullTrust | None = None,
     ):
         self.rule = ModelTrust() if rule is None else rule
         default = ModelTrust().features
         if any(r.features != default for r in (self.rule, *proposals, *continuations)):
             raise ValueError("the continuation and proposal rules must read the env's default observation")
+        if still is not None and not (
+            isinstance(still, StillPullTrust) and still.features == EXTENDED.names and rule_candidates
+        ):
+            raise ValueError("still must be a kf_still rule reading the extended observation, with rule_candidates")
+        self.still = still
         self.scales = rule_scales(self.rule)
         self.proposals = tuple(proposals)
         self.proposal_scales = [rule_scales(p) for p in proposals]
@@ -174,12 +188,21 @@ class KalmanOracle:
         (see the class)."""
         return cls(ModelTrust(params["sigma_dist_ut"]), proposals=proposals, **options)
 
+    @property
+    def still_params(self) -> list[float] | None:
+        """(σ_m µT, σ_θ °, p_min °, γ_pull) of ``still``, or None."""
+        s = self.still
+        return None if s is None else [s.sigma_mag_ut, s.sigma_dip_deg, s.pull_min_deg, s.gamma_pull]
+
     def rule_actions(self, runner: KalmanRunner) -> np.ndarray:
-        """(R, 1) the γ of the continuation rule and of each proposal on the env's observation of ``runner``'s
-        next sample (float64; the same numbers as ``magenv.agents.student_inputs.KalmanInputs.candidate_actions``
-        on that observation)."""
+        """(R, 1) the γ of the continuation rule, of each proposal and of ``still`` on the env's observation of
+        ``runner``'s next sample (float64; the same numbers as
+        ``magenv.agents.student_inputs.KalmanInputs.candidate_actions`` on that observation)."""
+        if self.still is not None and not runner.extended:
+            raise ValueError("a teacher with a still candidate needs an extended runner (extended=True)")
         obs = runner.feat.astype(np.float32)
-        return np.array([[r.weight(obs)] for r in (self.rule, *self.proposals)])
+        rules = (self.rule, *self.proposals, *(() if self.still is None else (self.still,)))
+        return np.array([[r.weight(obs)] for r in rules])
 
     def state_candidates(self, runner: KalmanRunner) -> np.ndarray:
         """(S, 1) the state-dependent candidates at ``runner``'s state: ``rule_actions`` with
@@ -219,7 +242,7 @@ class KalmanOracle:
     def run(self, trial: Trial) -> Estimate:
         """The oracle's estimate of every sample of ``trial`` (reads ``trial.q_true``), in the env's filter with
         its default options."""
-        runner = KalmanRunner(trial)
+        runner = KalmanRunner(trial, extended=self.still is not None)
         while not runner.done:
             runner.advance(self.decision_every, self.best_gamma(runner))
         return Estimate(q=runner.est.copy(), trust=runner.trust.copy())

@@ -51,6 +51,7 @@ from magenv.baselines import (
     rules,
     vqf_rules,
 )
+from magenv.envs.kalman import EXTENDED as KALMAN_EXTENDED
 from magenv.protocols import Tunable
 
 AGENT_PREFIX = "agent:"
@@ -87,6 +88,24 @@ def _kalman_rules_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     return oracle
 
 
+def _kalman_still_oracle(params: dict) -> oracle_kalman.KalmanOracle:
+    """``oracle_kalman_still``: ``oracle_kalman_rules`` that also searches kf_still_tuned's γ at each state (on
+    the extended observation; a candidate, not a continuation), so that its student can fall back on the best
+    rule measured on ``stationary_magnet`` too."""
+    proposals = _kalman_proposals()
+    still = kalman_policies.StillPullTrust.from_params(tuned_params("kf_still"), features=KALMAN_EXTENDED.names)
+    oracle = oracle_kalman.KalmanOracle.from_model_params(
+        params,
+        proposals,
+        rule_candidates=True,
+        continuations=proposals,
+        horizon_s=RULES_ORACLE_HORIZON_S,
+        still=still,
+    )
+    oracle.name = "oracle_kalman_still"
+    return oracle
+
+
 #: methods that act with another rule's tuned parameters: name → (the rule whose file, factory(params))
 TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "qsf_detector_tuned": ("delay_magyq", qsf.tuned_detector_policy),
@@ -94,6 +113,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "oracle": ("fan_lambda", oracle.BlendOracle.from_fan_params),
     "oracle_kalman": ("kf_model", _kalman_oracle),
     "oracle_kalman_rules": ("kf_model", _kalman_rules_oracle),
+    "oracle_kalman_still": ("kf_model", _kalman_still_oracle),
     "oracle_constraint": ("cf_constraint", oracle_constraint.ConstraintOracle.from_constraint_params),
     "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),
 }

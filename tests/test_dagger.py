@@ -386,6 +386,8 @@ def test_refit_fits_one_student_on_all_of_a_runs_data(run_dir, tmp_path):
         (bare / name).write_bytes((run_dir / name).read_bytes())
     with pytest.raises(ValueError, match="needs the labelled data"):
         dagger.refit(bare, tmp_path / "x", registry.make("oracle"), {})
+    with pytest.raises(ValueError, match="no DAgger run to refit"):
+        dagger.refit(tmp_path / "none", tmp_path / "x", registry.make("oracle"), {})
     assert main(["train", "--teacher", "oracle", "--refit", str(run_dir), "--out", str(tmp_path / "y")]) != 0
 
 

@@ -13,7 +13,7 @@ from magenv.agents.student_inputs import inputs_for
 from magenv.baselines.kalman_policies import AdaptiveTrust, ModelTrust
 from magenv.baselines.oracle_kalman import KalmanOracle
 from magenv.envs import KALMAN_ID
-from magenv.envs.kalman import KalmanRunner
+from magenv.envs.kalman import EXTENDED, KalmanRunner
 from magenv.metrics import errors
 
 RULE = ModelTrust(0.3)  # close to the packaged tuned kf_model
@@ -124,6 +124,35 @@ def test_rule_candidates_are_the_rules_gamma_bit_for_bit(trial):
         seen.add(tuple(student[:, 0]))
         runner.advance(8, 0.7)
     assert len(seen) > 10  # the candidates move with the state
+
+
+def test_the_still_candidate_is_kf_still_tuned_bit_for_bit(trial):
+    """``oracle_kalman_still`` searches, after the two rules' γ, kf_still_tuned's γ on the extended observation;
+    the student computes the same number from that observation (and sees it after each block), and the
+    oracle's own run uses an extended runner."""
+    oracle = registry.make("oracle_kalman_still")
+    still = registry.make("kf_still_tuned")
+    inputs = inputs_for(KALMAN_ID)
+    meta = inputs.meta(oracle)
+    assert meta["still"] == oracle.still_params and inputs.n_state_candidates(meta) == 3
+    runner = KalmanRunner(trial, extended=True)
+    seen = set()
+    for _ in range(60):
+        obs = runner.feat.astype(np.float32)
+        student = inputs.candidate_actions(obs, meta)[0]
+        np.testing.assert_array_equal(student, oracle.state_candidates(runner))
+        picked = obs[[EXTENDED.index(n) for n in still.features]]
+        assert student[2, 0] == still.weight(picked)
+        x = inputs(obs, meta)[0]
+        assert x.size == obs.size + 3 * 3 and x[len(obs) // 3 + 2] == np.float32(student[2, 0])
+        seen.add(float(student[2, 0]))
+        runner.advance(8, 0.7)
+    assert len(seen) > 5 and 0.0 in seen  # it moves with the state and refuses where the anchor disagrees
+    with pytest.raises(ValueError, match="extended runner"):
+        oracle.state_candidates(KalmanRunner(trial))
+    with pytest.raises(ValueError, match="still must be"):
+        KalmanOracle(RULE, still=still)
+    assert oracle.run(trial).q.shape == trial.q_true.shape
 
 
 def test_continuations_cost_the_cheaper_roll_out(trial):
