@@ -104,6 +104,19 @@ def test_teacher_interface_registry_and_bad_arguments():
         KalmanOracle(registry.make("kf_gate"))
 
 
+def _student_and_teacher_candidates(trial, oracle, meta, decisions: int = 60):
+    """(observation, the student's state candidates) along ``decisions`` decisions of γ = 0.7 in an extended
+    runner, each asserted equal, bit for bit, to the teacher's ``state_candidates`` at that state."""
+    inputs = inputs_for(KALMAN_ID)
+    runner = KalmanRunner(trial, extended=True)
+    for _ in range(decisions):
+        obs = runner.feat.astype(np.float32)
+        student = inputs.candidate_actions(obs, meta)[0]
+        np.testing.assert_array_equal(student, oracle.state_candidates(runner))
+        yield obs, student
+        runner.advance(8, 0.7)
+
+
 def test_rule_candidates_are_the_rules_gamma_bit_for_bit(trial):
     """``oracle_kalman_rules`` searches, after the fixed levels, the γ of kf_model_tuned and kf_adaptive_tuned
     on the env's observation; the student's state-dependent candidates (computed from that observation at
@@ -114,15 +127,10 @@ def test_rule_candidates_are_the_rules_gamma_bit_for_bit(trial):
     meta = inputs.meta(oracle)
     assert meta["rule_candidates"] and inputs.n_state_candidates(meta) == 2
     assert inputs.n_state_candidates(inputs.meta(registry.make("oracle_kalman"))) == 0
-    runner = KalmanRunner(trial, extended=True)
     seen = set()
-    for _ in range(60):
-        obs = runner.feat.astype(np.float32)
-        student = inputs.candidate_actions(obs, meta)[0]
-        np.testing.assert_array_equal(student, oracle.state_candidates(runner))
+    for obs, student in _student_and_teacher_candidates(trial, oracle, meta):
         np.testing.assert_array_equal(student[:, 0], [r.weight(obs[: len(r.features)]) for r in rules])
         seen.add(tuple(student[:, 0]))
-        runner.advance(8, 0.7)
     assert len(seen) > 10  # the candidates move with the state
 
 
@@ -135,18 +143,12 @@ def test_the_still_candidate_is_kf_still_tuned_bit_for_bit(trial):
     inputs = inputs_for(KALMAN_ID)
     meta = inputs.meta(oracle)
     assert meta["still"] == oracle.still_params and inputs.n_state_candidates(meta) == 3
-    runner = KalmanRunner(trial, extended=True)
     seen = set()
-    for _ in range(60):
-        obs = runner.feat.astype(np.float32)
-        student = inputs.candidate_actions(obs, meta)[0]
-        np.testing.assert_array_equal(student, oracle.state_candidates(runner))
-        picked = obs[[EXTENDED.index(n) for n in still.features]]
-        assert student[2, 0] == still.weight(picked)
+    for obs, student in _student_and_teacher_candidates(trial, oracle, meta):
+        assert student[2, 0] == still.weight(obs[[EXTENDED.index(n) for n in still.features]])
         x = inputs(obs, meta)[0]
         assert x.size == obs.size + 3 * 3 and x[len(obs) // 3 + 2] == np.float32(student[2, 0])
         seen.add(float(student[2, 0]))
-        runner.advance(8, 0.7)
     assert len(seen) > 5 and 0.0 in seen  # it moves with the state and refuses where the anchor disagrees
     with pytest.raises(ValueError, match="extended runner"):
         oracle.state_candidates(KalmanRunner(trial))
