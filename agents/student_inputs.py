@@ -12,6 +12,7 @@ is one entry here plus a teacher (the oracle interface of
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -108,15 +109,14 @@ class KalmanInputs(StudentInputs):
 
     @staticmethod
     def still_gamma(blk: np.ndarray, meta: dict) -> np.ndarray:
-        """(D,) kf_still's γ (run.yaml student ``still``) on (D, ≥ block) features, in ``blk``'s float type."""
-        from magenv.envs.kalman import EXTENDED, FEATURES, FIELD_SCALE_UT
+        """(D,) float64 kf_still's γ (run.yaml student ``still``) on (D, ≥ block) features."""
+        from magenv.envs.kalman import EXTENDED
 
         sm, sth, p_min, g_pull = (float(v) for v in meta["still"])
-        i_nd, i_dd, i_m0 = (FEATURES.index(n) for n in ("norm_dev", "dip_dev", "field_ref"))
         i_t, i_p = EXTENDED.index("t_anchor"), EXTENDED.index("pull_still")
-        a = FIELD_SCALE_UT * blk[:, i_m0].astype(np.float64) * blk[:, i_nd] / sm  # the rule's arithmetic
-        b = DIP_SCALE_DEG * blk[:, i_dd].astype(np.float64) / sth
-        g = 1.0 / (1.0 + a * a + b * b)
+        terms = KalmanInputs.rule_terms(blk.astype(np.float64), {"scales": [math.inf, sm, sth]})  # kf_adaptive's,
+        ((a, b, c),) = terms  # in float64 (the rule's arithmetic) also for float32 inputs; a = 0
+        g = 1.0 / (1.0 + a + b + c)  # summed from 1 as the rule's ``weight``
         pulled = np.where(blk[:, i_p].astype(np.float64) > p_min, np.maximum(g, g_pull), 0.0)
         return np.where(blk[:, i_t] <= 0.0, g, pulled)
 
