@@ -23,7 +23,7 @@ probability-weighted mean candidate action (``mean``, the default) or with its m
 (``argmax``: for an action with a discrete part, e.g. MagQSF-v0's none/keep/start code, whose mean of "none"
 and "start" would be "keep").
 
-Training (Ross et al. 2011, with β = 0 after the first iteration):
+Training (Ross et al. 2011; β, config ``beta``, is the teacher's share of the decisions from iteration 1 on):
 
 1. iteration 0's data: the teacher's own trajectories (at each decision the
    cheapest candidate; ``first: rule``: the continuation rule's) on
@@ -66,9 +66,10 @@ The run folder holds weights and arrays only (``magenv.agents.weights`` format, 
     best.safetensors     the student with the best validation score
     checkpoints/it_N.safetensors   the student of each iteration (an ensemble's members: run.yaml ``ensemble``)
     iterations.csv       validation RMSE (°) and ratio to the rule per scenario and iteration
-    data/it_N.npz        the labelled states added at iteration N: ``obs`` (D, n_obs) float32, ``regret`` (D, C)
-                         float32 in % of the trial's rule MSE (compressed; for resuming only, never shipped;
-                         a MagBlend iteration's is ~150 k states × 126 features)
+    data/it_N.npz        the labelled states added at iteration N: ``obs`` (D, n_obs) float32, ``regret``
+                         (D, C + S) float32 in % of the trial's rule MSE, inf where a roll-out failed
+                         (compressed; for resuming only, never shipped; a MagBlend iteration's is ~150 k
+                         states × 126 features)
 
 A refit (``refit(source, out, teacher, changes)``, ``magenv train --teacher NAME --refit SOURCE --out RUN``)
 fits one fresh student on all of a finished run's labelled data with some fit keys changed (``REFIT_KEYS``:
@@ -134,7 +135,10 @@ def check_config(config: dict | None) -> dict:
     cfg = {**DEFAULTS, **config}
     from magenv.scenarios import expand_mixture
 
-    cfg["scenarios"] = expand_mixture(cfg["scenarios"])  # "twins:DIR" entries: the twins of DIR's recordings
+    if isinstance(cfg["scenarios"], (str, list)):
+        cfg["scenarios"] = expand_mixture(cfg["scenarios"])  # "twins:DIR" entries: the twins of DIR's recordings
+    if not isinstance(cfg["scenarios"], list) or not cfg["scenarios"]:
+        raise ValueError(f"DAgger config 'scenarios' must be a non-empty list, got {cfg['scenarios']!r}")
     per = cfg["trials_per_scenario"]
     if isinstance(per, dict):  # scenario → trials: more distinct trials where the student needs them
         if set(per) != set(cfg["scenarios"]):
@@ -144,7 +148,7 @@ def check_config(config: dict | None) -> dict:
         counts = list(per.values())
     else:
         counts = [per]
-    if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in counts):
+    if any(not _is_int(n) or n < 1 for n in counts):
         raise ValueError(f"DAgger config 'trials_per_scenario' must be a positive integer (or a scenario → positive "
                          f"integer mapping), got {per!r}")  # fmt: skip
     for key in (
@@ -155,18 +159,23 @@ def check_config(config: dict | None) -> dict:
         "label_every",
         "ensemble",
     ):
-        if isinstance(cfg[key], bool) or not isinstance(cfg[key], int) or cfg[key] < 1:
+        if not _is_int(cfg[key]) or cfg[key] < 1:
             raise ValueError(f"DAgger config {key!r} must be a positive integer, got {cfg[key]!r}")
-    if not isinstance(cfg["train_seed"], int) or cfg["train_seed"] < HELD_OUT_BELOW:
+    if not _is_int(cfg["train_seed"]) or cfg["train_seed"] < HELD_OUT_BELOW:
         raise ValueError(f"train_seed must be an integer ≥ {HELD_OUT_BELOW}, got {cfg['train_seed']!r}")
-    lo, hi = cfg["val_seeds"]
-    if not (VALIDATION_START <= lo < hi <= HELD_OUT_BELOW):
+    if not _is_int(cfg["seed"]) or cfg["seed"] < 0:
+        raise ValueError(f"DAgger config 'seed' must be a non-negative integer, got {cfg['seed']!r}")
+    val = cfg["val_seeds"]
+    if not (isinstance(val, list) and len(val) == 2 and all(map(_is_int, val))
+            and VALIDATION_START <= val[0] < val[1] <= HELD_OUT_BELOW):  # fmt: skip
         raise ValueError(
-            f"val_seeds must be [start, stop) within the validation seeds {VALIDATION_START}–{HELD_OUT_BELOW - 1},"
-            f" got {[lo, hi]}"
+            f"val_seeds must be [start, stop), integers within the validation seeds {VALIDATION_START}–"
+            f"{HELD_OUT_BELOW - 1}, got {val!r}"
         )
-    if not 0.0 <= cfg["beta"] <= 1.0 or not cfg["learning_rate"] > 0:
-        raise ValueError("beta must lie in [0, 1] and learning_rate be positive")
+    for key, ok, what in (("beta", lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]"),
+                          ("learning_rate", lambda v: 0.0 < v < np.inf, "a positive number")):  # fmt: skip
+        if isinstance(cfg[key], bool) or not isinstance(cfg[key], (int, float)) or not ok(cfg[key]):
+            raise ValueError(f"DAgger config {key!r} must be {what}, got {cfg[key]!r}")
     if cfg["ensemble"] > cfg["iterations"]:
         raise ValueError(f"ensemble ({cfg['ensemble']}) cannot exceed iterations ({cfg['iterations']})")
     if cfg["first"] not in ("teacher", "rule"):
@@ -178,9 +187,15 @@ def check_config(config: dict | None) -> dict:
     clip = cfg["regret_clip"]
     if clip is not None and (isinstance(clip, bool) or not isinstance(clip, (int, float)) or not 0 < clip < np.inf):
         raise ValueError(f"regret_clip must be a positive number (or null: no clip), got {clip!r}")
-    if not cfg["hidden"] or any(int(h) != h or h < 1 for h in cfg["hidden"]):
-        raise ValueError(f"hidden must be a list of positive layer widths, got {cfg['hidden']!r}")
+    hidden = cfg["hidden"]
+    if not isinstance(hidden, list) or not hidden or not all(_is_int(h) and h >= 1 for h in hidden):
+        raise ValueError(f"hidden must be a list of positive layer widths, got {hidden!r}")
     return cfg
+
+
+def _is_int(v) -> bool:
+    """An integer and not a bool (YAML's ``true`` is a Python int)."""
+    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def candidate_matrix(candidates) -> np.ndarray:
@@ -272,15 +287,26 @@ class Student:
             mu, sd = tensors["mu"].numpy(), tensors["sd"].numpy()
         except KeyError as exc:
             raise RunError(f"{path}: missing tensor {exc}") from None
-        n_in = student["n_inputs"]
         meta = {k: v for k, v in student.items() if k not in _SHAPE_KEYS}
-        widths = [*student["hidden"], len(student["candidates"]) + state_candidate_count(inputs, meta)]
-        if mu.shape != (n_in,) or [w.shape[0] for w, _ in layers] != widths or layers[0][0].shape[1] != n_in:
+        try:
+            n_in, candidates = int(student["n_inputs"]), candidate_matrix(student["candidates"])
+            widths = [*(int(h) for h in student["hidden"]), len(candidates) + state_candidate_count(inputs, meta)]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RunError(
+                f"{path}: run.yaml's student section is not one of ours ({type(exc).__name__}: {exc})"
+            ) from None
+        block = meta.get("block", 1)  # the stride of the blocked inputs (magenv.agents.student_inputs)
+        if not _is_int(block) or block < 1:
+            raise RunError(f"{path}: run.yaml's student block must be a positive integer, got {block!r}")
+        want = [((o, i), (o,)) for o, i in zip(widths, [n_in, *widths[:-1]])]
+        if mu.shape != (n_in,) or sd.shape != (n_in,) or [(w.shape, b.shape) for w, b in layers] != want:
             raise RunError(f"{path}: the weights do not fit the student of run.yaml ({n_in} inputs, {widths})")
+        if not all(np.all(np.isfinite(a)) for a in (mu, sd, *(t for pair in layers for t in pair))) or np.any(sd <= 0):
+            raise RunError(f"{path}: the weights hold non-finite values or a non-positive input scale sd")
         act = student.get("act", "mean")  # run folders from before ``act`` act with the mean
         if act not in ACTS:
             raise RunError(f"{path}: run.yaml's student act {act!r} is not one of {list(ACTS)}")
-        return cls(layers, mu, sd, student["candidates"], inputs, meta, act)
+        return cls(layers, mu, sd, candidates, inputs, meta, act)
 
 
 class Ensemble(Student):
@@ -334,6 +360,8 @@ def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inp
     xt = torch.as_tensor((x - mu) / sd, dtype=torch.float32)
     if cfg["regret_clip"] is not None:  # a bounded loss per state: diverged roll-outs do not drown the rest
         regret = np.minimum(regret, np.float32(cfg["regret_clip"]))
+    if not np.all(np.isfinite(regret)):
+        raise ValueError("regrets hold inf (a candidate's roll-out failed); set regret_clip to bound them")
     rt = torch.as_tensor(regret, dtype=torch.float32)
     layers, width = [], x.shape[1]
     for h in cfg["hidden"]:
@@ -379,9 +407,9 @@ class Episodes:
     """Closed-loop episodes of one env with the student's observation, the teacher reading its runner.
 
     ``run(trial, act, label_every, needs_costs)``: ``act(obs, runner, costs)`` → the action (action_dim,) at
-    each decision, ``costs`` the teacher's (C,) candidate costs at that state on the labelled decisions (every
+    each decision, ``costs`` the teacher's (C + S,) candidate costs at that state on the labelled decisions (every
     ``label_every``-th from the first; 0 = none) and, with ``needs_costs``, on all (else None). Returns
-    (labelled observations (D, n_obs) float32, their costs (D, C), RMSE °). With ``candidates_at``
+    (labelled observations (D, n_obs) float32, their costs (D, C + S), RMSE °). With ``candidates_at``
     (obs → (C + S, action_dim)) the teacher costs those candidates of each state (state-dependent ones)."""
 
     def __init__(self, env_id: str, env_kwargs: dict, teacher, candidates_at: Callable | None = None):
@@ -552,8 +580,14 @@ def train(
                 trial = make_trial(sc, s)
                 o, costs, _ = episodes.run(trial, act, cfg["label_every"], needs)
                 horizon = int(round(teacher.horizon_s * trial.rate))
+                if horizon < 1:
+                    raise ValueError(f"the teacher's look-ahead {teacher.horizon_s} s is under one sample of {sc}")
+                regret = REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rule_mse(trial))
+                if np.isnan(regret).any():  # every candidate's roll-out failed, or the rule's MSE is 0
+                    raise ValueError(f"{sc} seed {s}: regrets are undefined at some decisions (no candidate of finite"
+                                     " cost, or a rule of zero error)")  # fmt: skip
                 obs_parts.append(o)
-                regret_parts.append(REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rule_mse(trial)))
+                regret_parts.append(regret)
         obs = np.concatenate(obs_parts).astype(np.float32)
         regret = np.concatenate(regret_parts).astype(np.float32)
         _save_data(out / DATA / f"it_{j}.npz", obs, regret)
@@ -593,6 +627,9 @@ def train(
         log(f"iteration {it}: {len(x)} samples, fit {t_fit:.0f} s, val ratio {score:.3f} {_fmt(ratio)}")
     if cfg["ensemble"] > 1:
         add_ensemble(out, teacher, cfg["ensemble"], log, validation)
+    elif "ensemble" in new_run:  # resumed with ``ensemble: 1``: the student is the best iteration again
+        del new_run["ensemble"]
+        _write_run(out / RUN_FILE, new_run)
     return out
 
 
@@ -600,9 +637,10 @@ def refit(source: str | Path, out: str | Path, teacher, changes: dict, log: Call
     """A fresh student fitted on all the labelled data of the DAgger run ``source`` (its ``data/it_N.npz``) with
     the fit keys ``changes`` (``REFIT_KEYS``) replacing the run's, scored on the run's validation trials; written
     as the new run folder ``out`` (run.yaml with ``refit_of``, best.safetensors, iterations.csv of one row);
-    returns ``out``. ValueError if ``source`` is not a finished run of ``teacher`` or a key may not change."""
+    returns ``out``. ValueError if ``source`` is not a run of ``teacher`` (its env, and its student's input
+    constants: the same tuned rules) or a key may not change."""
     source, out = Path(source), Path(out)
-    run = _resumed_run(source, teacher, str(getattr(teacher, "env_id", "")), None, "refit")
+    run = _resumed_run(source, teacher, check_teacher(teacher), None, "refit")
     bad = sorted(set(changes) - set(REFIT_KEYS))
     if bad:
         raise ValueError(f"a refit may change only {list(REFIT_KEYS)}, not {bad}")
@@ -615,6 +653,9 @@ def refit(source: str | Path, out: str | Path, teacher, changes: dict, log: Call
         raise ValueError(f"{source}: a refit needs the labelled data of every iteration in {source / DATA}")
     inputs = inputs_for(run["env_id"])
     meta = {k: v for k, v in run["student"].items() if k not in _SHAPE_KEYS}
+    if yaml.safe_load(yaml.safe_dump(inputs.meta(teacher))) != meta:
+        raise ValueError(f"{source}: the teacher's student constants {inputs.meta(teacher)} differ from the run's "
+                         f"{meta} (its rules were re-tuned since?); cannot refit it")  # fmt: skip
     cands = np.asarray(run["student"]["candidates"], np.float64)
     n_cands = len(cands) + state_candidate_count(inputs, meta)
 
@@ -734,7 +775,7 @@ def _save_data(path: Path, obs: np.ndarray, regret: np.ndarray) -> None:
 
 
 def _load_data(path: Path, n_candidates: int, n_obs: int) -> tuple[np.ndarray, np.ndarray]:
-    """(obs (D, n_obs) float32, regret (D, C) float32 in % of the trial's rule MSE) of a data file; RunError if
+    """(obs (D, n_obs) float32, regret (D, C + S) float32 in % of the trial's rule MSE) of a data file; RunError if
     it is not one of this run's."""
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -746,6 +787,8 @@ def _load_data(path: Path, n_candidates: int, n_obs: int) -> tuple[np.ndarray, n
             f"{path}: obs {obs.shape} and regret {regret.shape} do not fit {n_obs} observations and "
             f"{n_candidates} candidates"
         )
+    if obs.dtype != np.float32 or regret.dtype != np.float32 or np.isnan(regret).any() or (regret < 0).any():
+        raise RunError(f"{path}: obs and regret must be float32, the regrets ≥ 0 (inf: a failed roll-out), no NaN")
     return obs, regret
 
 

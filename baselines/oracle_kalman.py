@@ -111,6 +111,17 @@ def candidate_costs(params, state, sensors, q_true, mdist, start, horizon, k, ca
         costs[c] = cost
 
 
+def _gammas(candidates, columns: bool = False) -> np.ndarray:
+    """(C,) contiguous float64 γ of a non-empty list (or, with ``columns``, of a (C, 1) array); ValueError
+    naming them unless every γ lies in [0, 1]."""
+    g = np.asarray(candidates, np.float64)
+    if columns and g.ndim == 2 and g.shape[1] == 1:
+        g = g[:, 0]
+    if g.ndim != 1 or g.size == 0 or not np.all((g >= 0) & (g <= 1)):
+        raise ValueError(f"candidates must be a non-empty list of γ in [0, 1], got {candidates!r}")
+    return np.ascontiguousarray(g)
+
+
 def rule_scales(rule: KalmanRule) -> np.ndarray:
     """(σ_d µT, σ_m µT, σ_θ °) of a ``kf_model`` or ``kf_adaptive`` rule (inf: term absent)."""
     if isinstance(rule, ModelTrust):
@@ -171,11 +182,9 @@ class KalmanOracle:
         self.proposal_scales = [rule_scales(p) for p in proposals]
         self.rule_candidates = bool(rule_candidates)
         self.continuation_scales = [self.scales, *(rule_scales(r) for r in continuations)]
-        cands = np.asarray(candidates, float)
-        if cands.ndim != 1 or cands.size == 0 or not np.all((cands >= 0) & (cands <= 1)):
-            raise ValueError(f"candidates must be a non-empty list of γ in [0, 1], got {candidates!r}")
-        if not horizon_s > 0:
-            raise ValueError(f"horizon_s must be positive, got {horizon_s}")
+        cands = _gammas(candidates)
+        if not 0 < horizon_s < math.inf:
+            raise ValueError(f"horizon_s must be a positive number of seconds, got {horizon_s}")
         if isinstance(decision_every, bool) or int(decision_every) != decision_every or decision_every < 1:
             raise ValueError(f"decision_every must be a positive integer, got {decision_every!r}")
         self.levels, self.candidates = cands, cands[:, None]
@@ -216,7 +225,7 @@ class KalmanOracle:
         if candidates is None:
             gammas = np.concatenate([self.levels, self.state_candidates(runner)[:, 0]])
         else:
-            gammas = np.ascontiguousarray(np.asarray(candidates, np.float64).reshape(-1))
+            gammas = _gammas(candidates, columns=True)
         horizon = int(round(self.horizon_s * runner.trial.rate))
         state = runner.state
         scratch = kt.State(np.empty_like(state.q), np.empty_like(state.p))

@@ -19,7 +19,8 @@ a fresh one. ``names()`` lists them all:
   (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
   reads truth, so it is an upper bound (compare's headroom row), never a
   baseline; likewise ``oracle_kalman`` for MagKalman-v0 (``magenv.baselines.oracle_kalman``, continuing with
-  ``kf_model_tuned``), ``oracle_constraint`` (MagConstraint-v0, continuing with ``cf_constraint_tuned``,
+  ``kf_model_tuned``; its DAgger teachers ``oracle_kalman_rules`` and ``oracle_kalman_still`` also search the
+  tuned rules' γ), ``oracle_constraint`` (MagConstraint-v0, continuing with ``cf_constraint_tuned``,
   ``magenv.baselines.oracle_constraint``), ``oracle_qsf`` (MagQSF-v0, continuing with
   ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``) and ``oracle_vqf`` for MagVQF-v0
   (``magenv.baselines.oracle_vqf``);
@@ -78,32 +79,29 @@ RULES_ORACLE_HORIZON_S = 1.0  # s, look-ahead of oracle_kalman_rules
 def _kalman_rules_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     """``oracle_kalman_rules``: ``oracle_kalman`` that also searches the γ of kf_model_tuned and
     kf_adaptive_tuned at each state (``rule_candidates``), continuing with the cheaper of the two rules, with a
-    1 s look-ahead (0.25 s does not see what refusing the magnetometer costs in gyro drift); the DAgger teacher
-    of the shipped MagKalman-v0 student."""
-    proposals = _kalman_proposals()
-    oracle = oracle_kalman.KalmanOracle.from_model_params(
+    1 s look-ahead (0.25 s does not see what refusing the magnetometer costs in gyro drift). Without a tuned
+    kf_adaptive it is not itself: TunedParamsError."""
+    proposals = (kalman_policies.AdaptiveTrust.from_params(tuned_params("kf_adaptive")),)
+    return oracle_kalman.KalmanOracle.from_model_params(
         params, proposals, rule_candidates=True, continuations=proposals, horizon_s=RULES_ORACLE_HORIZON_S
     )
-    oracle.name = "oracle_kalman_rules"
-    return oracle
 
 
 def _kalman_still_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     """``oracle_kalman_still``: ``oracle_kalman_rules`` that also searches kf_still_tuned's γ at each state (on
     the extended observation; a candidate, not a continuation), so that its student can fall back on the best
-    rule measured on ``stationary_magnet`` too."""
-    proposals = _kalman_proposals()
+    rule measured on ``stationary_magnet`` too; the DAgger teacher of the shipped MagKalman-v0 student. Needs
+    tuned kf_adaptive and kf_still files (else TunedParamsError)."""
+    rules = _kalman_rules_oracle(params)
     still = kalman_policies.StillPullTrust.from_params(tuned_params("kf_still"), features=KALMAN_EXTENDED.names)
-    oracle = oracle_kalman.KalmanOracle.from_model_params(
+    return oracle_kalman.KalmanOracle.from_model_params(
         params,
-        proposals,
+        rules.proposals,
         rule_candidates=True,
-        continuations=proposals,
-        horizon_s=RULES_ORACLE_HORIZON_S,
+        continuations=rules.proposals,
+        horizon_s=rules.horizon_s,
         still=still,
     )
-    oracle.name = "oracle_kalman_still"
-    return oracle
 
 
 #: methods that act with another rule's tuned parameters: name → (the rule whose file, factory(params))

@@ -10,7 +10,7 @@ from magenv import evaluation, registry
 from magenv.agents import dagger
 from magenv.agents.loading import RunError, load_agent
 from magenv.agents.student_inputs import StudentInputs, inputs_for
-from magenv.agents.weights import read
+from magenv.agents.weights import FORMAT, read
 from magenv.baselines.rules import FanLambda
 from magenv.envs import BLEND_ID
 from magenv.envs.blend import BlendRunner
@@ -69,6 +69,17 @@ def test_refuses_an_existing_run_and_bad_configs(run_dir):
         ({"val_seeds": [0, 20]}, "validation seeds"),
         ({"bogus": 1}, "unknown DAgger config"),
         ({"iterations": 0}, "iterations"),
+        ({"seed": -1}, "'seed'"),
+        ({"seed": "x"}, "'seed'"),
+        ({"seed": 1.5}, "'seed'"),
+        ({"val_seeds": [5000]}, "val_seeds"),
+        ({"val_seeds": [5000.0, 5002.0]}, "val_seeds"),
+        ({"beta": "x"}, "'beta'"),
+        ({"learning_rate": True}, "'learning_rate'"),
+        ({"hidden": 8}, "hidden"),
+        ({"hidden": [True]}, "hidden"),
+        ({"scenarios": []}, "'scenarios'"),
+        ({"scenarios": 5}, "'scenarios'"),
     ):
         with pytest.raises(ValueError, match=match):
             dagger.check_config(bad)
@@ -81,12 +92,59 @@ def test_refuses_an_existing_run_and_bad_configs(run_dir):
 
 
 def test_weights_that_do_not_fit_are_refused(run_dir, tmp_path):
-    run = yaml.safe_load((run_dir / "run.yaml").read_text())
-    run["student"]["hidden"] = [16]
-    (tmp_path / "run.yaml").write_text(yaml.safe_dump(run))
-    (tmp_path / "best.safetensors").write_bytes((run_dir / "best.safetensors").read_bytes())
-    with pytest.raises(RunError, match="do not fit"):
-        load_agent(tmp_path)
+    """A student section or weights file that is not one of ours: RunError naming the problem, never a policy
+    that acts with NaN or fails at its first action."""
+    from safetensors.numpy import load_file, save_file
+
+    good = yaml.safe_load((run_dir / "run.yaml").read_text())
+    tensors = load_file(run_dir / "best.safetensors")
+
+    def load(student=None, **changed):
+        (tmp_path / "run.yaml").write_text(yaml.safe_dump({**good, "student": student or good["student"]}))
+        meta = {"format": FORMAT, "algo": '"dagger"'}
+        save_file({**tensors, **changed}, tmp_path / "best.safetensors", metadata=meta)
+        return load_agent(tmp_path)
+
+    assert load().student.layers[0][0].shape == tensors["layer0/weight"].shape  # the unchanged copy loads
+    for student, match in (
+        ({**good["student"], "hidden": [16]}, "do not fit"),
+        ({k: v for k, v in good["student"].items() if k != "n_inputs"}, "student section"),
+        ({**good["student"], "candidates": []}, "student section"),
+        ({**good["student"], "block": 0}, "block"),
+    ):
+        with pytest.raises(RunError, match=match):
+            load(student)
+    sd_nan = tensors["sd"].copy()
+    sd_nan[0] = np.nan
+    for changed, match in (
+        ({"layer0/bias": tensors["layer0/bias"][:1]}, "do not fit"),
+        ({"sd": sd_nan}, "non-finite"),
+        ({"sd": np.zeros_like(tensors["sd"])}, "non-positive"),
+    ):
+        with pytest.raises(RunError, match=match):
+            load(**changed)
+
+
+def test_resuming_with_ensemble_1_makes_the_best_iteration_the_student_again(run_dir, tmp_path):
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(run_dir, out)
+    oracle = registry.make("oracle")
+    dagger.add_ensemble(out, oracle, 2, log=lambda s: None)
+    dagger.train(out, oracle, {"iterations": 3, "ensemble": 1}, log=lambda s: None, resume=True)
+    run = yaml.safe_load((out / "run.yaml").read_text())
+    assert "ensemble" not in run and run["config"]["ensemble"] == 1
+    assert not isinstance(load_agent(out).student, dagger.Ensemble)
+
+
+def test_data_files_with_undefined_regrets_are_refused(run_dir, tmp_path):
+    with np.load(run_dir / "data" / "it_0.npz", allow_pickle=False) as z:
+        obs, regret = z["obs"], z["regret"]
+    for o, r in ((obs, np.where(regret > 0, np.nan, regret)), (obs.astype(np.float64), regret), (obs, -regret - 1)):
+        np.savez(tmp_path / "it_0.npz", obs=o, regret=r.astype(np.float32))
+        with pytest.raises(RunError, match="float32"):
+            dagger._load_data(tmp_path / "it_0.npz", regret.shape[1], obs.shape[1])
 
 
 def test_an_ensemble_of_iterations_acts_with_their_mean_probabilities(run_dir, tmp_path, make_kinematic_trial):
@@ -343,6 +401,10 @@ def test_regret_clip_bounds_each_states_loss():
         np.testing.assert_array_equal(w1, w2)
         np.testing.assert_array_equal(b1, b2)
     assert not np.array_equal(clipped.layers[-1][0], unclipped.layers[-1][0])
+    regret[0, 1] = np.inf  # a failed roll-out: the clip bounds it, an unclipped fit refuses it
+    assert np.all(np.isfinite(dagger.fit(x, regret, {**cfg, "regret_clip": 10.0}, 0, cands, inputs, {}).layers[-1][0]))
+    with pytest.raises(ValueError, match="set regret_clip"):
+        dagger.fit(x, regret, cfg, 0, cands, inputs, {})
     for bad in (0, -1.0, float("inf"), True, "10"):
         with pytest.raises(ValueError, match="regret_clip"):
             dagger.check_config({"regret_clip": bad})
@@ -388,7 +450,19 @@ def test_refit_fits_one_student_on_all_of_a_runs_data(run_dir, tmp_path):
         dagger.refit(bare, tmp_path / "x", registry.make("oracle"), {})
     with pytest.raises(ValueError, match="no DAgger run to refit"):
         dagger.refit(tmp_path / "none", tmp_path / "x", registry.make("oracle"), {})
-    assert main(["train", "--teacher", "oracle", "--refit", str(run_dir), "--out", str(tmp_path / "y")]) != 0
+    import copy
+
+    retuned = copy.copy(registry.make("oracle"))
+    retuned.norm_tol *= 2  # its continuation rule re-tuned since the run: another rule's labels and ratios
+    with pytest.raises(ValueError, match="student constants"):
+        dagger.refit(run_dir, tmp_path / "x", retuned, {})
+    with pytest.raises(ValueError, match="cannot teach"):
+        dagger.refit(run_dir, tmp_path / "x", registry.make("fan_lambda"), {})
+
+
+def test_refit_needs_its_config(run_dir, tmp_path, capsys):
+    assert main(["train", "--teacher", "oracle", "--refit", str(run_dir), "--out", str(tmp_path / "y")]) == 2
+    assert "--refit needs --config" in capsys.readouterr().err
 
 
 def test_ensemble_members_are_best_or_checkpoints(run_dir, tmp_path):

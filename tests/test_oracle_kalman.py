@@ -98,8 +98,9 @@ def test_teacher_interface_registry_and_bad_arguments():
     }
     with pytest.raises(ValueError, match="candidates"):
         KalmanOracle(candidates=(0.0, 1.5))
-    with pytest.raises(ValueError, match="horizon_s"):
-        KalmanOracle(horizon_s=0.0)
+    for horizon in (0.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="horizon_s"):
+            KalmanOracle(horizon_s=horizon)
     with pytest.raises(ValueError, match="kf_model or kf_adaptive"):
         KalmanOracle(registry.make("kf_gate"))
 
@@ -147,13 +148,22 @@ def test_the_still_candidate_is_kf_still_tuned_bit_for_bit(trial):
     for obs, student in _student_and_teacher_candidates(trial, oracle, meta):
         assert student[2, 0] == still.weight(obs[[EXTENDED.index(n) for n in still.features]])
         x = inputs(obs, meta)[0]
-        assert x.size == obs.size + 3 * 3 and x[len(obs) // 3 + 2] == np.float32(student[2, 0])
+        block = len(obs) // 3
+        assert x.size == obs.size + 3 * 3 and x[block + 2] == np.float32(student[2, 0])
+        for b in (1, 2):  # the lagged blocks: kf_still's γ on the features of 8 and 32 decisions before
+            shifted = obs.copy()
+            shifted[:block] = obs[b * block : (b + 1) * block]
+            lagged = still.weight(shifted[[EXTENDED.index(n) for n in still.features]])
+            assert x[b * (block + 3) + block + 2] == np.float32(lagged)
         seen.add(float(student[2, 0]))
     assert len(seen) > 5 and 0.0 in seen  # it moves with the state and refuses where the anchor disagrees
     with pytest.raises(ValueError, match="extended runner"):
         oracle.state_candidates(KalmanRunner(trial))
-    with pytest.raises(ValueError, match="still must be"):
-        KalmanOracle(RULE, still=still)
+    with pytest.raises(ValueError, match="still must be"):  # the teacher's own rule, without rule_candidates
+        KalmanOracle(RULE, still=oracle.still)
+    with pytest.raises(ValueError, match="still must be"):  # rule_candidates, a rule not reading EXTENDED
+        KalmanOracle(RULE, rule_candidates=True, still=still)
+    KalmanOracle(RULE, rule_candidates=True, still=oracle.still)  # both conditions met
     assert oracle.run(trial).q.shape == trial.q_true.shape
 
 
@@ -170,5 +180,21 @@ def test_continuations_cost_the_cheaper_roll_out(trial):
     assert np.any(model != adapt)
     default = np.concatenate([both.levels, both.state_candidates(runner)[:, 0]])
     np.testing.assert_array_equal(both.candidate_costs(runner), both.candidate_costs(runner, default))
+    for bad in (np.zeros((3, 2)), [0.5, 1.5], [np.nan], []):  # a (C, 2) array is not 2C γ
+        with pytest.raises(ValueError, match="candidates"):
+            both.candidate_costs(runner, bad)
     trust = both.run(trial).trust[1:]
     assert np.any(~np.isin(trust[np.isfinite(trust)], both.levels))  # it follows a rule's γ at some decisions
+
+
+def test_the_rules_teachers_need_their_tuned_rules(tmp_path, monkeypatch):
+    """Without a tuned kf_adaptive, oracle_kalman_rules and oracle_kalman_still are not themselves (no fallback
+    rule, the still candidate at another index): a TunedParamsError naming the file, never a quieter teacher.
+    oracle_kalman only loses its proposal."""
+    for name in ("kf_model", "kf_still"):
+        (tmp_path / f"{name}.json").write_text((registry.packaged_tuned_dir() / f"{name}.json").read_text())
+    monkeypatch.setattr(registry, "packaged_tuned_dir", lambda: tmp_path)
+    for name in ("oracle_kalman_rules", "oracle_kalman_still"):
+        with pytest.raises(registry.TunedParamsError, match="kf_adaptive"):
+            registry.make(name)
+    assert registry.make("oracle_kalman").proposals == ()
