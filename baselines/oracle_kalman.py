@@ -14,7 +14,9 @@ forward over the next ``horizon_s`` seconds:
 
 * the first k samples with γ_c,
 * the rest with the continuation rule, re-evaluated every k samples from the
-  rolled-out state as the rule acts on the env's observation of that sample:
+  rolled-out state on the quantities the env's observation of that sample
+  shows (in float64 and unclipped, so close to, not bit for bit, the rule
+  acting on the observation; a peek whose filter step fails gives γ = 0):
   γ = 1 / (1 + (‖d̂_j‖/σ_d)² + (Δm_j/σ_m)² + (Δθ_j/σ_θ)²), where ‖d̂_j‖ (µT) is
   the env's model-based disturbance estimate (``model_dist``, independent of
   γ), Δm_j = ‖m_j‖ − m0 (µT) and Δθ_j the dip of m_j below the a-priori
