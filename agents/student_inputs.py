@@ -163,7 +163,9 @@ class KalmanInputs(StudentInputs):
 class ConstraintInputs(StudentInputs):
     """MagConstraint-v0: the extended observation (``magenv.envs.constraint_memory``: base and extra causal
     features, and their copies 25 and 100 decisions earlier), each block followed by the teacher's
-    continuation-rule w = min(mag_dev/th1, 1) (eq. 16; ``mag_dev`` is column 0 of every block)."""
+    continuation-rule w = min(mag_dev/th1, 1) (eq. 16; ``mag_dev`` is column 0 of every block). With a teacher
+    of ``rule_candidates`` (run.yaml student ``rule_candidates: true``) the current block's w, in float64, is
+    also a state-dependent candidate (bit for bit the teacher's ``state_candidates``)."""
 
     env_id = CONSTRAINT_ID
     env_kwargs = {"features": "extended"}
@@ -173,7 +175,10 @@ class ConstraintInputs(StudentInputs):
         from magenv.envs.constraint_memory import LAGS
 
         block = len(EXTENDED) // (1 + len(LAGS))
-        return {"th1": float(teacher.rule["th1"]), "block": block, "base_features": len(FEATURES)}
+        out = {"th1": float(teacher.rule["th1"]), "block": block, "base_features": len(FEATURES)}
+        if getattr(teacher, "rule_candidates", False):
+            out["rule_candidates"] = True
+        return out
 
     def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
         obs = np.atleast_2d(np.asarray(obs, np.float32))
@@ -183,6 +188,15 @@ class ConstraintInputs(StudentInputs):
             blk = obs[:, start : start + block]
             parts += [blk, np.minimum(blk[:, :1] / th1, 1.0).astype(np.float32)]
         return np.concatenate(parts, 1)
+
+    def n_state_candidates(self, meta: dict) -> int:
+        return 1 if meta.get("rule_candidates") else 0
+
+    def candidate_actions(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        if not self.n_state_candidates(meta):
+            return super().candidate_actions(obs, meta)
+        dev = np.atleast_2d(np.asarray(obs, np.float32))[:, 0].astype(np.float64)  # float32 observation → float64
+        return np.minimum(dev / float(meta["th1"]), 1.0)[:, None, None]
 
 
 class QSFInputs(StudentInputs):

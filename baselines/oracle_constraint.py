@@ -22,6 +22,13 @@ eqs. 4–18) forward over the next ``horizon_s`` seconds:
 Cost of a candidate = Σ over the horizon of (total error of link i, degrees)²
 (``magenv.metrics.errors1``; samples without truth add 0). The cheapest
 candidate is applied for k samples, then the search repeats from the new state.
+
+With ``rule_candidates`` (the teacher ``oracle_constraint_rules``) the rule's
+own w at the current state, min(mag_dev/th1, 1) on the env's float32
+observation, is searched too, after the fixed levels (``state_candidates``):
+a DAgger student choosing among the same candidates
+(``magenv.agents.student_inputs.ConstraintInputs``) can always fall back on
+the rule exactly.
 """
 
 from __future__ import annotations
@@ -92,6 +99,8 @@ class ConstraintOracle:
             (C, 2) [w, k/gain_max]; None = :func:`default_candidates`.
         horizon_s: look-ahead, s. decision_every: samples per decision (k).
         control_gain, gain_max: the env's options (the action also sets k = a₁·gain_max).
+        rule_candidates: also search the rule's w on the env's observation at each decision (not with
+            ``control_gain``).
     """
 
     name = "oracle_constraint"
@@ -110,9 +119,13 @@ class ConstraintOracle:
         decision_every: int = DECISION_EVERY,
         control_gain: bool = False,
         gain_max: float = 1.0,
+        rule_candidates: bool = False,
     ):
         self.rule = dict(zip(RULE_PARAMS, cf.check_rule_params(th1, th2, th3, k_min, k_max)))
         self.control_gain = check_bool("control_gain", control_gain)
+        self.rule_candidates = check_bool("rule_candidates", rule_candidates)
+        if self.rule_candidates and self.control_gain:
+            raise ValueError("rule_candidates searches the rule's w alone; it cannot be combined with control_gain")
         self.gain_max = check_positive("gain_max", gain_max)
         dim = 2 if self.control_gain else 1
         cands = default_candidates(self.control_gain) if candidates is None else np.asarray(candidates, float)
@@ -131,9 +144,10 @@ class ConstraintOracle:
             self.env_kwargs.update(control_gain=True, gain_max=self.gain_max)
 
     @classmethod
-    def from_constraint_params(cls, params: dict) -> ConstraintOracle:
-        """Privileged w search (reads truth: an upper bound) continuing with the cf_constraint rule of ``params``."""
-        return cls(**{k: params[k] for k in RULE_PARAMS})
+    def from_constraint_params(cls, params: dict, **options) -> ConstraintOracle:
+        """Privileged w search (reads truth: an upper bound) continuing with the cf_constraint rule of ``params``;
+        ``options``: e.g. ``rule_candidates``."""
+        return cls(**{k: params[k] for k in RULE_PARAMS}, **options)
 
     def make_runner(self, trial: Trial) -> ConstraintRunner:
         """The env's runner on ``trial`` with the rule's eq. 18 (the state the oracle searches from)."""
@@ -143,17 +157,31 @@ class ConstraintOracle:
     def _params(self, runner: ConstraintRunner) -> cf.Params:
         return runner.filter.params._replace(th1=self.rule["th1"])
 
-    def candidate_costs(self, runner: ConstraintRunner) -> np.ndarray:
-        """(C,) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state (left unchanged)."""
+    def state_candidates(self, runner: ConstraintRunner) -> np.ndarray:
+        """(S, 1) the state-dependent candidates: with ``rule_candidates`` the rule's w = min(mag_dev/th1, 1) on
+        the env's float32 observation of ``runner`` (the same number as ``ConstraintInputs.candidate_actions``),
+        else none (S = 0)."""
+        if not self.rule_candidates:
+            return np.empty((0, self.candidates.shape[1]))
+        return np.array([[min(float(np.float32(runner.feat[0])) / self.rule["th1"], 1.0)]])
+
+    def candidate_costs(self, runner: ConstraintRunner, candidates=None) -> np.ndarray:
+        """(C,) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state (left unchanged):
+        of ``candidates`` (C, action_dim) if given, else of the fixed ones then ``state_candidates``."""
         trial = runner.trial
         scratch = getattr(self, "_scratch", None)
         if scratch is None or scratch.est.shape[0] != trial.n:
             scratch = self._scratch = cf.Trace.empty(trial.n)
-        cands = (
-            self.candidates
-            if self.control_gain
-            else np.column_stack([self.candidates[:, 0], -np.ones(len(self.candidates))])
-        )
+        if candidates is None:
+            actions = np.concatenate([self.candidates, self.state_candidates(runner)])
+        else:
+            actions = np.asarray(candidates, np.float64)
+            if actions.ndim == 1:
+                actions = actions[:, None]
+            if actions.shape[1:] != self.candidates.shape[1:] or not np.all((actions >= 0) & (actions <= 1)):
+                raise ValueError(f"candidates must be (C, {self.candidates.shape[1]}) actions in [0, 1], "
+                                 f"got {np.shape(candidates)}")  # fmt: skip
+        cands = actions if self.control_gain else np.column_stack([actions[:, 0], -np.ones(len(actions))])
         costs = np.empty(len(cands))
         horizon = int(round(self.horizon_s * trial.rate))
         candidate_costs(
@@ -163,8 +191,10 @@ class ConstraintOracle:
         return costs
 
     def best_action(self, runner: ConstraintRunner) -> np.ndarray:
-        """The candidate with the lowest cost from ``runner``'s state (the first on ties)."""
-        return self.candidates[int(np.argmin(self.candidate_costs(runner)))].copy()
+        """The candidate (fixed or, with ``rule_candidates``, the rule's w) with the lowest cost from ``runner``'s
+        state (the first on ties)."""
+        actions = np.concatenate([self.candidates, self.state_candidates(runner)])
+        return actions[int(np.argmin(self.candidate_costs(runner, actions)))].copy()
 
     def continuation_action(self, runner: ConstraintRunner) -> np.ndarray:
         """The continuation rule's action at ``runner``'s next decision: w by eq. 16 on the env's state (and,

@@ -21,7 +21,8 @@ a fresh one. ``names()`` lists them all:
   baseline; likewise ``oracle_kalman`` for MagKalman-v0 (``magenv.baselines.oracle_kalman``, continuing with
   ``kf_model_tuned``; its DAgger teachers ``oracle_kalman_rules`` and ``oracle_kalman_still`` also search the
   tuned rules' γ), ``oracle_constraint`` (MagConstraint-v0, continuing with ``cf_constraint_tuned``,
-  ``magenv.baselines.oracle_constraint``), ``oracle_qsf`` (MagQSF-v0, continuing with
+  ``magenv.baselines.oracle_constraint``; ``oracle_constraint_rules`` also searches the rule's w),
+  ``oracle_qsf`` (MagQSF-v0, continuing with
   ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``) and ``oracle_vqf`` for MagVQF-v0
   (``magenv.baselines.oracle_vqf``);
 * ``register(name, factory)`` at run time (one line anywhere);
@@ -104,6 +105,12 @@ def _kalman_still_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     )
 
 
+def _constraint_rules_oracle(params: dict) -> oracle_constraint.ConstraintOracle:
+    """``oracle_constraint_rules``: ``oracle_constraint`` that also searches cf_constraint_tuned's own w at each
+    state (``rule_candidates``), so that its DAgger student can fall back on the rule exactly."""
+    return oracle_constraint.ConstraintOracle.from_constraint_params(params, rule_candidates=True)
+
+
 #: methods that act with another rule's tuned parameters: name → (the rule whose file, factory(params))
 TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "qsf_detector_tuned": ("delay_magyq", qsf.tuned_detector_policy),
@@ -113,6 +120,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "oracle_kalman_rules": ("kf_model", _kalman_rules_oracle),
     "oracle_kalman_still": ("kf_model", _kalman_still_oracle),
     "oracle_constraint": ("cf_constraint", oracle_constraint.ConstraintOracle.from_constraint_params),
+    "oracle_constraint_rules": ("cf_constraint", _constraint_rules_oracle),
     "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),
 }
 

@@ -102,3 +102,34 @@ def test_registry_oracle_is_privileged_and_a_headroom_row(trials):
     tuned = registry.tuned_params("cf_constraint")
     assert methods["oracle_constraint"].rule == pytest.approx(tuned)
     assert methods["oracle_constraint"].env_kwargs["th2"] == pytest.approx(tuned["th2"])
+
+
+def test_rule_candidates_are_the_rules_w_bit_for_bit(trials):
+    """``oracle_constraint_rules`` searches, after the fixed levels, the rule's own w on the env's observation;
+    the student's state candidate (from that observation at act time) is the same number, and costs as given."""
+    from magenv.agents.student_inputs import inputs_for
+    from magenv.envs import CONSTRAINT_ID
+    from magenv.envs.constraint import ConstraintRunner
+
+    oracle = registry.make("oracle_constraint_rules")
+    inputs = inputs_for(CONSTRAINT_ID)
+    meta = inputs.meta(oracle)
+    assert meta["rule_candidates"] and inputs.n_state_candidates(meta) == 1
+    assert inputs.n_state_candidates(inputs.meta(registry.make("oracle_constraint"))) == 0
+    r = oracle.rule
+    runner = ConstraintRunner(trials[0], True, th2=r["th2"], th3=r["th3"], k_min=r["k_min"], k_max=r["k_max"])
+    seen = set()
+    for _ in range(120):
+        obs = runner.feat.astype(np.float32)
+        student = inputs.candidate_actions(obs, meta)[0]
+        np.testing.assert_array_equal(student, oracle.state_candidates(runner))
+        assert student[0, 0] == pytest.approx(oracle.continuation_action(runner)[0], abs=1e-5)  # the rule's w
+        both = np.concatenate([oracle.candidates, student])
+        np.testing.assert_array_equal(oracle.candidate_costs(runner), oracle.candidate_costs(runner, both))
+        seen.add(float(student[0, 0]))
+        runner.advance(4, oracle._env_action(oracle.best_action(runner)))
+    assert len(seen) > 10  # it moves with the state
+    with pytest.raises(ValueError, match="control_gain"):
+        ConstraintOracle(rule_candidates=True, control_gain=True)
+    with pytest.raises(ValueError, match="candidates"):
+        oracle.candidate_costs(runner, [[0.5, 0.5]])
