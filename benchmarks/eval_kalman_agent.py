@@ -1,6 +1,6 @@
 """Held-out evaluation on MagKalman-v0: an agent against the best Kalman rule of each protocol, the oracle as headroom.
 
-    .venv/bin/python benchmarks/eval_kalman_agent.py [--agent pretrained:magenv/MagKalman-v0] [--seeds 0:20]
+    .venv/bin/python benchmarks/eval_kalman_agent.py [--agent pretrained:magenv/MagKalman-v0] [--seeds 0:40]
         [--scenarios dynamic_magnet,stationary_magnet]
         [--methods kf_model_tuned,kf_adaptive_tuned,kf_still_tuned,oracle_kalman]
         [--json FILE] [--validation]
@@ -45,7 +45,7 @@ SAME_INFORMATION = "kf_still_tuned"  # the hand rule on the students' still anch
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--agent", default=None, help="run folder or pretrained:ENV_ID")
-    p.add_argument("--seeds", type=seeds_arg, default="0:20")
+    p.add_argument("--seeds", type=seeds_arg, default="0:40")
     p.add_argument("--scenarios", default="dynamic_magnet,stationary_magnet")
     p.add_argument("--methods", default=f"kf_model_tuned,kf_adaptive_tuned,{SAME_INFORMATION},{ORACLE}")
     p.add_argument("--json", default=None)

@@ -1,6 +1,6 @@
 """Held-out evaluation on the paper tests of MagConstraint-v0 or MagQSF-v0: tuned rule, oracle headroom, an agent.
 
-    .venv/bin/python benchmarks/eval_paper_tests.py --env constraint|qsf [--seeds 0:20] [--agent RUN|pretrained:ID]
+    .venv/bin/python benchmarks/eval_paper_tests.py --env constraint|qsf [--seeds 0:40] [--agent RUN|pretrained:ID]
         [--scenarios a,b] [--no-oracle] [--no-others] [--json FILE] [--validation]
 
 For every paper test (``constraint_test1–3``; ``handheld_texting/swinging/corridor/free``) and held-out seed it
@@ -44,7 +44,7 @@ def _cell(pr) -> str:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--env", required=True, choices=sorted(TESTS))
-    p.add_argument("--seeds", type=seeds_arg, default="0:20")
+    p.add_argument("--seeds", type=seeds_arg, default="0:40")
     p.add_argument("--agent", action="append", default=[], help="run folder or pretrained:ENV_ID (repeatable)")
     p.add_argument("--scenarios", default=None, help="comma list (default: the env's paper tests)")
     p.add_argument("--no-oracle", action="store_true")
