@@ -26,7 +26,7 @@ import magenv  # noqa: F401
 from magenv import evaluation, registry
 from magenv.scenarios import make_trial
 from magenv.stats import paired_ratio
-from magenv.train.seeds import check_report_seeds, seeds_arg
+from magenv.train.seeds import REPORT_SEEDS, check_report_seeds, seeds_arg
 
 RULE, BASE, ORACLE = "fan_lambda_tuned", "mimu", "oracle"
 
@@ -34,7 +34,7 @@ RULE, BASE, ORACLE = "fan_lambda_tuned", "mimu", "oracle"
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--agent", required=True, help="run folder or pretrained:ENV_ID")
-    p.add_argument("--seeds", type=seeds_arg, default="0:40")
+    p.add_argument("--seeds", type=seeds_arg, default=REPORT_SEEDS)
     p.add_argument("--scenarios", default="dynamic_magnet,stationary_magnet,dynamic_clean")
     p.add_argument("--json", default=None)
     args = p.parse_args()

@@ -35,7 +35,7 @@ import magenv  # noqa: F401
 from magenv import evaluation, registry
 from magenv.scenarios import make_trial
 from magenv.stats import paired_ratio
-from magenv.train.seeds import check_report_seeds, seeds_arg
+from magenv.train.seeds import REPORT_SEEDS, check_report_seeds, seeds_arg
 
 BEST_RULE = {"dynamic_magnet": "kf_model_tuned", "stationary_magnet": "kf_adaptive_tuned"}
 ORACLE = "oracle_kalman"
@@ -45,7 +45,7 @@ SAME_INFORMATION = "kf_still_tuned"  # the hand rule on the students' still anch
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--agent", default=None, help="run folder or pretrained:ENV_ID")
-    p.add_argument("--seeds", type=seeds_arg, default="0:40")
+    p.add_argument("--seeds", type=seeds_arg, default=REPORT_SEEDS)
     p.add_argument("--scenarios", default="dynamic_magnet,stationary_magnet")
     p.add_argument("--methods", default=f"kf_model_tuned,kf_adaptive_tuned,{SAME_INFORMATION},{ORACLE}")
     p.add_argument("--json", default=None)

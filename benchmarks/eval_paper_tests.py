@@ -26,7 +26,7 @@ import magenv  # noqa: F401
 from magenv import evaluation, registry
 from magenv.scenarios import make_trial
 from magenv.stats import paired_ratio
-from magenv.train.seeds import check_report_seeds, seeds_arg
+from magenv.train.seeds import REPORT_SEEDS, check_report_seeds, seeds_arg
 
 TESTS = {
     "constraint": ("constraint_test1", "constraint_test2", "constraint_test3"),
@@ -44,7 +44,7 @@ def _cell(pr) -> str:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--env", required=True, choices=sorted(TESTS))
-    p.add_argument("--seeds", type=seeds_arg, default="0:40")
+    p.add_argument("--seeds", type=seeds_arg, default=REPORT_SEEDS)
     p.add_argument("--agent", action="append", default=[], help="run folder or pretrained:ENV_ID (repeatable)")
     p.add_argument("--scenarios", default=None, help="comma list (default: the env's paper tests)")
     p.add_argument("--no-oracle", action="store_true")

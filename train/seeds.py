@@ -7,6 +7,9 @@ import argparse
 from magenv.seeding import HELD_OUT_BELOW, VALIDATION_START
 
 MAX_SEEDS = 10_000  # a longer list is a typo, not an experiment
+#: the held-out trials per scenario on which the benchmarks report a learned agent against the rules (40: the
+#: 20-trial intervals of the paper tests were too wide to decide a ≤ 0.9× target)
+REPORT_SEEDS = "0:40"
 
 
 def parse_seeds(text: str) -> list[int]:
