@@ -40,6 +40,11 @@ Training (Ross et al. 2011; β, config ``beta``, is the teacher's share of the d
    that a protocol whose continuation rule is poor is not weighted down);
    with ``regret_clip: R`` each r_c is clipped at R in the loss (regrets are heavy-tailed: the states of a
    diverged roll-out cost 10³–10⁵ units and otherwise decide the fit; the stored data keep the raw values);
+   with ``rule_margin: m`` every candidate other than the continuation rule's action at that state
+   (``teacher.rule_candidate(runner, candidates)``, else the first candidate equal to ``continuation_action``;
+   states where the rule's action is no candidate are left as they are) costs m units more in the loss, so that
+   the student departs from the rule only where the teacher's advantage exceeds m (a conservative improvement:
+   the short look-ahead's labels are noisy where the advantage is small);
    score it closed loop on the validation seeds (5000–9999, ``magenv.seeding``) by the mean over
    scenarios of its RMSE ratio of means to the continuation rule; keep the best;
 3. roll the student (with probability β per decision the teacher) on new
@@ -67,7 +72,8 @@ The run folder holds weights and arrays only (``magenv.agents.weights`` format, 
     checkpoints/it_N.safetensors   the student of each iteration (an ensemble's members: run.yaml ``ensemble``)
     iterations.csv       validation RMSE (°) and ratio to the rule per scenario and iteration
     data/it_N.npz        the labelled states added at iteration N: ``obs`` (D, n_obs) float32, ``regret``
-                         (D, C + S) float32 in % of the trial's rule MSE, inf where a roll-out failed
+                         (D, C + S) float32 in % of the trial's rule MSE, inf where a roll-out failed, ``rule``
+                         (D,) int16 the continuation rule's candidate (−1: none; absent in runs from before it)
                          (compressed; for resuming only, never shipped; a MagBlend iteration's is ~150 k
                          states × 126 features)
 
@@ -85,7 +91,7 @@ import csv
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import yaml
@@ -116,9 +122,11 @@ DEFAULTS: dict[str, Any] = {
     "ensemble": 1,
     "regret_scale": "rule",
     "regret_clip": None,
+    "rule_margin": 0.0,
 }
 RESUMABLE = ("iterations", "ensemble")  # the config keys a resumed run may change
-REFIT_KEYS = ("hidden", "fit_steps", "batch_size", "learning_rate", "seed", "regret_clip")  # a refit may change
+# the fit keys a refit may change
+REFIT_KEYS = ("hidden", "fit_steps", "batch_size", "learning_rate", "seed", "regret_clip", "rule_margin")
 ACTS = ("mean", "argmax")  # how the student turns its candidate probabilities into an action
 REGRET_SCALES = ("rule", "best_rule")  # the trial MSE a unit of regret is 1 % of
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
@@ -173,7 +181,8 @@ def check_config(config: dict | None) -> dict:
             f"{HELD_OUT_BELOW - 1}, got {val!r}"
         )
     for key, ok, what in (("beta", lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]"),
-                          ("learning_rate", lambda v: 0.0 < v < np.inf, "a positive number")):  # fmt: skip
+                          ("learning_rate", lambda v: 0.0 < v < np.inf, "a positive number"),
+                          ("rule_margin", lambda v: 0.0 <= v < np.inf, "a non-negative number")):  # fmt: skip
         if isinstance(cfg[key], bool) or not isinstance(cfg[key], (int, float)) or not ok(cfg[key]):
             raise ValueError(f"DAgger config {key!r} must be {what}, got {cfg[key]!r}")
     if cfg["ensemble"] > cfg["iterations"]:
@@ -347,9 +356,11 @@ class StudentPolicy:
         return self.student.action(obs).astype(np.float32)
 
 
-def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inputs, meta) -> Student:
+def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inputs, meta,
+        rule: np.ndarray | None = None) -> Student:  # fmt: skip
     """A fresh student fitted to minimise the expected regret Σ_c softmax_c · r_c (Adam, cosine schedule,
-    ``fit_steps`` mini-batches of ``batch_size`` rounded to whole epochs)."""
+    ``fit_steps`` mini-batches of ``batch_size`` rounded to whole epochs); ``rule`` (D,) each state's rule
+    candidate (−1: none), needed with ``rule_margin``."""
     import torch
 
     torch.set_num_threads(1)  # one core: the fits are small, and deterministic on one thread
@@ -360,6 +371,10 @@ def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inp
     xt = torch.as_tensor((x - mu) / sd, dtype=torch.float32)
     if cfg["regret_clip"] is not None:  # a bounded loss per state: diverged roll-outs do not drown the rest
         regret = np.minimum(regret, np.float32(cfg["regret_clip"]))
+    if cfg["rule_margin"] > 0:
+        if rule is None:
+            raise ValueError("rule_margin needs each state's rule candidate, which data from before it lack")
+        regret = with_rule_margin(regret, rule, cfg["rule_margin"])
     if not np.all(np.isfinite(regret)):
         raise ValueError("regrets hold inf (a candidate's roll-out failed); set regret_clip to bound them")
     rt = torch.as_tensor(regret, dtype=torch.float32)
@@ -387,6 +402,16 @@ def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inp
     return Student(weights, mu, sd, candidates, inputs, meta, cfg["act"])
 
 
+def with_rule_margin(regret: np.ndarray, rule: np.ndarray, margin: float) -> np.ndarray:
+    """``regret`` (D, C) with ``margin`` added to every candidate but the rule's (``rule`` (D,), −1: the state
+    is left as it is)."""
+    out = regret + np.float32(margin)
+    ruled = rule >= 0
+    out[~ruled] = regret[~ruled]
+    out[np.flatnonzero(ruled), rule[ruled]] = regret[np.flatnonzero(ruled), rule[ruled]]
+    return out
+
+
 def state_candidate_count(inputs: StudentInputs | None, meta: dict) -> int:
     """S, the state-dependent candidates of the inputs ``inputs`` with constants ``meta`` (0 without inputs)."""
     return 0 if inputs is None else int(inputs.n_state_candidates(meta))
@@ -403,14 +428,23 @@ def candidates_at(fixed: np.ndarray, inputs: StudentInputs, meta: dict, obs: np.
 # ----------------------------------------------------------------- episodes
 
 
+class Labelled(NamedTuple):
+    """The labelled decisions of one episode (``Episodes.run``) and its RMSE."""
+
+    obs: np.ndarray  # (D, n_obs) float32 observations
+    costs: np.ndarray  # (D, C + S) the teacher's candidate costs
+    rule: np.ndarray  # (D,) int16 the continuation rule's candidate (−1: its action is no candidate)
+    rmse: float  # °, the episode's total error
+
+
 class Episodes:
     """Closed-loop episodes of one env with the student's observation, the teacher reading its runner.
 
     ``run(trial, act, label_every, needs_costs)``: ``act(obs, runner, costs)`` → the action (action_dim,) at
     each decision, ``costs`` the teacher's (C + S,) candidate costs at that state on the labelled decisions (every
     ``label_every``-th from the first; 0 = none) and, with ``needs_costs``, on all (else None). Returns
-    (labelled observations (D, n_obs) float32, their costs (D, C + S), RMSE °). With ``candidates_at``
-    (obs → (C + S, action_dim)) the teacher costs those candidates of each state (state-dependent ones)."""
+    ``Labelled``. With ``candidates_at`` (obs → (C + S, action_dim)) the teacher costs those candidates of each
+    state (state-dependent ones)."""
 
     def __init__(self, env_id: str, env_kwargs: dict, teacher, candidates_at: Callable | None = None):
         self.env_id, self.env_kwargs, self.teacher = env_id, dict(env_kwargs), teacher
@@ -422,6 +456,17 @@ class Episodes:
         if self.candidates_at is None:
             return self.teacher.candidate_costs(runner)
         return self.teacher.candidate_costs(runner, self.candidates_at(obs))
+
+    def rule_index(self, obs: np.ndarray, runner) -> int:
+        """The index of the continuation rule's action among the candidates at ``runner``'s state (−1: none):
+        ``teacher.rule_candidate(runner, candidates)`` if the teacher has it, else the first candidate within
+        1e-5 of ``teacher.continuation_action(runner)``."""
+        cands = self.teacher.candidates if self.candidates_at is None else self.candidates_at(obs)
+        cands = candidate_matrix(cands)
+        if hasattr(self.teacher, "rule_candidate"):
+            return int(self.teacher.rule_candidate(runner, cands))
+        same = np.all(np.abs(cands - self.teacher.continuation_action(runner)) <= 1e-5, axis=1)
+        return int(np.argmax(same)) if same.any() else -1
 
     def env(self, trial):
         if self._env is None:
@@ -439,7 +484,7 @@ class Episodes:
 
         env = self.env(trial)
         o, _ = env.reset(seed=0, options={"trial": trial})
-        obs, costs = [], []
+        obs, costs, rule = [], [], []
         done, d = False, 0
         while not done:
             label = label_every > 0 and d % label_every == 0
@@ -447,10 +492,11 @@ class Episodes:
             if label:
                 obs.append(o)
                 costs.append(c)
+                rule.append(self.rule_index(o, env._runner))
             o, _, terminated, truncated, _ = env.step(np.asarray(act(o, env._runner, c), np.float64))
             done, d = terminated or truncated, d + 1
         rmse = metrics.score(env.estimate, trial.q_true, trial.score_mask).total
-        return np.array(obs), np.array(costs), rmse
+        return Labelled(np.array(obs), np.array(costs), np.array(rule, np.int16), rmse)
 
 
 def check_teacher(teacher, env_id: str | None = None) -> str:
@@ -542,7 +588,7 @@ def train(
 
     def rule_mse(trial) -> float:
         if cfg["regret_scale"] == "rule":
-            return episodes.run(trial, rule_act, label_every=0)[2] ** 2
+            return episodes.run(trial, rule_act, label_every=0).rmse ** 2
         mses: list[float] = []
         n_rules = [1]
         while len(mses) < n_rules[0]:  # each of the teacher's rules alone (their number: from the first)
@@ -553,16 +599,16 @@ def train(
                 n_rules[0] = len(actions)
                 return actions[r]
 
-            mses.append(episodes.run(trial, act, label_every=0)[2] ** 2)
+            mses.append(episodes.run(trial, act, label_every=0).rmse ** 2)
         return min(mses)
 
     def oracle_act(o, runner, costs):
         return cands_of(o)[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
 
-    def collect(j: int, student: Student | None) -> tuple[np.ndarray, np.ndarray]:
+    def collect(j: int, student: Student | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The labelled states of iteration j: the teacher's (or rule's) episodes for j = 0, else ``student``'s
         (the student of iteration j − 1; with probability β per decision the teacher) on new training trials."""
-        obs_parts, regret_parts = [], []
+        obs_parts, regret_parts, rule_parts = [], [], []
         if j == 0:
             act, needs = (oracle_act, True) if cfg["first"] == "teacher" else (rule_act, False)
         else:
@@ -578,7 +624,7 @@ def train(
             first = cfg["train_seed"] + n_per * j
             for s in range(first, first + n_per):
                 trial = make_trial(sc, s)
-                o, costs, _ = episodes.run(trial, act, cfg["label_every"], needs)
+                o, costs, rule, _ = episodes.run(trial, act, cfg["label_every"], needs)
                 horizon = int(round(teacher.horizon_s * trial.rate))
                 if horizon < 1:
                     raise ValueError(f"the teacher's look-ahead {teacher.horizon_s} s is under one sample of {sc}")
@@ -588,33 +634,37 @@ def train(
                                      " cost, or a rule of zero error)")  # fmt: skip
                 obs_parts.append(o)
                 regret_parts.append(regret)
+                rule_parts.append(rule)
         obs = np.concatenate(obs_parts).astype(np.float32)
         regret = np.concatenate(regret_parts).astype(np.float32)
-        _save_data(out / DATA / f"it_{j}.npz", obs, regret)
-        return obs, regret
+        rule = np.concatenate(rule_parts)
+        _save_data(out / DATA / f"it_{j}.npz", obs, regret, rule)
+        return obs, regret, rule
 
     log(f"rule on validation: {_fmt(validation.rule)}")
     best = float(rows[-1]["best"]) if rows else None
     data_x: list[np.ndarray] = []
     data_r: list[np.ndarray] = []
+    data_rule: list[np.ndarray | None] = []
     student = None
     for it in range(len(rows), cfg["iterations"]):
         for j in range(len(data_x), it + 1):  # the data of iterations 0..it: kept, or collected now
             t = time.time()
             path = out / DATA / f"it_{j}.npz"
             if path.is_file():
-                obs, regret = _load_data(path, n_cands, n_obs)
+                obs, regret, rule = _load_data(path, n_cands, n_obs)
             else:  # the student of iteration j − 1: the one just fitted, or (resuming) its checkpoint
                 previous = student if student is not None and j == it else None
                 if j > 0 and previous is None:
                     previous = Student.load(out / CHECKPOINTS / f"it_{j - 1}.safetensors", student_meta, inputs)
-                obs, regret = collect(j, previous)
+                obs, regret, rule = collect(j, previous)
                 log(f"   iteration {j} data: {len(obs)} labelled states, {time.time() - t:.0f} s")
             data_x.append(inputs(obs, meta))
             data_r.append(regret)
+            data_rule.append(rule)
         t = time.time()
         x, r = np.concatenate(data_x), np.concatenate(data_r)
-        student = fit(x, r, cfg, cfg["seed"] + it, cands, inputs, meta)
+        student = fit(x, r, cfg, cfg["seed"] + it, cands, inputs, meta, _joined(data_rule))
         t_fit = time.time() - t
         rmse, ratio, score = validation.score(student)
         info = {"iteration": it, "val_ratio": score, "samples": len(x)}
@@ -666,10 +716,10 @@ def refit(source: str | Path, out: str | Path, teacher, changes: dict, log: Call
     validation = Validation(episodes, teacher, cfg)
     n_obs = episodes.env(validation.trials[0][1]).observation_space.shape[0]
     parts = [_load_data(f, n_cands, n_obs) for f in files]
-    x = inputs(np.concatenate([o for o, _ in parts]), meta)
-    r = np.concatenate([g for _, g in parts])
+    x = inputs(np.concatenate([o for o, _, _ in parts]), meta)
+    r = np.concatenate([g for _, g, _ in parts])
     t = time.time()
-    student = fit(x, r, cfg, cfg["seed"], cands, inputs, meta)
+    student = fit(x, r, cfg, cfg["seed"], cands, inputs, meta, _joined([rule for _, _, rule in parts]))
     t_fit = time.time() - t
     rmse, ratio, score = validation.score(student)
     out.mkdir(parents=True, exist_ok=True)
@@ -699,7 +749,7 @@ class Validation:
         """Per-scenario RMSEs (°) of ``act(obs, runner, costs)`` on the validation trials."""
         out: dict[str, list[float]] = {sc: [] for sc in self.scenarios}
         for sc, trial in self.trials:
-            out[sc].append(self.episodes.run(trial, act, label_every=0)[2])
+            out[sc].append(self.episodes.run(trial, act, label_every=0).rmse)
         return out
 
     def score(self, student: Student) -> tuple[dict[str, list[float]], dict[str, float], float]:
@@ -765,21 +815,29 @@ def _write_run(path: Path, run: dict) -> None:
     tmp.replace(path)
 
 
-def _save_data(path: Path, obs: np.ndarray, regret: np.ndarray) -> None:
-    """``obs`` and ``regret`` into ``path`` (.npz; written whole, then renamed: an interrupted run leaves none)."""
+def _save_data(path: Path, obs: np.ndarray, regret: np.ndarray, rule: np.ndarray) -> None:
+    """``obs``, ``regret`` and ``rule`` into ``path`` (.npz; written whole, then renamed: an interrupted run leaves
+    none)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
     with open(tmp, "wb") as f:
-        np.savez_compressed(f, obs=obs, regret=regret)
+        np.savez_compressed(f, obs=obs, regret=regret, rule=rule.astype(np.int16))
     tmp.replace(path)
 
 
-def _load_data(path: Path, n_candidates: int, n_obs: int) -> tuple[np.ndarray, np.ndarray]:
-    """(obs (D, n_obs) float32, regret (D, C + S) float32 in % of the trial's rule MSE) of a data file; RunError if
-    it is not one of this run's."""
+def _joined(rules: list[np.ndarray | None]) -> np.ndarray | None:
+    """The rule candidates of several data files end to end (None if any file has none)."""
+    present = [r for r in rules if r is not None]
+    return np.concatenate(present) if len(present) == len(rules) else None
+
+
+def _load_data(path: Path, n_candidates: int, n_obs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(obs (D, n_obs) float32, regret (D, C + S) float32 in % of the trial's rule MSE, rule (D,) int16 or None in
+    data from before it) of a data file; RunError if it is not one of this run's."""
     try:
         with np.load(path, allow_pickle=False) as z:
             obs, regret = z["obs"], z["regret"]
+            rule = z["rule"] if "rule" in z.files else None
     except Exception as exc:  # zip, npy or key errors alike: not one of ours
         raise RunError(f"{path}: not a DAgger data file ({type(exc).__name__}: {exc})") from None
     if obs.ndim != 2 or obs.shape[1] != n_obs or regret.shape != (len(obs), n_candidates):
@@ -789,7 +847,11 @@ def _load_data(path: Path, n_candidates: int, n_obs: int) -> tuple[np.ndarray, n
         )
     if obs.dtype != np.float32 or regret.dtype != np.float32 or np.isnan(regret).any() or (regret < 0).any():
         raise RunError(f"{path}: obs and regret must be float32, the regrets ≥ 0 (inf: a failed roll-out), no NaN")
-    return obs, regret
+    if rule is not None and (rule.shape != (len(obs),) or rule.dtype != np.int16 or rule.min(initial=0) < -1
+                             or rule.max(initial=0) >= n_candidates):  # fmt: skip
+        raise RunError(f"{path}: rule must be (D,) int16 candidate indices in [-1, {n_candidates}), got {rule.shape} "
+                       f"{rule.dtype}")  # fmt: skip
+    return obs, regret, rule
 
 
 def _log_row(it: int, samples: int, t_fit: float, score: float, best: float, rmse: dict, ratio: dict) -> dict:

@@ -186,6 +186,16 @@ class QSFOracle:
         code = rule_code(runner.codes, bool(runner.state.period_active[0]), j)
         return np.array([{qsf.MAG_NONE: -1.0, qsf.MAG_KEEP: 0.0, qsf.MAG_START: 1.0}[int(code)], 1.0])
 
+    def rule_candidate(self, runner: QSFRunner, candidates: np.ndarray) -> int:
+        """The index of the continuation rule's decision among ``candidates`` (C, 2) env actions: the first with its
+        code and trust 1 (any trust for "none", which makes no magnetic update); −1 if there is none."""
+        want = decode_action(self.continuation_action(runner))[0]
+        for i, action in enumerate(candidates):
+            code, trust, _ = decode_action(action)
+            if code == want and (code == qsf.MAG_NONE or trust == 1.0):
+                return i
+        return -1
+
     def run(self, trial: Trial) -> Estimate:
         """The oracle's estimate of every sample of ``trial`` (reads ``trial.q_true``)."""
         runner = self.make_runner(trial)

@@ -42,6 +42,8 @@ def test_run_folder_holds_weights_only(run_dir):
     with np.load(run_dir / "data" / "it_1.npz", allow_pickle=False) as data:
         assert data["obs"].dtype == np.float32 and data["regret"].shape == (len(data["obs"]), 5)
         assert data["regret"].min() == 0.0  # the regret of each state's cheapest candidate
+        assert data["rule"].dtype == np.int16 and data["rule"].shape == (len(data["obs"]),)
+        assert data["rule"].min() >= -1 and data["rule"].max() < 5
     run = yaml.safe_load((run_dir / "run.yaml").read_text())
     assert run["algo"] == "dagger" and run["env_kwargs"]["features"] == "extended"
     assert run["config"]["train_seed"] >= 10000 and run["teacher"] == "oracle"
@@ -145,6 +147,41 @@ def test_data_files_with_undefined_regrets_are_refused(run_dir, tmp_path):
         np.savez(tmp_path / "it_0.npz", obs=o, regret=r.astype(np.float32))
         with pytest.raises(RunError, match="float32"):
             dagger._load_data(tmp_path / "it_0.npz", regret.shape[1], obs.shape[1])
+
+
+def test_data_files_with_bad_rule_candidates_are_refused_and_old_ones_have_none(run_dir, tmp_path):
+    with np.load(run_dir / "data" / "it_0.npz", allow_pickle=False) as z:
+        obs, regret, rule = z["obs"], z["regret"], z["rule"]
+    for bad in (rule.astype(np.int64), rule[:-1], np.full_like(rule, 5), np.full_like(rule, -2)):
+        np.savez(tmp_path / "it_0.npz", obs=obs, regret=regret, rule=bad)
+        with pytest.raises(RunError, match="rule must be"):
+            dagger._load_data(tmp_path / "it_0.npz", regret.shape[1], obs.shape[1])
+    np.savez(tmp_path / "it_0.npz", obs=obs, regret=regret)  # a run from before the rule was kept
+    assert dagger._load_data(tmp_path / "it_0.npz", regret.shape[1], obs.shape[1])[2] is None
+
+
+def test_rule_margin_adds_to_every_candidate_but_the_rules():
+    """``rule_margin: m`` fits the student of the regrets with m added to every candidate but the state's rule
+    candidate (states without one unchanged); it needs the rule candidates."""
+    regret = np.array([[0.0, 2.0, 5.0], [1.0, 0.0, 3.0], [4.0, 4.0, 0.0]], np.float32)
+    got = dagger.with_rule_margin(regret, np.array([2, -1, 0], np.int16), 10.0)
+    np.testing.assert_array_equal(got, [[10.0, 12.0, 5.0], [1.0, 0.0, 3.0], [4.0, 14.0, 10.0]])
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(128, 3)).astype(np.float32)
+    regret = rng.uniform(0.0, 5.0, (128, 2)).astype(np.float32)
+    rule = rng.integers(-1, 2, 128).astype(np.int16)
+    cfg = dagger.check_config({"fit_steps": 10, "hidden": [4], "batch_size": 64})
+    inputs, cands = StudentInputs(), [0.0, 1.0]
+    margin = dagger.fit(x, regret, {**cfg, "rule_margin": 3.0}, 0, cands, inputs, {}, rule)
+    by_hand = dagger.fit(x, dagger.with_rule_margin(regret, rule, 3.0), cfg, 0, cands, inputs, {})
+    for (w1, b1), (w2, b2) in zip(margin.layers, by_hand.layers, strict=True):
+        np.testing.assert_array_equal(w1, w2)
+        np.testing.assert_array_equal(b1, b2)
+    with pytest.raises(ValueError, match="rule_margin needs"):
+        dagger.fit(x, regret, {**cfg, "rule_margin": 3.0}, 0, cands, inputs, {})
+    for bad in (-1.0, float("inf"), True, "1"):
+        with pytest.raises(ValueError, match="rule_margin"):
+            dagger.check_config({"rule_margin": bad})
 
 
 def test_an_ensemble_of_iterations_acts_with_their_mean_probabilities(run_dir, tmp_path, make_kinematic_trial):

@@ -104,3 +104,18 @@ def test_registry_oracle_is_privileged_and_a_headroom_row():
     methods = {"oracle_qsf": registry.make("oracle_qsf"), "rule": registry.make("qsf_detector_tuned")}
     assert methods["oracle_qsf"].privileged and headroom_names(methods) == {"oracle_qsf"}
     assert methods["oracle_qsf"].env_kwargs["detector"] == methods["rule"].env_kwargs["detector"]
+
+
+def test_the_rule_candidate_is_the_detector_policys_decision(trials):
+    """``rule_candidate``: the candidate of the rule's decision (none whatever its trust; keep and start with
+    trust 1) at every state, −1 where the candidates lack it."""
+    oracle = QSFOracle(DETECTOR)
+    runner, seen = oracle.make_runner(trials[1]), set()
+    while not runner.done:
+        i = oracle.rule_candidate(runner, oracle.candidates)
+        want = decode_action(oracle.continuation_action(runner))[0]
+        assert i >= 0 and decode_action(oracle.candidates[i])[0] == want and i != 1  # never keep with trust .3
+        seen.add(i)
+        assert oracle.rule_candidate(runner, oracle.candidates[[1]]) == -1  # keep .3 alone is not the rule
+        _advance(oracle, runner, oracle.best_action(runner))
+    assert seen == {0, 2, 3}
