@@ -1,0 +1,157 @@
+"""Probe: do a DAgger student's causal inputs say when departing from the rule pays, on trials it was not fitted on?
+
+    .venv/bin/python benchmarks/probe_advantage.py [--env qsf|constraint] [--trials 24] [--folds 8] [--json FILE]
+
+It rolls the teacher's continuation rule on ``--trials`` training trials
+(seeds 10000, …) of the test where the student misses its target and labels,
+at every decision where the rule takes the given candidate, the teacher's
+advantage of one departure over the rule (the regret of the rule's candidate
+minus that of the departure, in ``magenv.agents.dagger``'s unit: % of the
+trial's rule MSE per look-ahead; clipped at ±20; > 0: the departure pays):
+
+* ``qsf`` — ``handheld_texting``, ``oracle_qsf``: starting a new QSF period where the tuned detector keeps its
+  period (candidates none, keep .3, keep 1, start);
+* ``constraint`` — ``constraint_test1``, ``oracle_constraint_rules``: the magnetometer alone (w = 0, eq. 15's
+  weights (1 − w) on it, w on the constraint) and the constraint alone (w = 1, the magnetometer refused) instead
+  of the rule's own w (candidates w 0, .25, .5, .75, 1, the rule's w).
+
+It then predicts each advantage from the student's inputs
+(``magenv.agents.student_inputs``) with ridge regressions and a small MLP,
+trained on the trials of all folds but one and tested on the held-out fold's
+(trials, not decisions, are held out: a student acts on trials it was not
+fitted on), and prints per model the mean R² and correlation over the folds
+and the advantage summed where the prediction is positive (a student departing
+there) against where the truth is (the oracle's choice) and everywhere. This
+is a measurement (it prints figures), not a test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+import magenv  # noqa: F401
+from magenv import registry
+from magenv.agents import dagger
+from magenv.agents.student_inputs import inputs_for
+from magenv.scenarios import make_trial
+
+#: env → (scenario, teacher, the rule's candidate, {departure name: its candidate}); the probed decisions are those
+#: where the rule's candidate is the given one (``dagger.Labelled.rule``; constraint: the rule's w is the last)
+PROBES = {
+    "qsf": ("handheld_texting", "oracle_qsf", 2, {"start": 3}),
+    "constraint": ("constraint_test1", "oracle_constraint_rules", 5, {"w = 0": 0, "w = 1": 4}),
+}
+CLIP = 20.0  # units: a few diverged roll-outs otherwise decide the fits
+RIDGES = (1.0, 100.0, 1.0e4)
+
+
+def labelled(env: str, n_trials: int):
+    """(inputs (D, n_in), {departure: its advantage over the rule (D,)}, trial index (D,)) at the probed decisions."""
+    scenario, name, rule_col, departures = PROBES[env]
+    teacher = registry.make(name)
+    inputs = inputs_for(teacher.env_id)
+    meta = inputs.meta(teacher)
+    cands_of = None
+    if dagger.state_candidate_count(inputs, meta):
+
+        def cands_of(o):
+            return dagger.candidates_at(dagger.candidate_matrix(teacher.candidates), inputs, meta, o)
+
+    kwargs = dagger.student_env_kwargs(inputs, teacher, teacher.decision_every)
+    episodes = dagger.Episodes(teacher.env_id, kwargs, teacher, cands_of)
+    horizon = int(round(teacher.horizon_s * make_trial(scenario, 10000).rate))
+
+    def rule(o, runner, costs):
+        return teacher.continuation_action(runner)
+
+    xs, groups, ys = [], [], {d: [] for d in departures}
+    for i in range(n_trials):
+        trial = make_trial(scenario, 10000 + i)
+        lab = episodes.run(trial, rule)
+        regret = dagger.REGRET_UNIT * (lab.costs - lab.costs.min(1, keepdims=True)) / (horizon * lab.rmse**2)
+        at = lab.rule == rule_col
+        xs.append(inputs(lab.obs[at], meta))
+        groups.append(np.full(int(at.sum()), i))
+        for d, col in departures.items():
+            ys[d].append(np.clip(regret[at, rule_col] - regret[at, col], -CLIP, CLIP))
+    return np.concatenate(xs), {d: np.concatenate(y) for d, y in ys.items()}, np.concatenate(groups)
+
+
+def ridge(lam: float):
+    def fit_predict(x, y, x_test):
+        a = np.c_[x, np.ones(len(x))]
+        w = np.linalg.solve(a.T @ a + lam * np.eye(a.shape[1]), a.T @ y)
+        return np.c_[x_test, np.ones(len(x_test))] @ w
+
+    return fit_predict
+
+
+def mlp(x, y, x_test, hidden: int = 64, epochs: int = 30, seed: int = 0):
+    import torch
+
+    torch.manual_seed(seed)
+    torch.set_num_threads(1)
+    net = torch.nn.Sequential(torch.nn.Linear(x.shape[1], hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, 1))
+    opt = torch.optim.Adam(net.parameters(), 1e-3)
+    xt, yt = torch.as_tensor(x, dtype=torch.float32), torch.as_tensor(y, dtype=torch.float32)
+    for _ in range(epochs):
+        perm = torch.randperm(len(xt))
+        for b in range(0, len(xt), 512):
+            ix = perm[b : b + 512]
+            loss = ((net(xt[ix])[:, 0] - yt[ix]) ** 2).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    with torch.no_grad():
+        return net(torch.as_tensor(x_test, dtype=torch.float32))[:, 0].numpy()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--env", choices=sorted(PROBES), default="qsf")
+    ap.add_argument("--trials", type=int, default=24)
+    ap.add_argument("--folds", type=int, default=8)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    if args.trials < 2 or not 2 <= args.folds <= args.trials:
+        ap.error("need --trials ≥ 2 and 2 ≤ --folds ≤ --trials")
+    t = time.time()
+    x, advantages, trial = labelled(args.env, args.trials)
+    fold = trial % args.folds
+    scenario = PROBES[args.env][0]
+    print(f"{scenario}: {len(x)} decisions of the rule's probed candidate on {args.trials} trials "
+          f"({time.time() - t:.0f} s)")  # fmt: skip
+    models = {f"ridge λ={lam:g}": ridge(lam) for lam in RIDGES}
+    models["MLP 64 tanh"] = mlp
+    result: dict = {}
+    for departure, y in advantages.items():
+        print(f"{departure} instead of the rule: it pays at {np.mean(y > 0):.0%} of them; departing at every one "
+              f"saves {y.sum():.0f} units")  # fmt: skip
+        result[departure] = {"always": float(y.sum())}
+        for name, fit_predict in models.items():
+            r2, corr, gain, best = [], [], 0.0, 0.0
+            for k in range(args.folds):
+                train, test = fold != k, fold == k
+                mu, sd = x[train].mean(0), x[train].std(0) + 1e-6
+                p = fit_predict((x[train] - mu) / sd, y[train], (x[test] - mu) / sd)
+                yt = y[test]
+                r2.append(1.0 - np.mean((p - yt) ** 2) / np.var(yt))
+                corr.append(float(np.corrcoef(p, yt)[0, 1]))
+                gain += float(yt[p > 0].sum())
+                best += float(yt[yt > 0].sum())
+            result[departure][name] = {"r2": float(np.mean(r2)), "corr": float(np.mean(corr)),
+                                       "corr_by_fold": corr, "gain": gain, "truth_gain": best}  # fmt: skip
+            print(f"  {name:14s} held-out R² {np.mean(r2):6.2f}, correlation {np.mean(corr):5.2f} "
+                  f"(folds {min(corr):.2f}…{max(corr):.2f}); departing where predicted > 0 saves {gain:8.0f} units "
+                  f"(the truth's choice {best:.0f})")  # fmt: skip
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"scenario": scenario, "trials": args.trials, "folds": args.folds, **result}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
