@@ -449,20 +449,23 @@ class Episodes:
     def __init__(self, env_id: str, env_kwargs: dict, teacher, candidates_at: Callable | None = None):
         self.env_id, self.env_kwargs, self.teacher = env_id, dict(env_kwargs), teacher
         self.candidates_at = candidates_at
+        self._fixed = candidate_matrix(teacher.candidates)
         self._env = None
 
-    def costs(self, obs: np.ndarray, runner) -> np.ndarray:
-        """The teacher's candidate costs at ``runner``'s state, whose observation is ``obs``."""
+    def candidates(self, obs: np.ndarray) -> np.ndarray:
+        """(C + S, action_dim) the candidates the teacher costs at the state whose observation is ``obs``."""
+        return self._fixed if self.candidates_at is None else self.candidates_at(obs)
+
+    def costs(self, cands: np.ndarray, runner) -> np.ndarray:
+        """The teacher's costs of ``cands`` (this state's ``candidates``) at ``runner``'s state."""
         if self.candidates_at is None:
             return self.teacher.candidate_costs(runner)
-        return self.teacher.candidate_costs(runner, self.candidates_at(obs))
+        return self.teacher.candidate_costs(runner, cands)
 
-    def rule_index(self, obs: np.ndarray, runner) -> int:
-        """The index of the continuation rule's action among the candidates at ``runner``'s state (−1: none):
-        ``teacher.rule_candidate(runner, candidates)`` if the teacher has it, else the first candidate within
-        1e-5 of ``teacher.continuation_action(runner)``."""
-        cands = self.teacher.candidates if self.candidates_at is None else self.candidates_at(obs)
-        cands = candidate_matrix(cands)
+    def rule_index(self, cands: np.ndarray, runner) -> int:
+        """The index of the continuation rule's action among ``cands`` (this state's ``candidates``; −1: none):
+        ``teacher.rule_candidate(runner, cands)`` if the teacher has it, else the first candidate within 1e-5 of
+        ``teacher.continuation_action(runner)``."""
         if hasattr(self.teacher, "rule_candidate"):
             return int(self.teacher.rule_candidate(runner, cands))
         same = np.all(np.abs(cands - self.teacher.continuation_action(runner)) <= 1e-5, axis=1)
@@ -488,15 +491,32 @@ class Episodes:
         done, d = False, 0
         while not done:
             label = label_every > 0 and d % label_every == 0
-            c = self.costs(o, env._runner) if label or needs_costs else None
+            c = None
+            if label or needs_costs:
+                cands = self.candidates(o)
+                c = self.costs(cands, env._runner)
             if label:
                 obs.append(o)
                 costs.append(c)
-                rule.append(self.rule_index(o, env._runner))
+                rule.append(self.rule_index(cands, env._runner))
             o, _, terminated, truncated, _ = env.step(np.asarray(act(o, env._runner, c), np.float64))
             done, d = terminated or truncated, d + 1
         rmse = metrics.score(env.estimate, trial.q_true, trial.score_mask).total
         return Labelled(np.array(obs), np.array(costs), np.array(rule, np.int16), rmse)
+
+
+def teacher_episodes(env_id: str, env_kwargs: dict, teacher, inputs: StudentInputs, meta: dict, fixed) -> Episodes:
+    """Episodes whose teacher costs the fixed candidates ``fixed`` (C, action_dim), then (if the inputs ``inputs``
+    with constants ``meta`` have any) the state-dependent ones of each observation."""
+    fixed = candidate_matrix(fixed)
+    if not state_candidate_count(inputs, meta):
+        return Episodes(env_id, env_kwargs, teacher)
+    return Episodes(env_id, env_kwargs, teacher, lambda o: candidates_at(fixed, inputs, meta, o))
+
+
+def regret_units(costs: np.ndarray, horizon: int, rule_mse: float) -> np.ndarray:
+    """r_c = 100 · (cost_c − min cost) / (H · rule MSE) of candidate costs (D, C): % of the trial's rule MSE."""
+    return REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rule_mse)
 
 
 def check_teacher(teacher, env_id: str | None = None) -> str:
@@ -552,12 +572,8 @@ def train(
     inputs = inputs_for(env_id)
     cands, meta = candidate_matrix(teacher.candidates), inputs.meta(teacher)
     n_cands = len(cands) + state_candidate_count(inputs, meta)
-
-    def cands_of(o):  # the fixed candidates, then the state-dependent ones of observation o
-        return candidates_at(cands, inputs, meta, o)
-
     env_kwargs = student_env_kwargs(inputs, teacher, k)
-    episodes = Episodes(env_id, env_kwargs, teacher, cands_of if n_cands > len(cands) else None)
+    episodes = teacher_episodes(env_id, env_kwargs, teacher, inputs, meta, cands)
     validation = Validation(episodes, teacher, cfg)
     n_obs = episodes.env(validation.trials[0][1]).observation_space.shape[0]
     n_in = int(inputs(np.zeros((1, n_obs), np.float32), meta).shape[1])
@@ -603,7 +619,7 @@ def train(
         return min(mses)
 
     def oracle_act(o, runner, costs):
-        return cands_of(o)[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
+        return episodes.candidates(o)[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
 
     def collect(j: int, student: Student | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The labelled states of iteration j: the teacher's (or rule's) episodes for j = 0, else ``student``'s
@@ -628,7 +644,7 @@ def train(
                 horizon = int(round(teacher.horizon_s * trial.rate))
                 if horizon < 1:
                     raise ValueError(f"the teacher's look-ahead {teacher.horizon_s} s is under one sample of {sc}")
-                regret = REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rule_mse(trial))
+                regret = regret_units(costs, horizon, rule_mse(trial))
                 if np.isnan(regret).any():  # every candidate's roll-out failed, or the rule's MSE is 0
                     raise ValueError(f"{sc} seed {s}: regrets are undefined at some decisions (no candidate of finite"
                                      " cost, or a rule of zero error)")  # fmt: skip
@@ -708,11 +724,7 @@ def refit(source: str | Path, out: str | Path, teacher, changes: dict, log: Call
                          f"{meta} (its rules were re-tuned since?); cannot refit it")  # fmt: skip
     cands = np.asarray(run["student"]["candidates"], np.float64)
     n_cands = len(cands) + state_candidate_count(inputs, meta)
-
-    def cands_of(o):
-        return candidates_at(cands, inputs, meta, o)
-
-    episodes = Episodes(run["env_id"], run["env_kwargs"], teacher, cands_of if n_cands > len(cands) else None)
+    episodes = teacher_episodes(run["env_id"], run["env_kwargs"], teacher, inputs, meta, cands)
     validation = Validation(episodes, teacher, cfg)
     n_obs = episodes.env(validation.trials[0][1]).observation_space.shape[0]
     parts = [_load_data(f, n_cands, n_obs) for f in files]

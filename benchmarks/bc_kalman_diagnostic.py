@@ -73,11 +73,11 @@ def collect(oracle, seeds, label_every):
         for s in seeds:
             trial = make_trial(sc, s)
             rec.errors = []
-            obs, costs, rmse = episodes.run(trial, rule, label_every)
+            obs, costs, _, rmse = episodes.run(trial, rule, label_every)
             horizon = int(round(oracle.horizon_s * trial.rate))
             xs.append(inputs(obs, meta))
             es.append(np.array(rec.errors))
-            rs.append(dagger.REGRET_UNIT * (costs - costs.min(1, keepdims=True)) / (horizon * rmse**2))
+            rs.append(dagger.regret_units(costs, horizon, rmse**2))
             ss.append(np.full(len(obs), k))
     return np.concatenate(xs), np.concatenate(es), np.concatenate(rs), np.concatenate(ss), meta
 

@@ -55,14 +55,8 @@ def labelled(env: str, n_trials: int):
     teacher = registry.make(name)
     inputs = inputs_for(teacher.env_id)
     meta = inputs.meta(teacher)
-    cands_of = None
-    if dagger.state_candidate_count(inputs, meta):
-
-        def cands_of(o):
-            return dagger.candidates_at(dagger.candidate_matrix(teacher.candidates), inputs, meta, o)
-
     kwargs = dagger.student_env_kwargs(inputs, teacher, teacher.decision_every)
-    episodes = dagger.Episodes(teacher.env_id, kwargs, teacher, cands_of)
+    episodes = dagger.teacher_episodes(teacher.env_id, kwargs, teacher, inputs, meta, teacher.candidates)
     horizon = int(round(teacher.horizon_s * make_trial(scenario, 10000).rate))
 
     def rule(o, runner, costs):
@@ -72,7 +66,7 @@ def labelled(env: str, n_trials: int):
     for i in range(n_trials):
         trial = make_trial(scenario, 10000 + i)
         lab = episodes.run(trial, rule)
-        regret = dagger.REGRET_UNIT * (lab.costs - lab.costs.min(1, keepdims=True)) / (horizon * lab.rmse**2)
+        regret = dagger.regret_units(lab.costs, horizon, lab.rmse**2)
         at = lab.rule == rule_col
         xs.append(inputs(lab.obs[at], meta))
         groups.append(np.full(int(at.sum()), i))
