@@ -153,6 +153,10 @@ class KalmanOracle:
             of its roll-outs continuing with ``rule`` and with each of these.
         still: a ``StillPullTrust`` reading ``EXTENDED`` whose γ is the last state candidate (needs
             ``rule_candidates``; a student sees its γ too: ``still_params``).
+        still_scenarios: the scenarios on whose trials (``trial.meta["scenario"]``) the ``still`` candidate is
+            on offer (None: all); on any other trial it costs inf, so the oracle never takes it there and a
+            DAgger student's loss gives it the most regret (``regret_clip``). Privileged (the teacher knows the
+            trial's scenario); the student sees the observation only.
     """
 
     name = "oracle_kalman"
@@ -169,6 +173,7 @@ class KalmanOracle:
         rule_candidates: bool = False,
         continuations: tuple[KalmanRule, ...] = (),
         still: StillPullTrust | None = None,
+        still_scenarios: tuple[str, ...] | None = None,
     ):
         self.rule = ModelTrust() if rule is None else rule
         default = ModelTrust().features
@@ -179,6 +184,9 @@ class KalmanOracle:
         ):
             raise ValueError("still must be a kf_still rule reading the extended observation, with rule_candidates")
         self.still = still
+        if still_scenarios is not None and (still is None or not all(isinstance(n, str) for n in still_scenarios)):
+            raise ValueError(f"still_scenarios must be scenario names, with a still rule; got {still_scenarios!r}")
+        self.still_scenarios = None if still_scenarios is None else tuple(still_scenarios)
         self.scales = rule_scales(self.rule)
         self.proposals = tuple(proposals)
         self.proposal_scales = [rule_scales(p) for p in proposals]
@@ -223,11 +231,15 @@ class KalmanOracle:
     def candidate_costs(self, runner: KalmanRunner, candidates=None) -> np.ndarray:
         """(C,) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state: of ``candidates``
         ((C, 1) or (C,) γ) if given, else of the fixed levels then ``state_candidates(runner)``; with
-        ``continuations`` the lowest over the continuation rules."""
+        ``continuations`` the lowest over the continuation rules; with ``still_scenarios``, on a trial of another
+        scenario the still candidate (the last of that order) costs inf."""
         if candidates is None:
             gammas = np.concatenate([self.levels, self.state_candidates(runner)[:, 0]])
         else:
             gammas = _gammas(candidates, columns=True)
+        refused = self.still_scenarios is not None and runner.trial.meta.get("scenario") not in self.still_scenarios
+        if refused and gammas.size != self.levels.size + len(self.rule_actions(runner)):
+            raise ValueError("with still_scenarios the candidates must be the levels then the state candidates")
         horizon = int(round(self.horizon_s * runner.trial.rate))
         state = runner.state
         scratch = kt.State(np.empty_like(state.q), np.empty_like(state.p))
@@ -238,6 +250,8 @@ class KalmanOracle:
             candidate_costs(runner.params, state, runner.sensors, runner.q_true, runner.mdist, runner.pos, horizon,
                             self.decision_every, gammas, scales, scratch, peek, sig, costs)  # fmt: skip
             np.minimum(best, costs, out=best)
+        if refused:
+            best[-1] = np.inf
         return best
 
     def best_gamma(self, runner: KalmanRunner) -> float:

@@ -1,6 +1,6 @@
 """Probe: do a DAgger student's causal inputs say when departing from the rule pays, on trials it was not fitted on?
 
-    .venv/bin/python benchmarks/probe_advantage.py [--env qsf|constraint] [--trials 24] [--folds 8] [--json FILE]
+    .venv/bin/python benchmarks/probe_advantage.py [--env qsf|constraint|kalman] [--trials 24] [--folds 8] [--json FILE]
 
 It rolls the teacher's continuation rule on ``--trials`` training trials
 (seeds 10000, …) of the test where the student misses its target and labels,
@@ -13,7 +13,10 @@ trial's rule MSE per look-ahead; clipped at ±20; > 0: the departure pays):
   period (candidates none, keep .3, keep 1, start);
 * ``constraint`` — ``constraint_test1``, ``oracle_constraint_rules``: the magnetometer alone (w = 0, eq. 15's
   weights (1 − w) on it, w on the constraint) and the constraint alone (w = 1, the magnetometer refused) instead
-  of the rule's own w (candidates w 0, .25, .5, .75, 1, the rule's w).
+  of the rule's own w (candidates w 0, .25, .5, .75, 1, the rule's w);
+* ``kalman`` — ``dynamic_magnet``, ``oracle_kalman_still``: the magnetometer's Kalman update skipped (γ = 0) and
+  taken in full (γ = 1) instead of kf_model_tuned's γ (candidates γ 0, .25, .5, 1, then the γ of kf_model_tuned,
+  kf_adaptive_tuned and kf_still_tuned at that state).
 
 It then predicts each advantage from the student's inputs
 (``magenv.agents.student_inputs``) with ridge regressions and a small MLP,
@@ -40,10 +43,12 @@ from magenv.agents.student_inputs import inputs_for
 from magenv.scenarios import make_trial
 
 #: env → (scenario, teacher, the rule's candidate, {departure name: its candidate}); the probed decisions are those
-#: where the rule's candidate is the given one (``dagger.Labelled.rule``; constraint: the rule's w is the last)
+#: where the rule's candidate is the given one (``dagger.Labelled.rule``; constraint: the rule's w is the last;
+#: kalman: kf_model_tuned's γ, the first of the three rules' γ)
 PROBES = {
     "qsf": ("handheld_texting", "oracle_qsf", 2, {"start": 3}),
     "constraint": ("constraint_test1", "oracle_constraint_rules", 5, {"w = 0": 0, "w = 1": 4}),
+    "kalman": ("dynamic_magnet", "oracle_kalman_still", 4, {"γ = 0": 0, "γ = 1": 3}),
 }
 CLIP = 20.0  # units: a few diverged roll-outs otherwise decide the fits
 RIDGES = (1.0, 100.0, 1.0e4)

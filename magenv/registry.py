@@ -19,8 +19,9 @@ a fresh one. ``names()`` lists them all:
   (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
   reads truth, so it is an upper bound (compare's headroom row), never a
   baseline; likewise ``oracle_kalman`` for MagKalman-v0 (``magenv.baselines.oracle_kalman``, continuing with
-  ``kf_model_tuned``; its DAgger teachers ``oracle_kalman_rules`` and ``oracle_kalman_still`` also search the
-  tuned rules' γ), ``oracle_constraint`` (MagConstraint-v0, continuing with ``cf_constraint_tuned``,
+  ``kf_model_tuned``; its DAgger teachers ``oracle_kalman_rules``, ``oracle_kalman_still`` and
+  ``oracle_kalman_skip`` also search the tuned rules' γ), ``oracle_constraint`` (MagConstraint-v0, continuing
+  with ``cf_constraint_tuned``,
   ``magenv.baselines.oracle_constraint``; ``oracle_constraint_rules`` also searches the rule's w),
   ``oracle_qsf`` (MagQSF-v0, continuing with
   ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``) and ``oracle_vqf`` for MagVQF-v0
@@ -91,7 +92,7 @@ def _kalman_rules_oracle(params: dict) -> oracle_kalman.KalmanOracle:
 def _kalman_still_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     """``oracle_kalman_still``: ``oracle_kalman_rules`` that also searches kf_still_tuned's γ at each state (on
     the extended observation; a candidate, not a continuation), so that its student can fall back on the best
-    rule measured on ``stationary_magnet`` too; the DAgger teacher of the shipped MagKalman-v0 student. Needs
+    rule measured on ``stationary_magnet`` too (the teacher of the MagKalman-v0 student shipped before). Needs
     tuned kf_adaptive and kf_still files (else TunedParamsError)."""
     rules = _kalman_rules_oracle(params)
     still = kalman_policies.StillPullTrust.from_params(tuned_params("kf_still"), features=KALMAN_EXTENDED.names)
@@ -102,6 +103,31 @@ def _kalman_still_oracle(params: dict) -> oracle_kalman.KalmanOracle:
         continuations=rules.proposals,
         horizon_s=rules.horizon_s,
         still=still,
+    )
+
+
+SKIP_LEVELS = (0.0,)  # γ levels of oracle_kalman_skip: the magnetometer's update skipped
+STILL_SCENARIOS = ("stationary_magnet",)  # where oracle_kalman_skip offers kf_still_tuned's γ
+
+
+def _kalman_skip_oracle(params: dict) -> oracle_kalman.KalmanOracle:
+    """``oracle_kalman_skip``: three candidates at each state, γ = 0 (the magnetometer's update skipped),
+    kf_model_tuned's γ and kf_still_tuned's γ (on ``stationary_magnet`` trials only: elsewhere it costs inf),
+    searched 1 s ahead continuing with the cheaper of kf_model_tuned and kf_adaptive_tuned; the DAgger teacher of
+    the shipped MagKalman-v0 student. Per decision on ``dynamic_magnet`` the advantage of skipping over
+    kf_model_tuned's γ is partly predictable from the student's causal inputs, that of a full update (γ = 1) is
+    not (``benchmarks/probe_advantage.py --env kalman``); and there kf_still_tuned's γ often looks cheapest
+    over 1 s, yet students that take it follow that rule, which loses to kf_model_tuned over whole trials.
+    Needs tuned kf_adaptive and kf_still files (else TunedParamsError)."""
+    still = _kalman_still_oracle(params)
+    return oracle_kalman.KalmanOracle.from_model_params(
+        params,
+        candidates=SKIP_LEVELS,
+        rule_candidates=True,
+        continuations=still.proposals,
+        horizon_s=still.horizon_s,
+        still=still.still,
+        still_scenarios=STILL_SCENARIOS,
     )
 
 
@@ -119,6 +145,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "oracle_kalman": ("kf_model", _kalman_oracle),
     "oracle_kalman_rules": ("kf_model", _kalman_rules_oracle),
     "oracle_kalman_still": ("kf_model", _kalman_still_oracle),
+    "oracle_kalman_skip": ("kf_model", _kalman_skip_oracle),
     "oracle_constraint": ("cf_constraint", oracle_constraint.ConstraintOracle.from_constraint_params),
     "oracle_constraint_rules": ("cf_constraint", _constraint_rules_oracle),
     "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),

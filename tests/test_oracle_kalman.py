@@ -3,6 +3,8 @@ continuation rule, it is deterministic, and it is shown as the headroom row."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from conftest import kinematic_trial
@@ -167,6 +169,39 @@ def test_the_still_candidate_is_kf_still_tuned_bit_for_bit(trial):
     assert oracle.run(trial).q.shape == trial.q_true.shape
 
 
+def test_the_skip_teacher_offers_the_still_rule_on_stationary_trials_only(trial):
+    """``oracle_kalman_skip`` costs γ = 0, kf_model_tuned's γ and kf_still_tuned's γ exactly as
+    ``oracle_kalman_still`` costs them (the same continuations and look-ahead), except that on a trial of a
+    scenario other than ``stationary_magnet`` the still candidate costs inf (the oracle never takes it there);
+    its student sees and chooses among the three."""
+    skip, still = registry.make("oracle_kalman_skip"), registry.make("oracle_kalman_still")
+    np.testing.assert_array_equal(skip.levels, [0.0])
+    assert skip.still_scenarios == ("stationary_magnet",) and skip.proposals == ()
+    assert skip.horizon_s == still.horizon_s and skip.still_params == still.still_params
+    on_stationary = dataclasses.replace(trial, meta={**trial.meta, "scenario": "stationary_magnet"})
+    for tr, offered in ((trial, False), (on_stationary, True)):
+        runner = KalmanRunner(tr, extended=True)
+        for _ in range(3):
+            runner.advance(160, 0.5)
+            model_gamma, _, still_gamma = still.state_candidates(runner)[:, 0]
+            np.testing.assert_array_equal(skip.state_candidates(runner)[:, 0], [model_gamma, still_gamma])
+            gammas = np.array([0.0, model_gamma, still_gamma])
+            want = still.candidate_costs(runner, gammas)
+            got = skip.candidate_costs(runner)
+            np.testing.assert_array_equal(skip.candidate_costs(runner, gammas), got)
+            np.testing.assert_array_equal(got[:2], want[:2])
+            assert got[2] == (want[2] if offered else np.inf) and np.all(np.isfinite(want))
+        if not offered:  # the still candidate is known by its place: another layout is refused
+            with pytest.raises(ValueError, match="levels then the state candidates"):
+                skip.candidate_costs(runner, [0.0, 0.5])
+    inputs = inputs_for(KALMAN_ID)
+    assert inputs.n_state_candidates(inputs.meta(skip)) == 2
+    with pytest.raises(ValueError, match="still_scenarios"):
+        KalmanOracle(RULE, rule_candidates=True, still_scenarios=("stationary_magnet",))
+    with pytest.raises(ValueError, match="still_scenarios"):
+        KalmanOracle(RULE, rule_candidates=True, still=skip.still, still_scenarios=(1,))
+
+
 def test_continuations_cost_the_cheaper_roll_out(trial):
     """With ``continuations`` a candidate costs the lowest of its roll-outs continuing with each rule; explicit
     ``candidates`` are costed as given, the default being the levels then the state candidates."""
@@ -188,13 +223,13 @@ def test_continuations_cost_the_cheaper_roll_out(trial):
 
 
 def test_the_rules_teachers_need_their_tuned_rules(tmp_path, monkeypatch):
-    """Without a tuned kf_adaptive, oracle_kalman_rules and oracle_kalman_still are not themselves (no fallback
+    """Without a tuned kf_adaptive, oracle_kalman_rules, _still and _skip are not themselves (no fallback
     rule, the still candidate at another index): a TunedParamsError naming the file, never a quieter teacher.
     oracle_kalman only loses its proposal."""
     for name in ("kf_model", "kf_still"):
         (tmp_path / f"{name}.json").write_text((registry.packaged_tuned_dir() / f"{name}.json").read_text())
     monkeypatch.setattr(registry, "packaged_tuned_dir", lambda: tmp_path)
-    for name in ("oracle_kalman_rules", "oracle_kalman_still"):
+    for name in ("oracle_kalman_rules", "oracle_kalman_still", "oracle_kalman_skip"):
         with pytest.raises(registry.TunedParamsError, match="kf_adaptive"):
             registry.make(name)
     assert registry.make("oracle_kalman").proposals == ()
