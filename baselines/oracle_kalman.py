@@ -238,7 +238,7 @@ class KalmanOracle:
         else:
             gammas = _gammas(candidates, columns=True)
         refused = self.still_scenarios is not None and runner.trial.meta.get("scenario") not in self.still_scenarios
-        if refused and gammas.size != self.levels.size + len(self.rule_actions(runner)):
+        if refused and gammas.size != self.levels.size + 2 + len(self.proposals):  # levels, rule, proposals, still
             raise ValueError("with still_scenarios the candidates must be the levels then the state candidates")
         horizon = int(round(self.horizon_s * runner.trial.rate))
         state = runner.state
