@@ -363,7 +363,7 @@ def test_a_kalman_student_from_oracle_kalman(tmp_path):
     cfg = {**TINY, "iterations": 1, "label_every": 64, "first": "rule", "scenarios": ["dynamic_clean"]}
     out = dagger.train(tmp_path / "k", registry.make("oracle_kalman"), cfg, log=lambda line: None)
     run = yaml.safe_load((out / "run.yaml").read_text())
-    assert run["env_id"] == "magenv/MagKalman-v0" and run["student"]["n_inputs"] == 120 + 3 * 2  # 2 rules, 3 blocks
+    assert run["env_id"] == "magenv/MagKalman-v0" and run["student"]["n_inputs"] == 129 + 3 * 2  # 2 rules, 3 blocks
     agent = load_agent(out)
     assert agent.env_id == "magenv/MagKalman-v0" and agent.env_kwargs["features"] == "extended"
     with pytest.raises(ValueError, match="first"):

@@ -400,12 +400,13 @@ class MagKalmanEnv(TrustEnv):
 
     {observation_table}
 
-    With ``features="extended"`` (``EXTENDED``, 120 features) the observation
+    With ``features="extended"`` (``EXTENDED``, 129 features) the observation
     is these 19, then the extra causal features below
     (``magenv.envs.kalman_memory``: signed mag headings and their EMAs, a
     gyro-only anchor re-set on clean samples and the heading the magnetometer
-    added since, smoothed norm, dip and disturbance trends), then the copies
-    of all 38 as they were 8 and 32 decisions earlier (``NAME_lag8``,
+    added since, smoothed norm, dip and disturbance trends, the still anchor,
+    the heading error seen across the disturbance's direction), then the
+    copies of all 43 as they were 8 and 32 decisions earlier (``NAME_lag8``,
     ``NAME_lag32``: the memory). They are computed from the sensors, the
     filter's signals and estimates — never truth.
 

@@ -31,6 +31,21 @@ Conventions (ENU earth frame, angles in degrees, signed, wrapped to ±180):
   of the signed heading error of a still MIMU under a steady disturbance, and
   ``pull_still`` says whether the magnetometer pulls the estimate toward the
   anchor (> 0) or away from it.
+* ``d_perp`` reads the heading error from the field components a disturbance
+  fixed in the sensor frame leaves alone. The residual r = m − q̄*⊗h_ENU⊗q̄
+  (sensor frame; q̄ the estimate at the magnetometer's sample time,
+  ``MAG_DELAY_SAMPLES`` before the current sample: the sensor's sampling lag
+  and FIR delay) is dominated by the disturbance; its principal direction u
+  (EMA τ 2 s of rrᵀ, power iteration) is the disturbance's. Projected across
+  u, r ≈ δ·g with g the field's change per radian of heading, so the
+  least-squares δ = Σ(P_u g)·(P_u r)/Σ‖P_u g‖² (EMAs τ 0.25 s) estimates the
+  signed heading error, heading(q̂ ⊗ q_true*), without truth. The delay (3,
+  4, 4.5 or 5 samples) and time constants were chosen on ``dynamic_magnet``
+  training trials (seeds 10000–10005; correlation with the true error 0.83,
+  0.7° rms off an error of 1.4° rms). A magnet that moves relative to the
+  sensor (``stationary_magnet``'s hand-held one) changes u: there it
+  correlates only ≈ 0.3 with the error, and ``perp_info`` (how much of the
+  heading's signal is left across u) tells the student how far to read it.
 """
 
 from __future__ import annotations
@@ -43,7 +58,7 @@ from numba import njit
 from magenv.envs.blend_memory import _heading
 from magenv.envs.features import Feature, FeatureTable
 from magenv.filters.kalman_trust import SIG
-from magenv.quaternion import from_rotvec1, mul1, normalize1
+from magenv.quaternion import from_rotvec1, mul1, normalize1, rotate_inv1
 
 _DEG = "°"
 _HEADING = -180.0, 180.0
@@ -75,6 +90,14 @@ EXTRA = FeatureTable(
         _DEG,
         "−sign(d_still)·ν_m,j,east/(m0 cos θ0): a full update's heading correction toward the still anchor",
     ),
+    Feature("d_perp", *_HEADING, _DEG, "heading error seen by the field across the disturbance direction u"),
+    Feature("perp_info", 0.0, 1.0, "–", "EMA (τ 0.25 s) of ‖P_u g‖²/(m0 cos θ0)²: how much heading d_perp sees"),
+    Feature(
+        "pull_perp",
+        *_HEADING,
+        _DEG,
+        "−sign(d_perp)·ν_m,j,east/(m0 cos θ0): a full update's heading correction against d_perp",
+    ),
 )
 X = EXTRA.ix
 _LOW, _HIGH = EXTRA.low64, EXTRA.high64
@@ -82,13 +105,17 @@ CLEAN_NORM_UT, CLEAN_DIP_DEG, CLEAN_DIST_UT = 1.0, 1.0, 1.0
 T_ANCHOR_SCALE_S = 10.0
 STILL_RATE_DPS = 2.0  # °/s: a sample with a smaller ‖ω‖ leaves the still anchor where it is
 _STILL_RATE = np.deg2rad(STILL_RATE_DPS)
+MAG_DELAY_SAMPLES = 4.5  # the magnetometer's sample lags the estimate's by this many samples (d_perp)
+DIRECTION_TAU_S, PERP_TAU_S = 2.0, 0.25  # EMAs of the residual's second moment (u) and of d_perp's sums
 
 # layout of the state vector: two quaternions, the EMAs and the time since clean, then the still anchor
 Q_ANC, Q_GYR = 0, 4
 (S_MH025, S_MH1, S_MH4, S_MHC, S_ND05, S_ND2, S_ND8, S_DD05, S_DD2, S_MD1, S_MD4, S_G1, S_TR1, S_NIS1, S_CLEAN4,
  S_TANC) = range(8, 24)  # fmt: skip
 Q_STILL = 24
-N_STATE = 28
+U_DIR, C_RES = 28, 31  # the disturbance direction u (3) and the residual's second moment (3 × 3, row-major)
+S_PN, S_PD = 40, 41  # EMAs of (P_u g)·(P_u r) and ‖P_u g‖²
+N_STATE = 42
 
 
 class Memory(NamedTuple):
@@ -104,6 +131,7 @@ class Memory(NamedTuple):
         state[Q_ANC : Q_ANC + 4] = q0
         state[Q_GYR : Q_GYR + 4] = q0
         state[Q_STILL : Q_STILL + 4] = q0
+        state[U_DIR : U_DIR + 3] = 1.0 / np.sqrt(3.0)  # any start off the axes: the power iteration turns it
         state[S_TR1] = 1.0
         return cls(state, np.zeros(len(EXTRA)))
 
@@ -134,6 +162,35 @@ def _propagate(s, o, w, dt):
 
 
 @njit(cache=True)
+def _perp_sums(s, mag, qa, qb, h_ref, a_u, a_p):
+    """One sample of ``d_perp``'s sums: the residual r = m − q̄* ⊗ h_ENU ⊗ q̄ (sensor frame, µT) at the
+    magnetometer's sample time, q̄ the normalised mean of the estimates ``qa``, ``qb`` on either side of it; its
+    second moment C (EMA, weight ``a_u``) and C's principal direction u (one power-iteration step a sample); the
+    EMAs (weight ``a_p``) of (P_u g)·(P_u r) and ‖P_u g‖², P_u = I − uuᵀ, g = q̄* ⊗ (up × h_ENU) ⊗ q̄ the field's
+    change per radian of heading. A disturbance along u moves no component P_u sees, so their ratio is the heading
+    error (rad) the undisturbed components show (least squares, linearised)."""
+    sign = 1.0 if qa[0] * qb[0] + qa[1] * qb[1] + qa[2] * qb[2] + qa[3] * qb[3] >= 0.0 else -1.0
+    qm = normalize1(qa + sign * qb)
+    pred = rotate_inv1(qm, h_ref)
+    turn = np.array([-h_ref[1], h_ref[0], 0.0])  # up × h_ENU
+    g = rotate_inv1(qm, turn)
+    r = mag - pred
+    u = s[U_DIR : U_DIR + 3].copy()
+    gp = g - np.dot(g, u) * u
+    rp = r - np.dot(r, u) * u
+    s[S_PN] = _ema(s[S_PN], np.dot(gp, rp), a_p)
+    s[S_PD] = _ema(s[S_PD], np.dot(gp, gp), a_p)
+    c = s[C_RES : C_RES + 9].reshape(3, 3)
+    for k in range(3):
+        for m in range(3):
+            c[k, m] = _ema(c[k, m], r[k] * r[m], a_u)
+    cu = c @ u
+    norm = np.sqrt(np.dot(cu, cu))
+    if norm > 0.0:
+        s[U_DIR : U_DIR + 3] = cu / norm
+
+
+@njit(cache=True)
 def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
     """Consume samples ``start:stop`` (1 ≤ ``start`` < ``stop``) just fused; ``mem.value`` = the extra features at
     sample ``stop``.
@@ -143,10 +200,11 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
         mdist: (N,) ‖d̂‖, µT. est: (N, 4) the env's estimates. sig: (N, NSIG) the filter's signals per sample.
         trust: (N,) γ per sample. peek: (NSIG,) the a-priori signals of sample ``stop``. mem: :class:`Memory`.
     """
-    gyr = sensors.gyr
+    gyr, mag = sensors.gyr, sensors.mag
     s, out = mem.state, mem.value
     dt, m0, h_ref = params.dt, params.m0, params.h_ref
     a025, a05, a1, a2, a4, a8 = dt / 0.25, dt / 0.5, dt, dt / 2.0, dt / 4.0, dt / 8.0
+    a_u, a_p = dt / DIRECTION_TAU_S, dt / PERP_TAU_S
     for i in range(start, stop):
         row = sig[i]
         mh = _mag_heading(row, h_ref)
@@ -183,6 +241,8 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
         s[S_TR1] = _ema(s[S_TR1], trust[i], a1)
         s[S_NIS1] = _ema(s[S_NIS1], row[SIG.nis], a1)
         s[S_CLEAN4] = _ema(s[S_CLEAN4], 1.0 if clean else 0.0, a4)
+        lag = i - MAG_DELAY_SAMPLES
+        _perp_sums(s, mag[i], est[max(int(np.ceil(lag)), 0)], est[max(int(np.floor(lag)), 0)], h_ref, a_u, a_p)
     q = est[stop - 1]
     out[X.mh_ema_025] = _clip(s[S_MH025], X.mh_ema_025)
     out[X.mh_ema_1] = _clip(s[S_MH1], X.mh_ema_1)
@@ -210,3 +270,8 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
     hh = m0 * np.cos(params.dip0)
     pull = -np.sign(d_still) * np.rad2deg(peek[SIG.nu_e] / hh) if hh > 0.0 else 0.0
     out[X.pull_still] = _clip(pull, X.pull_still)
+    d_perp = np.rad2deg(s[S_PN] / s[S_PD]) if s[S_PD] > 0.0 else 0.0
+    out[X.d_perp] = _clip(d_perp, X.d_perp)
+    out[X.perp_info] = _clip(s[S_PD] / hh**2, X.perp_info) if hh > 0.0 else 0.0
+    pull = -np.sign(d_perp) * np.rad2deg(peek[SIG.nu_e] / hh) if hh > 0.0 else 0.0
+    out[X.pull_perp] = _clip(pull, X.pull_perp)
