@@ -161,18 +161,24 @@ def _propagate(s, o, w, dt):
     s[o : o + 4] = q
 
 
+@njit(cache=True, inline="always")
+def _pull(d, peek, hh):
+    """A full update's heading correction (°) against the signed heading error ``d``: −sign(d)·ν_m,j,east/hh,
+    ``peek`` the a-priori signals of sample j, hh = m0·cos θ0 (µT; 0 if hh ≤ 0)."""
+    return -np.sign(d) * np.rad2deg(peek[SIG.nu_e] / hh) if hh > 0.0 else 0.0
+
+
 @njit(cache=True)
-def _perp_sums(s, mag, qa, qb, h_ref, a_u, a_p):
+def _perp_sums(s, mag, qa, qb, h_ref, turn, a_u, a_p):
     """One sample of ``d_perp``'s sums: the residual r = m − q̄* ⊗ h_ENU ⊗ q̄ (sensor frame, µT) at the
     magnetometer's sample time, q̄ the normalised mean of the estimates ``qa``, ``qb`` on either side of it; its
     second moment C (EMA, weight ``a_u``) and C's principal direction u (one power-iteration step a sample); the
-    EMAs (weight ``a_p``) of (P_u g)·(P_u r) and ‖P_u g‖², P_u = I − uuᵀ, g = q̄* ⊗ (up × h_ENU) ⊗ q̄ the field's
-    change per radian of heading. A disturbance along u moves no component P_u sees, so their ratio is the heading
-    error (rad) the undisturbed components show (least squares, linearised)."""
+    EMAs (weight ``a_p``) of (P_u g)·(P_u r) and ‖P_u g‖², P_u = I − uuᵀ, g = q̄* ⊗ ``turn`` ⊗ q̄ the field's
+    change per radian of heading (``turn`` = up × h_ENU). A disturbance along u moves no component P_u sees, so
+    their ratio is the heading error (rad) the undisturbed components show (least squares, linearised)."""
     sign = 1.0 if qa[0] * qb[0] + qa[1] * qb[1] + qa[2] * qb[2] + qa[3] * qb[3] >= 0.0 else -1.0
     qm = normalize1(qa + sign * qb)
     pred = rotate_inv1(qm, h_ref)
-    turn = np.array([-h_ref[1], h_ref[0], 0.0])  # up × h_ENU
     g = rotate_inv1(qm, turn)
     r = mag - pred
     u = s[U_DIR : U_DIR + 3].copy()
@@ -205,6 +211,7 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
     dt, m0, h_ref = params.dt, params.m0, params.h_ref
     a025, a05, a1, a2, a4, a8 = dt / 0.25, dt / 0.5, dt, dt / 2.0, dt / 4.0, dt / 8.0
     a_u, a_p = dt / DIRECTION_TAU_S, dt / PERP_TAU_S
+    turn = np.array([-h_ref[1], h_ref[0], 0.0])  # up × h_ENU
     for i in range(start, stop):
         row = sig[i]
         mh = _mag_heading(row, h_ref)
@@ -242,7 +249,7 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
         s[S_NIS1] = _ema(s[S_NIS1], row[SIG.nis], a1)
         s[S_CLEAN4] = _ema(s[S_CLEAN4], 1.0 if clean else 0.0, a4)
         lag = i - MAG_DELAY_SAMPLES
-        _perp_sums(s, mag[i], est[max(int(np.ceil(lag)), 0)], est[max(int(np.floor(lag)), 0)], h_ref, a_u, a_p)
+        _perp_sums(s, mag[i], est[max(int(np.ceil(lag)), 0)], est[max(int(np.floor(lag)), 0)], h_ref, turn, a_u, a_p)
     q = est[stop - 1]
     out[X.mh_ema_025] = _clip(s[S_MH025], X.mh_ema_025)
     out[X.mh_ema_1] = _clip(s[S_MH1], X.mh_ema_1)
@@ -268,10 +275,8 @@ def update(params, sensors, mdist, est, sig, trust, peek, mem, start, stop):
     d_still = _heading(q[0], q[1], q[2], q[3], s[c], s[c + 1], s[c + 2], s[c + 3])
     out[X.d_still] = _clip(d_still, X.d_still)
     hh = m0 * np.cos(params.dip0)
-    pull = -np.sign(d_still) * np.rad2deg(peek[SIG.nu_e] / hh) if hh > 0.0 else 0.0
-    out[X.pull_still] = _clip(pull, X.pull_still)
+    out[X.pull_still] = _clip(_pull(d_still, peek, hh), X.pull_still)
     d_perp = np.rad2deg(s[S_PN] / s[S_PD]) if s[S_PD] > 0.0 else 0.0
     out[X.d_perp] = _clip(d_perp, X.d_perp)
     out[X.perp_info] = _clip(s[S_PD] / hh**2, X.perp_info) if hh > 0.0 else 0.0
-    pull = -np.sign(d_perp) * np.rad2deg(peek[SIG.nu_e] / hh) if hh > 0.0 else 0.0
-    out[X.pull_perp] = _clip(pull, X.pull_perp)
+    out[X.pull_perp] = _clip(_pull(d_perp, peek, hh), X.pull_perp)
