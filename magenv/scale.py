@@ -247,14 +247,22 @@ def tune_runs(
         def load_checkpoint(self, checkpoint):
             pass
 
+    results: dict[str, dict | str] = {}
+
     class Report(tune.Callback):
+        """Collects each run's outcome from the trial itself (the result grid may lose a dead worker's config)."""
+
         def on_trial_complete(self, iteration, trials, trial, **info):
+            metrics = trial.last_result or {}
+            if metrics.get("done"):
+                results[trial.config["run"]] = metrics
             if on_done is not None:
                 on_done(trial.config["run"], trial.last_result, None)
 
         def on_trial_error(self, iteration, trials, trial, **info):
+            results[trial.config["run"]] = error = _trial_error(trial)
             if on_done is not None:
-                on_done(trial.config["run"], None, _trial_error(trial))
+                on_done(trial.config["run"], None, error)
 
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # no console tables: the caller prints its own
     tuner = tune.Tuner(
@@ -270,14 +278,7 @@ def tune_runs(
             checkpoint_config=tune.CheckpointConfig(checkpoint_at_end=False),
         ),
     )
-    results: dict[str, dict | str] = {}
-    grid = tuner.fit()
-    for result in (grid[i] for i in range(len(grid))):
-        name = (result.config or {})["run"]
-        if result.error is not None:
-            results[name] = f"{type(result.error).__name__}: {result.error}"
-        elif result.metrics and result.metrics.get("done"):
-            results[name] = result.metrics
+    tuner.fit()
     return results
 
 
