@@ -213,7 +213,8 @@ def tune_runs(
     :func:`start`); at most ``workers`` at a time (default: the cluster's CPUs). Returns name → Tune's metrics
     of a finished trial, or the error text of a trial that failed ``retries`` + 1 times (a worker lost
     mid-trial counts as a failure: the trial starts again, and ``run_one`` must resume from its own files);
-    a trial that Ctrl-C stopped (Tune ends the run on SIGINT and returns) is not in it.
+    a trial that Ctrl-C stopped (on SIGINT Tune gives running trials up to 10 s to end, kills their actors and
+    returns) is not in it.
 
     ``run_one`` must be picklable (a module-level function, or a ``functools.partial`` of one): each Tune
     actor calls it in its main thread, where signal handlers work. Tune's scalar metrics are the numbers

@@ -256,8 +256,11 @@ def test_a_run_whose_worker_dies_is_retried_and_one_that_keeps_dying_is_named(ra
 @pytest.mark.slow
 def test_an_interrupted_sweep_resumes_where_it_stopped(tmp_path):
     """Ctrl-C in the middle of a sweep (its own local Ray, in a subprocess), then the same command again:
-    finished runs are kept, an interrupted one resumes from its checkpoint, and every run ends. About 90 s."""
-    steps = 4096
+    finished runs are kept, an interrupted one resumes from its checkpoint, and every run ends. About 90 s.
+
+    Tune lets a running trial go on for up to 10 s after SIGINT before it kills the actor, so each run trains
+    for about 30 s: one signalled at its first checkpoint is still training when it is killed."""
+    steps = 16384
     path = sweep_file(tmp_path, {"steps": steps, "eval_every": 256, "params": {}, "seeds": "0:3"})
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "magenv.train.cli", "sweep", str(path), "--out", str(out), "--workers", "2"]
@@ -279,6 +282,7 @@ def test_an_interrupted_sweep_resumes_where_it_stopped(tmp_path):
     assert proc.returncode == 130 and "interrupted; run the same command again to resume" in log, log
     finished_before = len(list((out / "results").glob("*.json")))
     assert finished_before < 3, log
+    assert any(0 < t < steps for t in progress()), f"no run was stopped between its checkpoints\n{log}"
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=400)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert f"{finished_before} run(s) finished before, {3 - finished_before} to run" in done.stdout
