@@ -134,3 +134,26 @@ def test_extended_env_replays_its_seed(env_id, scenario, action):
     a = episode(3)
     np.testing.assert_array_equal(a, episode(3))
     assert not np.array_equal(a, episode(4))
+
+
+def test_bias_corrected_twin_follows_the_estimate_a_bias_free_gyro_would_give():
+    """The paper's gyro bias is learned from the 3 s at rest that start each two-link trial: `d_btwin` is the heading
+    the same decisions would give on a gyro without the bias, `drift` the heading rate the bias causes."""
+    from magenv.envs.blend_memory import _heading
+    from magenv.quaternion import rotate1
+    from magenv.scenarios.twolink import PAPER_GYRO_BIAS
+
+    trial = scenarios.make_trial("constraint_test1", 0, duration=20.0)
+    bias = np.array(PAPER_GYRO_BIAS)
+    unbiased = dataclasses.replace(trial, gyr=trial.gyr - bias)
+    ext, plain = constraint.ConstraintRunner(trial, True), constraint.ConstraintRunner(unbiased, False)
+    while not ext.done:
+        ext.advance(4, (0.5, None))
+        plain.advance(4, (0.5, None))
+    names = constraint.EXTENDED.names
+    q = ext.est[-1]
+    expected = _heading(*plain.est[-1], *q)  # degrees: the bias's share of the heading error, after 20 s
+    assert abs(expected) > 0.3
+    assert abs(ext.feat[names.index("d_btwin")] - expected) < 0.15 * abs(expected)
+    drift = np.rad2deg(rotate1(q, bias)[2])
+    assert abs(ext.feat[names.index("drift")] - drift) < 0.15 * abs(drift)

@@ -149,7 +149,7 @@ class ConstraintRunner(TrialRunner):
         self._advance(*args)  # observation of sample 0
         self.extended = bool(extended)
         if self.extended:
-            self.memory = constraint_memory.Memory.start(self.q, trial.n)
+            self.memory = constraint_memory.Memory.start(self.q, trial.n, trial.rate)
             self._ring = lagged.ring(constraint_memory.LAGS, len(FEATURES) + len(constraint_memory.EXTRA))
             self.feat = np.zeros(len(EXTENDED))
             self._compose(0, 0)

@@ -20,6 +20,19 @@ horizontally). An EMA of time constant τ takes each sample with weight Δt/τ.
 "Parallel" filters run the env's filter (``magenv.filters.constraint.fuse``)
 from the start on the same samples with a fixed w (k by eq. 18). A sample is
 *clean* when eq. 16's deviation ‖C(q)y_M − m_E‖/m0 < 0.03.
+
+Gyro bias: link i's gyroscope carries a constant bias (the paper adds one on
+purpose, §3.1) that the filter does not model; where the gain k is small its
+heading drifts with it. b̂ is the mean of link i's gyro over every sample at
+rest so far (0 before any): at rest when Fan et al. 2017's detector
+(``magenv.filters.stationary``, eqs. 11–13: t0 0.5 s, 0.04 g, 0.5 °/s per
+axis) has flagged the last ``REST_HOLD`` samples. The *bias-corrected*
+filters run the env's filter on ω_i − b̂ (k by eq. 18): one with the w the
+env applied at each sample (the estimate had the gyro been corrected), one
+with w = 1 (the constraint alone). On ``constraint_test1`` training trials
+(tuned rule roll-outs) their headings relative to the estimate follow its
+true signed heading error with correlation 0.68 and 0.60 (the other
+features: 0.36 at most).
 """
 
 from __future__ import annotations
@@ -33,6 +46,7 @@ from magenv.envs.blend_memory import _ema, _heading
 from magenv.envs.features import Feature, FeatureTable
 from magenv.envs.headings import dip_deg, norm3, planar_heading, wrap_deg
 from magenv.filters import constraint as cf
+from magenv.filters import stationary
 from magenv.quaternion import GRAVITY, rotate1
 
 _DEG = "°"
@@ -63,18 +77,24 @@ EXTRA = FeatureTable(
     Feature("dd_ema_2", *_HEADING, _DEG, "EMA (τ 2 s) of the signed dip deviation of C(q)y_M"),
     Feature("gyro_ema_1", 0.0, 100.0, "rad/s", "EMA (τ 1 s) of ‖ω_i‖"),
     Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
+    Feature("d_btwin", *_HEADING, _DEG, "heading(q_bt ⊗ q*), q_bt the parallel filter on ω_i − b̂ with the w applied"),
+    Feature("d_bcon", *_HEADING, _DEG, "heading(q_bc ⊗ q*), q_bc the parallel w = 1 filter on ω_i − b̂"),
+    Feature("drift", -5.0, 5.0, "°/s", "earth-up component of C(q)b̂: the heading drift rate b̂ causes"),
 )
 X = EXTRA.ix
 _LOW, _HIGH = EXTRA.low64, EXTRA.high64
 LAGS = (25, 100)  # decisions: 1 s and 4 s at the env's default k = 4, 100 Hz
 
-# layout of the state vector: three quaternions, then the scalars
-Q_MAG, Q_CON, Q_ANC = 0, 4, 8
+# layout of the state vector: five quaternions, the bias sums (3), then the scalars
+Q_MAG, Q_CON, Q_ANC, Q_BTWIN, Q_BCON = 0, 4, 8, 12, 16
+B_SUM = 20  # (3,) sum of link i's gyro over the rest samples, rad/s
 (S_MH025, S_MH1, S_MH4, S_JH025, S_JH1, S_JH4, S_JA1, S_DEV05, S_DEV2, S_ND2, S_DD2, S_G1, S_TCLEAN,
- S_CLEAN4) = range(12, 26)  # fmt: skip
-N_STATE = 26
+ S_CLEAN4, S_NREST, S_RUN) = range(23, 39)  # fmt: skip
+N_STATE = 39
 CLEAN_DEV = 0.03  # fraction of m0
 JOINT_FULL = 0.2 * GRAVITY  # m/s², horizontal joint acceleration at which the joint heading counts fully
+REST_HOLD = 25  # samples the stationary detector must have flagged in a row before a sample counts as rest
+_TH_ACC, _TH_GYRO = stationary.thresholds()  # Fan et al. 2017's, m/s² and rad/s per axis
 
 
 class Memory(NamedTuple):
@@ -82,15 +102,17 @@ class Memory(NamedTuple):
 
     state: np.ndarray  # (N_STATE,) see the layout constants
     scratch: cf.Trace  # the parallel filters' trace rows (trial length)
+    gyr_c: np.ndarray  # (n, 3) ω_i − b̂ of the samples fused so far, rad/s (the bias-corrected filters' gyro)
+    rest: stationary.State  # Fan et al. 2017's detector on link i
     value: np.ndarray  # (len(EXTRA),) the features of the next decision (zeros before any sample is fused)
 
     @classmethod
-    def start(cls, q0: np.ndarray, n: int) -> Memory:
-        """Memory at the start of an ``n``-sample trial: every parallel filter at the start ``q0``."""
+    def start(cls, q0: np.ndarray, n: int, rate: float) -> Memory:
+        """Memory at the start of an ``n``-sample trial at ``rate`` Hz: every parallel filter at the start ``q0``."""
         state = np.zeros(N_STATE)
-        for o in (Q_MAG, Q_CON, Q_ANC):
+        for o in (Q_MAG, Q_CON, Q_ANC, Q_BTWIN, Q_BCON):
             state[o : o + 4] = q0
-        return cls(state, cf.Trace.empty(n), np.zeros(len(EXTRA)))
+        return cls(state, cf.Trace.empty(n), np.zeros((n, 3)), stationary.make_state(rate), np.zeros(len(EXTRA)))
 
 
 @njit(cache=True)
@@ -105,6 +127,7 @@ def update(p, inputs, trace, mem, start, stop):
     dip0 = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -n_e[2]))))
     q_anc = s[Q_ANC : Q_ANC + 4]
     gyro_only = cf.Control(0.0, 0.0, False, False)  # k = 0: eq. 17 with the gyro alone
+    corrected = cf.Inputs(mem.gyr_c, inputs.acc, inputs.mag, inputs.joint_i, inputs.joint_j)
     for i in range(start, stop):
         q = trace.est[i]
         me = rotate1(q, inputs.mag[i])
@@ -129,6 +152,13 @@ def update(p, inputs, trace, mem, start, stop):
         s[S_DD2] = _ema(s[S_DD2], dip - dip0, dt / 2.0)
         g = inputs.gyr[i]
         s[S_G1] = _ema(s[S_G1], norm3(g), dt)
+        s[S_RUN] = s[S_RUN] + 1.0 if stationary.step1(mem.rest, inputs.acc[i], g, _TH_ACC, _TH_GYRO) else 0.0
+        if s[S_RUN] >= REST_HOLD:
+            s[S_NREST] += 1.0
+            s[B_SUM : B_SUM + 3] += g
+        for k in range(3):
+            mem.gyr_c[i, k] = g[k] - (s[B_SUM + k] / s[S_NREST] if s[S_NREST] > 0 else 0.0)
+        cf.fuse(p, s[Q_BTWIN : Q_BTWIN + 4], corrected, cf.Control(trace.weight[i], 0.0, False, True), i, i + 1, sc)
         clean = dev < CLEAN_DEV
         s[S_CLEAN4] = _ema(s[S_CLEAN4], 1.0 if clean else 0.0, dt / 4.0)
         if clean:
@@ -139,6 +169,7 @@ def update(p, inputs, trace, mem, start, stop):
             s[S_TCLEAN] += dt
     cf.fuse(p, s[Q_MAG : Q_MAG + 4], inputs, cf.Control(0.0, 0.0, False, True), start, stop, sc)
     cf.fuse(p, s[Q_CON : Q_CON + 4], inputs, cf.Control(1.0, 0.0, False, True), start, stop, sc)
+    cf.fuse(p, s[Q_BCON : Q_BCON + 4], corrected, cf.Control(1.0, 0.0, False, True), start, stop, sc)
     q = trace.est[stop - 1]
     qw, qx, qy, qz = q[0], q[1], q[2], q[3]
     out[X.mh_ema_025], out[X.mh_ema_1], out[X.mh_ema_4] = s[S_MH025], s[S_MH1], s[S_MH4]
@@ -151,5 +182,11 @@ def update(p, inputs, trace, mem, start, stop):
     out[X.dev_ema_05], out[X.dev_ema_2] = s[S_DEV05], s[S_DEV2]
     out[X.nd_ema_2], out[X.dd_ema_2], out[X.gyro_ema_1] = s[S_ND2], s[S_DD2], s[S_G1]
     out[X.clean_ema_4] = s[S_CLEAN4]
+    out[X.d_btwin] = _heading(s[Q_BTWIN], s[Q_BTWIN + 1], s[Q_BTWIN + 2], s[Q_BTWIN + 3], qw, qx, qy, qz)
+    out[X.d_bcon] = _heading(s[Q_BCON], s[Q_BCON + 1], s[Q_BCON + 2], s[Q_BCON + 3], qw, qx, qy, qz)
+    b_up = 0.0
+    if s[S_NREST] > 0:
+        b_up = rotate1(q, s[B_SUM : B_SUM + 3])[2] / s[S_NREST]
+    out[X.drift] = np.rad2deg(b_up)
     for k in range(out.shape[0]):
         out[k] = min(max(out[k], _LOW[k]), _HIGH[k])
