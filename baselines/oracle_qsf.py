@@ -20,7 +20,9 @@ forward over the next ``horizon_s`` seconds:
   env's policy (``magenv.baselines.qsf.DetectorPolicy``): every k samples,
   from the detector's code of the decision's first sample, start where it
   starts, keep where it keeps (start if no period is active in the roll-out),
-  else none; trust 1.
+  else none; trust 1. With ``continuation="hold"`` (``oracle_qsf_hold``) the
+  rule is ``magenv.baselines.qsf.HoldPolicy`` instead: keep, start if no
+  period is active.
 
 Cost of a candidate = Σ over the horizon of (total error, degrees)²
 (``magenv.metrics.errors1``; samples without truth add 0; a roll-out whose
@@ -47,6 +49,7 @@ from magenv.trial import Trial
 CANDIDATES = ((-1.0, 0.0), (0.0, 0.3), (0.0, 1.0), (1.0, 1.0))
 HORIZON_S = 0.5  # s, look-ahead of each search
 DECISION_EVERY = 10  # samples per decision (the env's default)
+CONTINUATIONS = ("detector", "hold")
 
 
 @njit(cache=True)
@@ -106,6 +109,7 @@ class QSFOracle:
         candidates: env actions [decision ∈ [−1, 1], trust ∈ [0, 1]] searched at each decision, (C, 2).
         horizon_s: look-ahead, s. decision_every: samples per decision (k).
         variant, init: the env's filter ("delay_magyq" or "magyq") and start (``qsf.initial_orientation``).
+        continuation: the rule after the first decision, "detector" or "hold" (see the module docstring).
     """
 
     name = "oracle_qsf"
@@ -120,7 +124,11 @@ class QSFOracle:
         decision_every: int = DECISION_EVERY,
         variant: str = "delay_magyq",
         init: str = "auto",
+        continuation: str = "detector",
     ):
+        self.continuation = check_choice("continuation", continuation, CONTINUATIONS)
+        if self.continuation == "hold":
+            self.name = "oracle_qsf_hold"
         if isinstance(detector, dict):
             detector = qsf.QSFDetector(**detector)
         elif detector is not None and not isinstance(detector, qsf.QSFDetector):
@@ -152,6 +160,20 @@ class QSFOracle:
         """Privileged QSF decision search (reads truth: an upper bound) continuing with the detector of ``params``."""
         return cls(detector=params)
 
+    @classmethod
+    def holding(cls, params: dict) -> QSFOracle:
+        """``oracle_qsf_hold``: the search continuing with ``HoldPolicy``; the env runs the detector of ``params``."""
+        return cls(detector=params, continuation="hold")
+
+    def _rule_codes(self, runner: QSFRunner) -> np.ndarray:
+        """(N,) the codes the continuation rule follows: the detector's, or "keep" everywhere (hold)."""
+        if self.continuation == "detector":
+            return runner.codes
+        held = getattr(self, "_held", None)
+        if held is None or held.shape[0] != runner.n:
+            self._held = held = np.full(runner.n, qsf.MAG_KEEP, runner.codes.dtype)
+        return held
+
     def make_runner(self, trial: Trial) -> QSFRunner:
         """The env's runner on ``trial`` with the rule's detector (the state the oracle searches from)."""
         return QSFRunner(trial, self.variant, self.detector, self.init)
@@ -171,7 +193,7 @@ class QSFOracle:
         costs = np.empty(len(self.candidates))
         horizon = int(round(self.horizon_s * runner.trial.rate))
         candidate_costs(
-            runner.params, runner.state, runner.inputs, runner.codes, runner.q_true, float(runner.trial.dt),
+            runner.params, runner.state, runner.inputs, self._rule_codes(runner), runner.q_true, float(runner.trial.dt),
             runner.pos, horizon, self.decision_every, self._codes, self._trust, self._scratch(runner), costs,
         )  # fmt: skip
         return costs
@@ -181,9 +203,9 @@ class QSFOracle:
         return self.candidates[int(np.argmin(self.candidate_costs(runner)))].copy()
 
     def continuation_action(self, runner: QSFRunner) -> np.ndarray:
-        """The continuation rule's env action at ``runner``'s next decision (the detector policy, trust 1)."""
+        """The continuation rule's env action at ``runner``'s next decision (trust 1)."""
         j = min(runner.pos, runner.n - 1)
-        code = rule_code(runner.codes, bool(runner.state.period_active[0]), j)
+        code = rule_code(self._rule_codes(runner), bool(runner.state.period_active[0]), j)
         return np.array([{qsf.MAG_NONE: -1.0, qsf.MAG_KEEP: 0.0, qsf.MAG_START: 1.0}[int(code)], 1.0])
 
     def rule_candidate(self, runner: QSFRunner, candidates: np.ndarray) -> int:

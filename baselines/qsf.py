@@ -151,6 +151,39 @@ def tuned_detector_policy(params: dict[str, float]) -> DetectorPolicy:
     return DetectorPolicy(detector=params)
 
 
+class HoldPolicy:
+    """One QSF period held as long as the filter allows: start where no period is active, else keep; trust 1.
+    The detector is not consulted; the filter restarts a period older than its ``max_age_s`` (60 s by default).
+
+    A baseline of the opposite extreme to the detector: where the walker stays in place (the paper tests'
+    treadmill) the field at the sensor varies only with the hand's motion, so the reference of the first
+    sample — taken with the true start orientation (§5.3) — keeps the heading for the whole period, while the
+    detector's restarts lock the heading error of their moment into a new reference. On real recordings one
+    reference sample's noise fixes the heading for the whole period (see :class:`DetectorPolicy`)."""
+
+    env_id = ENV_ID
+
+    def __init__(self, features: Sequence[str] | None = None):
+        names = FEATURES.names if features is None else tuple(features)
+        if "active" not in names:
+            raise ValueError("HoldPolicy needs the observation feature 'active'")
+        self._active = names.index("active")
+        self.env_kwargs: dict[str, Any] = {} if features is None else {"features": list(names)}
+
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, obs) -> np.ndarray:
+        return np.array([0.0 if np.asarray(obs)[self._active] > 0.5 else 1.0, 1.0], np.float32)
+
+
 def methods() -> dict:
-    """Name → factory, for ``magenv.registry``: the three filters and the detector policy ``qsf_detector``."""
-    return {"aekf": aekf, "magyq": magyq, "delay_magyq": delay_magyq, "qsf_detector": DetectorPolicy}
+    """Name → factory, for ``magenv.registry``: the three filters, the detector policy ``qsf_detector`` and
+    ``qsf_hold``."""
+    return {
+        "aekf": aekf,
+        "magyq": magyq,
+        "delay_magyq": delay_magyq,
+        "qsf_detector": DetectorPolicy,
+        "qsf_hold": HoldPolicy,
+    }

@@ -7,7 +7,7 @@ For every paper test (``constraint_test1–3``; ``handheld_texting/swinging/corr
 runs, on the same trial, the env's tuned rule (the reference: ``cf_constraint_tuned``; ``qsf_detector_tuned``),
 the other rules listed in ``OTHERS``, the privileged oracle (``oracle_constraint``; ``oracle_qsf``: an upper
 bound that reads truth) and, with ``--agent``, a trained agent; it prints a Markdown table of mean total RMSE
-(°) and, for the oracle and the agent, the paired ratio to the rule (``magenv.stats.paired_ratio``: geometric
+(°) and, for every other method, the paired ratio to the rule (``magenv.stats.paired_ratio``: geometric
 mean of the per-trial ratios, bootstrap 95 % interval over the trials, 10 000 resamples, seed 0) with the win
 rate. ``--agent`` may be given more than once (each compared on the same trials; named by its argument).
 ``--json`` writes every per-trial RMSE. ``--validation`` takes validation seeds (5000–9999) instead, for model
@@ -33,7 +33,7 @@ TESTS = {
     "qsf": ("handheld_texting", "handheld_swinging", "handheld_corridor", "handheld_free"),
 }
 RULE = {"constraint": "cf_constraint_tuned", "qsf": "qsf_detector_tuned"}
-OTHERS = {"constraint": ("cf_constraint",), "qsf": ("delay_magyq_tuned",)}
+OTHERS = {"constraint": ("cf_constraint",), "qsf": ("delay_magyq_tuned", "qsf_hold")}
 ORACLE = {"constraint": "oracle_constraint", "qsf": "oracle_qsf"}
 
 
@@ -72,7 +72,7 @@ def main() -> None:
                 json.dump(
                     {"env": args.env, "agent": args.agent, "seeds": list(args.seeds), "per_trial_rmse": per_trial}, f
                 )
-    paired = [m for m in (*agents, oracle) if m in methods]
+    paired = [m for m in methods if m != rule]
     kind = "validation" if args.validation else "held-out"
     print(f"{kind} seeds {args.seeds[0]}:{args.seeds[-1] + 1} ({len(args.seeds)} per test); RMSE °, mean over trials")
     head = " | ".join(list(methods) + [f"{m}/{rule} [95% CI] (win)" for m in paired])

@@ -24,8 +24,8 @@ a fresh one. ``names()`` lists them all:
   with ``cf_constraint_tuned``,
   ``magenv.baselines.oracle_constraint``; ``oracle_constraint_rules`` also searches the rule's w),
   ``oracle_qsf`` (MagQSF-v0, continuing with
-  ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``) and ``oracle_vqf`` for MagVQF-v0
-  (``magenv.baselines.oracle_vqf``);
+  ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``; ``oracle_qsf_hold`` with ``qsf_hold``) and
+  ``oracle_vqf`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
 """
@@ -149,6 +149,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "oracle_constraint": ("cf_constraint", oracle_constraint.ConstraintOracle.from_constraint_params),
     "oracle_constraint_rules": ("cf_constraint", _constraint_rules_oracle),
     "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),
+    "oracle_qsf_hold": ("delay_magyq", oracle_qsf.QSFOracle.holding),
 }
 
 _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}

@@ -1,5 +1,5 @@
-"""The privileged oracle of MagQSF-v0 (``oracle_qsf``): its roll-out is the env's kernel, it beats its continuation
-rule, it is deterministic, leaves the runner alone and is shown as the headroom row."""
+"""The privileged oracle of MagQSF-v0 (``oracle_qsf``, and ``oracle_qsf_hold``): its roll-out is the env's kernel, it
+beats its continuation rule, it is deterministic, leaves the runner alone and is shown as the headroom row."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from magenv import evaluation, metrics, registry
 from magenv import scenarios as hs
 from magenv.baselines.oracle_qsf import QSFOracle
-from magenv.baselines.qsf import DetectorPolicy
+from magenv.baselines.qsf import DetectorPolicy, HoldPolicy
 from magenv.envs.qsf import decode_action
 
 DETECTOR = {"window_s": 0.39, "th_spread": 4.8, "th_drift": 16.6, "max_period_s": 37.7}  # near the tuned one
@@ -119,3 +119,26 @@ def test_the_rule_candidate_is_the_detector_policys_decision(trials):
         assert oracle.rule_candidate(runner, oracle.candidates[[1]]) == -1  # keep .3 alone is not the rule
         _advance(oracle, runner, oracle.best_action(runner))
     assert seen == {0, 2, 3}
+
+
+def test_the_hold_continuation_is_qsf_hold_and_the_hold_oracle_beats_it(trials):
+    """``oracle_qsf_hold`` continues with ``HoldPolicy`` (start once, then keep) acting in the env, and beats it."""
+    oracle, policy = QSFOracle(DETECTOR, continuation="hold"), HoldPolicy()
+    assert oracle.name == "oracle_qsf_hold" and oracle.env_kwargs == QSFOracle(DETECTOR).env_kwargs
+    runner, codes = oracle.make_runner(trials[0]), []
+    while not runner.done:
+        action = oracle.continuation_action(runner)
+        np.testing.assert_array_equal(action, policy(runner.feat.astype(np.float32)))
+        codes.append(decode_action(action)[0])
+        _advance(oracle, runner, action)
+    assert codes[0] == 1 and set(codes[1:]) == {2}  # MAG_START once, then MAG_KEEP (12 s: no age restart)
+    ours = evaluation.run_method("oracle", oracle, trials[0]).score.total
+    assert ours < metrics.score(runner.est, trials[0].q_true, trials[0].score_mask).total
+    with pytest.raises(ValueError, match="continuation"):
+        QSFOracle(continuation="forever")
+
+
+def test_qsf_hold_needs_the_active_feature():
+    with pytest.raises(ValueError, match="active"):
+        HoldPolicy(features=["det_start", "age"])
+    assert registry.make("qsf_hold").env_kwargs == {}
