@@ -127,6 +127,7 @@ class QSFOracle:
         continuation: str = "detector",
     ):
         self.continuation = check_choice("continuation", continuation, CONTINUATIONS)
+        self._held: np.ndarray | None = None  # "keep" at every sample of the runner's trial (hold)
         if self.continuation == "hold":
             self.name = "oracle_qsf_hold"
         if isinstance(detector, dict):
@@ -169,10 +170,9 @@ class QSFOracle:
         """(N,) the codes the continuation rule follows: the detector's, or "keep" everywhere (hold)."""
         if self.continuation == "detector":
             return runner.codes
-        held = getattr(self, "_held", None)
-        if held is None or held.shape[0] != runner.n:
-            self._held = held = np.full(runner.n, qsf.MAG_KEEP, runner.codes.dtype)
-        return held
+        if self._held is None or self._held.shape[0] != runner.n:
+            self._held = np.full(runner.n, qsf.MAG_KEEP, runner.codes.dtype)
+        return self._held
 
     def make_runner(self, trial: Trial) -> QSFRunner:
         """The env's runner on ``trial`` with the rule's detector (the state the oracle searches from)."""

@@ -1,7 +1,8 @@
 """AEKF, MAGYQ and Delay MAGYQ (Combettes & Renaudin 2016) as ``Estimator``s.
 
 ``methods()`` → ``aekf``, ``magyq``, ``delay_magyq`` (read by
-``magenv.registry``), plus the Policy ``qsf_detector`` (:class:`DetectorPolicy`);
+``magenv.registry``), plus the Policies ``qsf_detector`` (:class:`DetectorPolicy`) and ``qsf_hold``
+(:class:`HoldPolicy`);
 ``magenv paper qsf|innovation|qsf-recordings`` prints the paper-check tables. Each runs
 ``magenv.filters.qsf`` with the paper's
 noise settings (σ_a = 0.1 g, σ_m = 0.1 m0, §5.3) and the QSF detector's
@@ -103,6 +104,17 @@ def delay_magyq(**kw) -> QSFEstimator:
     return QSFEstimator(mode="delay_magyq", **kw)
 
 
+def _observed(policy: str, features: Sequence[str] | None, needed: Sequence[str]) -> tuple[dict[str, int], dict]:
+    """The index of each ``needed`` feature in the observation ``features`` (None: the env's default) and the
+    env options that select it; ValueError naming a missing one."""
+    names = FEATURES.names if features is None else tuple(features)
+    for f in needed:
+        if f not in names:
+            raise ValueError(f"{policy} needs the observation feature {f!r}")
+    env_kwargs: dict[str, Any] = {} if features is None else {"features": list(names)}
+    return {f: names.index(f) for f in needed}, env_kwargs
+
+
 class DetectorPolicy:
     """The QSF detector as a policy of ``magenv/MagQSF-v0``: start where the detector starts, keep where it
     keeps (start if no period is active, or if the period has lasted the detector's ``max_period_s``), else
@@ -118,12 +130,7 @@ class DetectorPolicy:
     env_id = ENV_ID
 
     def __init__(self, features: Sequence[str] | None = None, detector: qsf.QSFDetector | dict | None = None):
-        names = FEATURES.names if features is None else tuple(features)
-        for f in ("det_start", "det_keep", "active", "age"):
-            if f not in names:
-                raise ValueError(f"DetectorPolicy needs the observation feature {f!r}")
-        self._i = {f: names.index(f) for f in ("det_start", "det_keep", "active", "age")}
-        self.env_kwargs: dict[str, Any] = {} if features is None else {"features": list(names)}
+        self._i, self.env_kwargs = _observed("DetectorPolicy", features, ("det_start", "det_keep", "active", "age"))
         det = qsf.QSFDetector()
         if detector is not None:
             det = detector if isinstance(detector, qsf.QSFDetector) else qsf.QSFDetector(**detector)  # checked here
@@ -153,7 +160,8 @@ def tuned_detector_policy(params: dict[str, float]) -> DetectorPolicy:
 
 class HoldPolicy:
     """One QSF period held as long as the filter allows: start where no period is active, else keep; trust 1.
-    The detector is not consulted; the filter restarts a period older than its ``max_age_s`` (60 s by default).
+    The detector is not consulted; the filter restarts a period older than its ``max_age_s``
+    (``magenv.filters.qsf.MAX_AGE_S`` by default).
 
     A baseline of the opposite extreme to the detector: where the walker stays in place (the paper tests'
     treadmill) the field at the sensor varies only with the hand's motion, so the reference of the first
@@ -164,11 +172,8 @@ class HoldPolicy:
     env_id = ENV_ID
 
     def __init__(self, features: Sequence[str] | None = None):
-        names = FEATURES.names if features is None else tuple(features)
-        if "active" not in names:
-            raise ValueError("HoldPolicy needs the observation feature 'active'")
-        self._active = names.index("active")
-        self.env_kwargs: dict[str, Any] = {} if features is None else {"features": list(names)}
+        i, self.env_kwargs = _observed("HoldPolicy", features, ("active",))
+        self._active = i["active"]
 
     def reset(self) -> None:
         pass

@@ -136,9 +136,11 @@ def test_extended_env_replays_its_seed(env_id, scenario, action):
     assert not np.array_equal(a, episode(4))
 
 
-def test_bias_corrected_twin_follows_the_estimate_a_bias_free_gyro_would_give():
+@pytest.mark.parametrize("control_gain", [False, True])
+def test_bias_corrected_twin_follows_the_estimate_a_bias_free_gyro_would_give(control_gain):
     """The paper's gyro bias is learned from the 3 s at rest that start each two-link trial: `d_btwin` is the heading
-    the same decisions would give on a gyro without the bias, `drift` the heading rate the bias causes."""
+    the same decisions (random w, and k by eq. 18 or random) would give on a gyro without the bias, `drift` the
+    heading rate the bias causes."""
     from magenv.envs.blend_memory import _heading
     from magenv.quaternion import rotate1
     from magenv.scenarios.twolink import PAPER_GYRO_BIAS
@@ -147,9 +149,11 @@ def test_bias_corrected_twin_follows_the_estimate_a_bias_free_gyro_would_give():
     bias = np.array(PAPER_GYRO_BIAS)
     unbiased = dataclasses.replace(trial, gyr=trial.gyr - bias)
     ext, plain = constraint.ConstraintRunner(trial, True), constraint.ConstraintRunner(unbiased, False)
+    rng = np.random.default_rng(0)
     while not ext.done:
-        ext.advance(4, (0.5, None))
-        plain.advance(4, (0.5, None))
+        action = (float(rng.uniform()), float(rng.uniform(0.0, 0.4)) if control_gain else None)
+        ext.advance(4, action)
+        plain.advance(4, action)
     names = constraint.EXTENDED.names
     q = ext.est[-1]
     expected = _heading(*plain.est[-1], *q)  # degrees: the bias's share of the heading error, after 20 s

@@ -11,6 +11,7 @@ from magenv import scenarios as hs
 from magenv.baselines.oracle_qsf import QSFOracle
 from magenv.baselines.qsf import DetectorPolicy, HoldPolicy
 from magenv.envs.qsf import decode_action
+from magenv.filters import qsf as fq
 
 DETECTOR = {"window_s": 0.39, "th_spread": 4.8, "th_drift": 16.6, "max_period_s": 37.7}  # near the tuned one
 
@@ -50,15 +51,18 @@ def test_the_continuation_rule_is_the_tuned_detector_policy(trials):
         _advance(oracle, runner, oracle.best_action(runner))
 
 
-def test_a_candidate_costs_what_the_env_gives_it(trials):
-    """The cost of a candidate is the squared error of the env's runner under it, then under the rule."""
+@pytest.mark.parametrize("continuation", ["detector", "hold"])
+def test_a_candidate_costs_what_the_env_gives_it(trials, continuation):
+    """The cost of a candidate is the squared error of the env's runner under it, then under the rule (the
+    published detector: it stops updating within the horizon, where ``HoldPolicy`` keeps)."""
     trial = trials[1]
-    oracle = QSFOracle(DETECTOR, candidates=[(0.0, 0.3)], horizon_s=0.5)
+    oracle = QSFOracle(candidates=[(0.0, 0.3)], horizon_s=0.5, continuation=continuation)
     runner, replay = oracle.make_runner(trial), oracle.make_runner(trial)
     for r in (runner, replay):
         for _ in range(40):
             _advance(oracle, r, oracle.continuation_action(r))
     start = runner.pos
+    assert np.any(runner.codes[start : start + 50] == fq.MAG_NONE)
     _advance(oracle, replay, (0.0, 0.3))
     while replay.pos < start + 50:
         _advance(oracle, replay, oracle.continuation_action(replay))
@@ -131,7 +135,7 @@ def test_the_hold_continuation_is_qsf_hold_and_the_hold_oracle_beats_it(trials):
         np.testing.assert_array_equal(action, policy(runner.feat.astype(np.float32)))
         codes.append(decode_action(action)[0])
         _advance(oracle, runner, action)
-    assert codes[0] == 1 and set(codes[1:]) == {2}  # MAG_START once, then MAG_KEEP (12 s: no age restart)
+    assert codes[0] == fq.MAG_START and set(codes[1:]) == {fq.MAG_KEEP}  # 12 s: no age restart
     ours = evaluation.run_method("oracle", oracle, trials[0]).score.total
     assert ours < metrics.score(runner.est, trials[0].q_true, trials[0].score_mask).total
     with pytest.raises(ValueError, match="continuation"):

@@ -159,12 +159,13 @@ class ConstraintRunner(TrialRunner):
         w, k = action
         self._advance(*self._filter_args, cf.Control.of(w, k), start, stop, *self._outputs)
         if self.extended:
-            self._compose(start, stop)
+            self._compose(start, stop, k is None)
 
-    def _compose(self, start: int, stop: int) -> None:
-        """The extended observation of sample ``stop`` after fusing start:stop."""
+    def _compose(self, start: int, stop: int, gain_by_rule: bool = True) -> None:
+        """The extended observation of sample ``stop`` after fusing start:stop (k by eq. 18 or as in ``trace``)."""
         base = self._outputs[-1]
-        constraint_memory.update(self.filter.params, self.filter.inputs, self.trace, self.memory, start, stop)
+        fed = (self.filter.params, self.filter.inputs, self.trace)
+        constraint_memory.update(*fed, self.memory, start, stop, gain_by_rule)
         lagged.compose(base, self.memory.value, *self._ring, stop > start, self.feat)
 
 

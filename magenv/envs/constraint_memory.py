@@ -25,14 +25,13 @@ Gyro bias: link i's gyroscope carries a constant bias (the paper adds one on
 purpose, §3.1) that the filter does not model; where the gain k is small its
 heading drifts with it. b̂ is the mean of link i's gyro over every sample at
 rest so far (0 before any): at rest when Fan et al. 2017's detector
-(``magenv.filters.stationary``, eqs. 11–13: t0 0.5 s, 0.04 g, 0.5 °/s per
-axis) has flagged the last ``REST_HOLD`` samples. The *bias-corrected*
-filters run the env's filter on ω_i − b̂ (k by eq. 18): one with the w the
-env applied at each sample (the estimate had the gyro been corrected), one
-with w = 1 (the constraint alone). On ``constraint_test1`` training trials
-(tuned rule roll-outs) their headings relative to the estimate follow its
-true signed heading error with correlation 0.68 and 0.60 (the other
-features: 0.36 at most).
+(``magenv.filters.stationary``, eqs. 11–13, its thresholds) has flagged the
+samples of the last ``REST_HOLD_S``. A bias of a component at or above the
+detector's gyro threshold is never learned (rest is never flagged). The
+*bias-corrected* filters run the env's filter on ω_i − b̂: one with the w
+(and k) the env applied at each sample, k by eq. 18 where the env took it so
+(the estimate had the gyro been corrected); one with w = 1 (the constraint
+alone, k by eq. 18).
 """
 
 from __future__ import annotations
@@ -79,7 +78,7 @@ EXTRA = FeatureTable(
     Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
     Feature("d_btwin", *_HEADING, _DEG, "heading(q_bt ⊗ q*), q_bt the parallel filter on ω_i − b̂ with the w applied"),
     Feature("d_bcon", *_HEADING, _DEG, "heading(q_bc ⊗ q*), q_bc the parallel w = 1 filter on ω_i − b̂"),
-    Feature("drift", -5.0, 5.0, "°/s", "earth-up component of C(q)b̂: the heading drift rate b̂ causes"),
+    Feature("drift", -5.0, 5.0, "°/s", "C(q)b̂'s up component: the heading drift b̂ causes (+ anticlockwise, as d_*)"),
 )
 X = EXTRA.ix
 _LOW, _HIGH = EXTRA.low64, EXTRA.high64
@@ -93,7 +92,7 @@ B_SUM = 20  # (3,) sum of link i's gyro over the rest samples, rad/s
 N_STATE = 39
 CLEAN_DEV = 0.03  # fraction of m0
 JOINT_FULL = 0.2 * GRAVITY  # m/s², horizontal joint acceleration at which the joint heading counts fully
-REST_HOLD = 25  # samples the stationary detector must have flagged in a row before a sample counts as rest
+REST_HOLD_S = 0.25  # s the stationary detector must have flagged in a row before a sample counts as rest
 _TH_ACC, _TH_GYRO = stationary.thresholds()  # Fan et al. 2017's, m/s² and rad/s per axis
 
 
@@ -116,9 +115,10 @@ class Memory(NamedTuple):
 
 
 @njit(cache=True)
-def update(p, inputs, trace, mem, start, stop):
+def update(p, inputs, trace, mem, start, stop, gain_by_rule):
     """Advance ``mem`` (:class:`Memory`) over the fused samples start:stop of ``trace`` (the env's
-    ``constraint.Trace``) and write ``mem.value``. ``p``: the env's ``constraint.Params``."""
+    ``constraint.Trace``) and write ``mem.value``. ``p``: the env's ``constraint.Params``; ``gain_by_rule``:
+    the env took k by eq. 18 over these samples (else it applied ``trace.gain``, and so does the twin filter)."""
     s, sc, out = mem.state, mem.scratch, mem.value
     if stop <= start:
         return
@@ -153,12 +153,20 @@ def update(p, inputs, trace, mem, start, stop):
         g = inputs.gyr[i]
         s[S_G1] = _ema(s[S_G1], norm3(g), dt)
         s[S_RUN] = s[S_RUN] + 1.0 if stationary.step1(mem.rest, inputs.acc[i], g, _TH_ACC, _TH_GYRO) else 0.0
-        if s[S_RUN] >= REST_HOLD:
+        if s[S_RUN] >= np.floor(REST_HOLD_S / dt + 0.5):
             s[S_NREST] += 1.0
             s[B_SUM : B_SUM + 3] += g
         for k in range(3):
             mem.gyr_c[i, k] = g[k] - (s[B_SUM + k] / s[S_NREST] if s[S_NREST] > 0 else 0.0)
-        cf.fuse(p, s[Q_BTWIN : Q_BTWIN + 4], corrected, cf.Control(trace.weight[i], 0.0, False, True), i, i + 1, sc)
+        cf.fuse(
+            p,
+            s[Q_BTWIN : Q_BTWIN + 4],
+            corrected,
+            cf.Control(trace.weight[i], trace.gain[i], False, gain_by_rule),
+            i,
+            i + 1,
+            sc,
+        )
         clean = dev < CLEAN_DEV
         s[S_CLEAN4] = _ema(s[S_CLEAN4], 1.0 if clean else 0.0, dt / 4.0)
         if clean:
