@@ -122,6 +122,27 @@ def save_checkpoint(model, run_dir: Path, state: dict, timesteps: int) -> None:
     (run_dir / (STATE_FILE + ".tmp")).replace(run_dir / STATE_FILE)
 
 
+def progress(run_dir: Path, algo: str) -> dict | None:
+    """The progress record (``timesteps``, ``best_score`` …) a resume of ``run_dir`` continues from: that of
+    its latest checkpoint (``last.safetensors``; ``state.json`` is written after it, so a kill between the two
+    leaves it one checkpoint behind), else ``state.json`` (runs from before checkpoints carried it); None for
+    a run with neither. RunError naming a corrupt file."""
+    checkpoint = run_dir / WEIGHTS["last"]
+    if checkpoint.is_file():
+        state = weights.read(checkpoint, algo)[1].get("state")
+        if not isinstance(state, dict) or not isinstance(state.get("timesteps"), int):
+            raise RunError(f"{checkpoint}: no progress record in the checkpoint")
+        return state
+    if not (run_dir / STATE_FILE).is_file():
+        return None
+    try:
+        state = json.loads((run_dir / STATE_FILE).read_text())
+        state["timesteps"] = int(state["timesteps"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise RunError(f"{run_dir / STATE_FILE}: corrupt ({type(exc).__name__}: {exc})") from None
+    return state
+
+
 def pretrain(model, env_id: str, section: dict, teacher, bounds, seed: int) -> float:
     """Behaviour cloning of ``teacher``, the config's ``pretrain`` teacher (``magenv.agents.imitation``);
     returns the final mean squared action error."""
@@ -326,17 +347,8 @@ def train(
         out.mkdir(parents=True, exist_ok=True)
     run["steps"] = steps = steps or run["steps"]
     seed = run["seed"]
-    if resuming and not legacy:
-        state = weights.read(checkpoint, algo)[1].get("state")
-        if not isinstance(state, dict) or not isinstance(state.get("timesteps"), int):
-            raise RunError(f"{checkpoint}: no progress record in the checkpoint")
-    elif resuming:
-        try:
-            state = json.loads((out / STATE_FILE).read_text())
-            state["timesteps"] = int(state["timesteps"])
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise RunError(f"{out / STATE_FILE}: corrupt ({type(exc).__name__}: {exc})") from None
-    else:
+    state = progress(out, algo) if resuming else None
+    if state is None:
         state = {"timesteps": 0, "best_score": float("inf"), "best_timesteps": None, "t0": time.time()}
     done = state["timesteps"]
     if done >= steps:

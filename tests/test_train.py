@@ -9,7 +9,7 @@ import yaml
 from magenv import registry
 from magenv.agents import load_agent
 from magenv.agents.loading import RunError
-from magenv.agents.training import train
+from magenv.agents.training import progress, train
 from magenv.train.cli import main as cli
 
 ENV = "magenv/MagBlend-v0"
@@ -189,7 +189,18 @@ def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path, monkeypatch):
         train(ENV, "ppo", 512, out, **kw)
     assert json.loads((out / "state.json").read_text())["timesteps"] == 256
     assert read(out / "last.safetensors")[1]["timesteps"] == 256
+    (out / "state.json").write_text(json.dumps({"timesteps": 128}))  # a kill between the checkpoint and state.json
+    assert progress(out, "ppo")["timesteps"] == 256  # what a resume continues from: the checkpoint's
     monkeypatch.undo()
     train(ENV, "ppo", 512, out, **kw)
     assert [int(r[0]) for r in csv.reader(open(out / "evaluations.csv"))] == [128, 384, 512]
     assert read(out / "last.safetensors")[1]["timesteps"] == 512
+
+
+def test_the_progress_of_a_run_without_a_checkpoint_is_its_state_file(tmp_path):
+    assert progress(tmp_path, "ppo") is None  # a fresh run
+    (tmp_path / "state.json").write_text('{"timesteps": 64, "best_score": 1.5}')
+    assert progress(tmp_path, "ppo") == {"timesteps": 64, "best_score": 1.5}
+    (tmp_path / "state.json").write_text('{"timesteps": ')
+    with pytest.raises(RunError, match="state.json: corrupt"):
+        progress(tmp_path, "ppo")

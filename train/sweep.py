@@ -101,7 +101,7 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
     A run whose results file holds the same run is not run again."""
     from magenv import evaluation, registry
     from magenv.agents import load_agent
-    from magenv.agents.training import STATE_FILE, train
+    from magenv.agents.training import progress, train
     from magenv.scenarios import make_trial
 
     spec, out_dir = runs[name], Path(out)
@@ -110,8 +110,8 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
         return done
     run_dir, config = out_dir / "runs" / name, out_dir / "configs" / f"{name}.yaml"
     _write_atomic(config, yaml.safe_dump({spec["env_id"]: spec["section"]}, sort_keys=False))
-    state = run_dir / STATE_FILE
-    start = json.loads(state.read_text())["timesteps"] if state.is_file() else 0
+    before = progress(run_dir, spec["algo"])
+    start = before["timesteps"] if before is not None else 0
     (out_dir / "logs").mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with open(out_dir / "logs" / f"{name}.log", "a") as log, contextlib.redirect_stdout(log):
@@ -133,7 +133,9 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
     reference = spec["reference"]
     runs_ = evaluation.evaluate({"agent": load_agent(run_dir), reference: registry.make(reference)}, trials)
     scores = {m: [r.scored.total for r in runs_ if r.method == m] for m in ("agent", reference)}
-    progress = json.loads(state.read_text())
+    trained = progress(run_dir, spec["algo"])
+    if trained is None:
+        raise CommandError(f"{run_dir}: training left no checkpoint")
     record = {
         "name": name,
         "run": spec,
@@ -143,9 +145,9 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
         "reference": scores[reference],
         "agent_rmse": sum(scores["agent"]) / len(trials),
         "reference_rmse": sum(scores[reference]) / len(trials),
-        "validation_rmse": progress["best_score"],
+        "validation_rmse": trained["best_score"],
         "start_timesteps": start,
-        "timesteps": progress["timesteps"],
+        "timesteps": trained["timesteps"],
         "train_s": t1 - t0,
         "eval_s": time.perf_counter() - t1,
     }

@@ -23,7 +23,6 @@ is an error naming each difference, unless ``--force``.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import gymnasium as gym
@@ -170,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
     from magenv import registry
     from magenv.agents.hyperparams import ConfigError
     from magenv.agents.loading import WEIGHTS, RunError
-    from magenv.agents.training import STATE_FILE, train
+    from magenv.agents.training import progress, train
 
     if args.teacher is not None:
         return run_dagger(args)
@@ -204,7 +203,9 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from None
     except KeyboardInterrupt:
         return 130
-    state = json.loads((out / STATE_FILE).read_text())
+    state = progress(out, args.algo)
+    if state is None:
+        raise CommandError(f"{out}: training left no checkpoint")
     best = (
         "none yet"
         if state.get("best_timesteps") is None
