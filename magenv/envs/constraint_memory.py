@@ -123,6 +123,7 @@ def update(p, inputs, trace, mem, start, stop, gain_by_rule):
     if stop <= start:
         return
     dt, m0, n_e = p.dt, p.field_norm, p.field_dir
+    rest_hold = np.floor(REST_HOLD_S / dt + 0.5)  # samples
     h_e = np.rad2deg(np.arctan2(n_e[0], n_e[1]))
     dip0 = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -n_e[2]))))
     q_anc = s[Q_ANC : Q_ANC + 4]
@@ -153,7 +154,7 @@ def update(p, inputs, trace, mem, start, stop, gain_by_rule):
         g = inputs.gyr[i]
         s[S_G1] = _ema(s[S_G1], norm3(g), dt)
         s[S_RUN] = s[S_RUN] + 1.0 if stationary.step1(mem.rest, inputs.acc[i], g, _TH_ACC, _TH_GYRO) else 0.0
-        if s[S_RUN] >= np.floor(REST_HOLD_S / dt + 0.5):
+        if s[S_RUN] >= rest_hold:
             s[S_NREST] += 1.0
             s[B_SUM : B_SUM + 3] += g
         for k in range(3):
