@@ -9,7 +9,8 @@ the other rules listed in ``OTHERS``, the privileged oracle (``oracle_constraint
 bound that reads truth) and, with ``--agent``, a trained agent; it prints a Markdown table of mean total RMSE
 (°) and, for every other method, the paired ratio to the rule (``magenv.stats.paired_ratio``: geometric
 mean of the per-trial ratios, bootstrap 95 % interval over the trials, 10 000 resamples, seed 0) with the win
-rate. ``--agent`` may be given more than once (each compared on the same trials; named by its argument).
+rate and the interquartile-mean ratio (the middle half of the per-trial log ratios) with its interval.
+``--agent`` may be given more than once (each compared on the same trials; named by its argument).
 ``--json`` writes every per-trial RMSE. ``--validation`` takes validation seeds (5000–9999) instead, for model
 selection (never reported figures). It prints what it measures; nothing here is a test.
 """
@@ -38,7 +39,8 @@ ORACLE = {"constraint": "oracle_constraint", "qsf": "oracle_qsf"}
 
 
 def _cell(pr) -> str:
-    return f"{pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}] ({pr.win_rate:.2f})"
+    iqm = f"IQM {pr.iqm:.3f} [{pr.iqm_low:.3f}, {pr.iqm_high:.3f}]"
+    return f"{pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}] ({pr.win_rate:.2f}; {iqm})"
 
 
 def main() -> None:
@@ -75,7 +77,7 @@ def main() -> None:
     paired = [m for m in methods if m != rule]
     kind = "validation" if args.validation else "held-out"
     print(f"{kind} seeds {args.seeds[0]}:{args.seeds[-1] + 1} ({len(args.seeds)} per test); RMSE °, mean over trials")
-    head = " | ".join(list(methods) + [f"{m}/{rule} [95% CI] (win)" for m in paired])
+    head = " | ".join(list(methods) + [f"{m}/{rule} [95% CI] (win; IQM [95% CI])" for m in paired])
     print(f"| test | {head} |")
     print("|---" * (1 + len(methods) + len(paired)) + "|")
     for sc, res in per_trial.items():

@@ -1,4 +1,4 @@
-"""``magenv.stats.paired_ratio``: paired ratio, bootstrap interval, win rate."""
+"""``magenv.stats.paired_ratio``: paired ratio, bootstrap interval, win rate, interquartile-mean ratio."""
 
 from __future__ import annotations
 
@@ -71,6 +71,7 @@ def test_many_units_stay_within_memory_and_agree_with_a_normal_interval():
 def test_one_pair_has_no_interval():
     p = paired_ratio([1.0], [2.0])
     assert p.ratio == 0.5 and p.win_rate == 1.0 and math.isnan(p.low) and math.isnan(p.high)
+    assert p.iqm == 0.5 and math.isnan(p.iqm_low) and math.isnan(p.iqm_high)
 
 
 @pytest.mark.parametrize(
@@ -88,3 +89,30 @@ def test_one_pair_has_no_interval():
 def test_bad_input_is_named(method, reference, kw, message):
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         paired_ratio(method, reference, **kw)
+
+
+def test_the_interquartile_mean_ratio_drops_a_quarter_of_the_units_at_each_end():
+    log_ratio = np.log([0.1, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 30.0])  # n = 8: two dropped at each end
+    ref = np.linspace(1.0, 2.0, 8)
+    p = paired_ratio(ref * np.exp(log_ratio), ref)
+    assert p.iqm == pytest.approx(math.exp(np.mean(np.log([0.6, 0.7, 0.8, 0.9]))), rel=1e-12)
+    assert p.iqm_low <= p.iqm <= p.iqm_high
+
+
+def test_one_extreme_unit_moves_the_geometric_mean_but_not_the_interquartile_mean():
+    ref = np.linspace(1.0, 3.0, 20)
+    method = 0.8 * ref
+    method[3] = 100.0 * ref[3]
+    p = paired_ratio(method, ref)
+    assert p.iqm == pytest.approx(0.8, rel=1e-12) and p.iqm_high == pytest.approx(0.8, rel=1e-12)
+    assert p.ratio > 1.0 and p.high > 1.0  # the geometric mean is pulled above 1 by the one unit
+    assert p.win_rate == pytest.approx(19 / 20)
+
+
+def test_the_swap_gives_the_reciprocal_interquartile_mean_and_interval():
+    rng = np.random.default_rng(5)
+    ref = rng.uniform(0.5, 3.0, 15)
+    method = ref * np.exp(rng.normal(0.1, 0.6, 15))
+    p, q = paired_ratio(method, ref, seed=2), paired_ratio(ref, method, seed=2)
+    assert q.iqm == pytest.approx(1 / p.iqm, rel=1e-12)
+    assert q.iqm_low == pytest.approx(1 / p.iqm_high, rel=1e-9) and q.iqm_high == pytest.approx(1 / p.iqm_low, rel=1e-9)

@@ -257,9 +257,16 @@ def run_distributed(
 
 
 def paired_cells(row: dict) -> list[str]:
-    """The paired columns of a row (``evaluation.add_paired``): "ratio [low, high]" and the win rate; blank without."""
+    """The paired columns of a row (``evaluation.add_paired``): "ratio [low, high]", the win rate and the
+    interquartile-mean ratio "iqm [low, high]"; blank without."""
     p = row.get("paired")
-    return [f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}]", f"{p.win_rate:.2f}"] if p else ["", ""]
+    if not p:
+        return ["", "", ""]
+    return [
+        f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}]",
+        f"{p.win_rate:.2f}",
+        f"{p.iqm:.2f} [{p.iqm_low:.2f}, {p.iqm_high:.2f}]",
+    ]
 
 
 def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (°), mean over trials") -> None:
@@ -277,6 +284,7 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
     if paired:
         table.add_column("÷ ref [95 % CI]", justify="right", no_wrap=True)
         table.add_column("win", justify="right", no_wrap=True)
+        table.add_column("IQM ÷ ref", justify="right", no_wrap=True)
     for r in table_order(rows):
         cells = (
             ["n/a"] * 4
