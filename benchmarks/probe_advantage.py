@@ -1,6 +1,7 @@
 """Probe: do a DAgger student's causal inputs say when departing from the rule pays, on trials it was not fitted on?
 
-    .venv/bin/python benchmarks/probe_advantage.py [--env qsf|constraint|kalman] [--trials 24] [--folds 8] [--json FILE]
+    .venv/bin/python benchmarks/probe_advantage.py [--env qsf|constraint|kalman] [--trials 24] [--folds 8] [--history]
+        [--json FILE]
 
 It rolls the teacher's continuation rule on ``--trials`` training trials
 (seeds 10000, …) of the test where the student misses its target and labels,
@@ -24,8 +25,11 @@ trained on the trials of all folds but one and tested on the held-out fold's
 (trials, not decisions, are held out: a student acts on trials it was not
 fitted on), and prints per model the mean R² and correlation over the folds
 and the advantage summed where the prediction is positive (a student departing
-there) against where the truth is (the oracle's choice) and everywhere. This
-is a measurement (it prints figures), not a test.
+there) against where the truth is (the oracle's choice) and everywhere. With
+``--history`` the inputs also carry their causal exponential moving averages
+over ``HISTORY_DECISIONS`` decisions along the trial (a proxy for what a
+recurrent student could draw from a longer past). This is a measurement (it
+prints figures), not a test.
 """
 
 from __future__ import annotations
@@ -52,10 +56,25 @@ PROBES = {
 }
 CLIP = 20.0  # units: a few diverged roll-outs otherwise decide the fits
 RIDGES = (1.0, 100.0, 1.0e4)
+HISTORY_DECISIONS = (10.0, 40.0, 160.0)  # EMA time constants of --history, in decisions
 
 
-def labelled(env: str, n_trials: int):
-    """(inputs (D, n_in), {departure: its advantage over the rule (D,)}, trial index (D,)) at the probed decisions."""
+def with_history(x: np.ndarray) -> np.ndarray:
+    """``x`` (decisions of one trial in order, n_in) followed by its EMAs over each of ``HISTORY_DECISIONS``
+    (m_t = m_{t−1} + (x_t − m_{t−1}) / τ, m_0 = x_0)."""
+    out = [x]
+    for tau in HISTORY_DECISIONS:
+        m, ema = x[0].copy(), np.empty_like(x)
+        for t in range(len(x)):
+            m += (x[t] - m) / tau
+            ema[t] = m
+        out.append(ema)
+    return np.concatenate(out, 1)
+
+
+def labelled(env: str, n_trials: int, history: bool = False):
+    """(inputs (D, n_in), {departure: its advantage over the rule (D,)}, trial index (D,)) at the probed decisions;
+    ``history``: the inputs followed by their EMAs (:func:`with_history`, over all of a trial's decisions)."""
     scenario, name, rule_col, departures = PROBES[env]
     teacher = registry.make(name)
     inputs = inputs_for(teacher.env_id)
@@ -73,7 +92,8 @@ def labelled(env: str, n_trials: int):
         lab = episodes.run(trial, rule)
         regret = dagger.regret_units(lab.costs, horizon, lab.rmse**2)
         at = lab.rule == rule_col
-        xs.append(inputs(lab.obs[at], meta))
+        x = inputs(lab.obs, meta)
+        xs.append((with_history(np.asarray(x, np.float64)) if history else x)[at])
         groups.append(np.full(int(at.sum()), i))
         for d, col in departures.items():
             ys[d].append(np.clip(regret[at, rule_col] - regret[at, col], -CLIP, CLIP))
@@ -114,12 +134,13 @@ def main() -> None:
     ap.add_argument("--env", choices=sorted(PROBES), default="qsf")
     ap.add_argument("--trials", type=int, default=24)
     ap.add_argument("--folds", type=int, default=8)
+    ap.add_argument("--history", action="store_true", help="the inputs' EMAs over 10, 40 and 160 decisions too")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     if args.trials < 2 or not 2 <= args.folds <= args.trials:
         ap.error("need --trials ≥ 2 and 2 ≤ --folds ≤ --trials")
     t = time.time()
-    x, advantages, trial = labelled(args.env, args.trials)
+    x, advantages, trial = labelled(args.env, args.trials, args.history)
     fold = trial % args.folds
     scenario = PROBES[args.env][0]
     print(f"{scenario}: {len(x)} decisions of the rule's probed candidate on {args.trials} trials "
