@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from magenv.stats import paired_ratio
 
@@ -116,3 +118,14 @@ def test_the_swap_gives_the_reciprocal_interquartile_mean_and_interval():
     p, q = paired_ratio(method, ref, seed=2), paired_ratio(ref, method, seed=2)
     assert q.iqm == pytest.approx(1 / p.iqm, rel=1e-12)
     assert q.iqm_low == pytest.approx(1 / p.iqm_high, rel=1e-9) and q.iqm_high == pytest.approx(1 / p.iqm_low, rel=1e-9)
+
+
+@settings(derandomize=True, deadline=None, max_examples=60)
+@given(st.lists(st.tuples(st.floats(0.01, 100.0), st.floats(0.01, 100.0)), min_size=2, max_size=30))
+def test_any_pairs_give_ordered_intervals_within_the_unit_ratios_and_reciprocal_swaps(pairs):
+    method, ref = np.array(pairs).T
+    p, q = paired_ratio(method, ref, n_boot=200, seed=1), paired_ratio(ref, method, n_boot=200, seed=1)
+    lo, hi = (method / ref).min() * (1 - 1e-12), (method / ref).max() * (1 + 1e-12)
+    for est, low, high in ((p.ratio, p.low, p.high), (p.iqm, p.iqm_low, p.iqm_high)):
+        assert lo <= low <= high <= hi and lo <= est <= hi
+    assert q.iqm == pytest.approx(1 / p.iqm, rel=1e-9) and q.iqm_low == pytest.approx(1 / p.iqm_high, rel=1e-9)
