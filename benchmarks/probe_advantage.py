@@ -134,7 +134,8 @@ def main() -> None:
     ap.add_argument("--env", choices=sorted(PROBES), default="qsf")
     ap.add_argument("--trials", type=int, default=24)
     ap.add_argument("--folds", type=int, default=8)
-    ap.add_argument("--history", action="store_true", help="the inputs' EMAs over 10, 40 and 160 decisions too")
+    taus = ", ".join(f"{t:g}" for t in HISTORY_DECISIONS)
+    ap.add_argument("--history", action="store_true", help=f"the inputs' EMAs over {taus} decisions too")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     if args.trials < 2 or not 2 <= args.folds <= args.trials:

@@ -22,7 +22,8 @@ evaluation), which is what pairs them.
   (``⌊n/4⌋`` dropped at each end), with its interval from the same bootstrap
   resamples. A few trials with extreme ratios move it less than the
   geometric mean, so where the two differ, those trials decide the verdict.
-  Trimming is symmetric, so the swap gives the reciprocal here too.
+  Trimming is symmetric, so the swap gives the reciprocal here too. Below
+  four units nothing is dropped, and it equals the geometric mean.
 """
 
 from __future__ import annotations
@@ -82,7 +83,8 @@ def paired_ratio(
     method, reference, n_boot: int = DEFAULT_BOOT, seed: int = 0, level: float = DEFAULT_LEVEL
 ) -> PairedRatio:
     """The paired ratio of ``method`` to ``reference`` errors (equal-length arrays, entry i of both from unit i),
-    its bootstrap interval and the win rate; see the module docstring. Raises ValueError naming the bad input."""
+    its bootstrap interval, the win rate and the interquartile-mean ratio with its interval; see the module
+    docstring. Raises ValueError naming the bad input."""
     m, r = _scores("method", method), _scores("reference", reference)
     if len(m) != len(r):
         raise ValueError(f"method and reference must pair unit by unit: {len(m)} errors against {len(r)}")

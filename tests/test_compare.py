@@ -65,6 +65,26 @@ def test_each_method_is_paired_with_the_reference_trial_by_trial(trials):
     assert "paired" not in next(r for r in rows if r["method"] == runs[0].method)
 
 
+def test_the_table_shows_the_paired_ratio_win_rate_and_interquartile_mean(trials):
+    from rich.console import Console
+
+    from magenv.train.compare import print_table
+
+    methods = {n: registry.make(n) for n in ["mimu", "fan_lambda"]}
+    runs = evaluation.evaluate(methods, trials)
+    rows = evaluation.add_paired(evaluation.summarize(runs), runs, "fan_lambda")
+    console = Console(record=True, width=200)
+    print_table(rows, console=console)
+    text = console.export_text()
+    p = next(r for r in rows if r["method"] == "mimu")["paired"]
+    assert "IQM ÷ ref" in text and "win" in text
+    line = next(ln for ln in text.splitlines() if "mimu" in ln)
+    assert (
+        f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}]" in line
+        and f"{p.iqm:.2f} [{p.iqm_low:.2f}, {p.iqm_high:.2f}]" in line
+    )
+
+
 def test_an_unknown_reference_is_a_clear_error(capsys):
     code = main(["compare", "--methods", "mimu,imu", "--reference", "fan", "--seeds", "0:1", "--no-progress"])
     assert code == 2 and "--reference 'fan' is not among the methods: mimu, imu" in capsys.readouterr().err
