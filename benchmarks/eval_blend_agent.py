@@ -49,16 +49,16 @@ def main() -> None:
     print(f"agent {args.agent}, held-out seeds {args.seeds[0]}:{args.seeds[-1] + 1} ({len(args.seeds)} per scenario)")
     print(
         f"| scenario | {BASE} | {RULE} | agent | {ORACLE} (headroom) | agent/rule paired ratio [95% CI] "
-        "| win rate | headroom captured |"
+        "| win rate | interquartile-mean ratio [95% CI] | headroom captured |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for sc, res in per_trial.items():
         a, r, o = (np.array(res[m]) for m in ("agent", RULE, ORACLE))
         pr = paired_ratio(a, r)
         captured = (r.mean() - a.mean()) / (r.mean() - o.mean())
         print(
             f"| {sc} | {np.mean(res[BASE]):.3f} | {r.mean():.3f} | {a.mean():.3f} | {o.mean():.3f} | "
-            f"{pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}] | {pr.win_rate:.2f} | {captured:.2f} |"
+            f"{pr.ratio_text()} | {pr.win_rate:.2f} | {pr.iqm_text()} | {captured:.2f} |"
         )
     print(f"({time.time() - t0:.0f} s)")
     if args.json:

@@ -76,7 +76,10 @@ def main() -> None:
     kind = "validation" if args.validation else "held-out"
     print(f"agent {args.agent}, {kind} seeds {seeds[0]}:{seeds[-1] + 1} ({len(seeds)} per scenario)")
     cols = [m for m in names if m != ORACLE] + ([ORACLE] if ORACLE in names else [])
-    print("| scenario | " + " | ".join(cols) + " | best rule | paired ratio to it [95% CI], win rate | captured |")
+    print(
+        "| scenario | " + " | ".join(cols) + " | best rule | paired ratio to it [95% CI], win rate; interquartile-mean "
+        "ratio [95% CI] | captured |"
+    )
     print("|---|" + "---|" * (len(cols) + 3))
     for sc in args.scenarios.split(","):
         res = {m: np.array(v) for m, v in per_trial[sc].items()}
@@ -86,7 +89,7 @@ def main() -> None:
                               f"agent/{SAME_INFORMATION}")):  # fmt: skip
             if m in res and ref in res:
                 pr = paired_ratio(res[m], res[ref])
-                cells.append(f"{label}: {pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}], {pr.win_rate:.2f}")
+                cells.append(f"{label}: {pr.ratio_text()}, {pr.win_rate:.2f}; IQM {pr.iqm_text()}")
         captured = ""
         if "agent" in res and ORACLE in res:
             r, a, o = res[rule].mean(), res["agent"].mean(), res[ORACLE].mean()

@@ -39,8 +39,7 @@ ORACLE = {"constraint": "oracle_constraint", "qsf": "oracle_qsf"}
 
 
 def _cell(pr) -> str:
-    iqm = f"IQM {pr.iqm:.3f} [{pr.iqm_low:.3f}, {pr.iqm_high:.3f}]"
-    return f"{pr.ratio:.3f} [{pr.low:.3f}, {pr.high:.3f}] ({pr.win_rate:.2f}; {iqm})"
+    return f"{pr.ratio_text()} ({pr.win_rate:.2f}; IQM {pr.iqm_text()})"
 
 
 def main() -> None:

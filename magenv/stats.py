@@ -61,6 +61,14 @@ class PairedRatio:
     iqm_high: float
     level: float = DEFAULT_LEVEL
 
+    def ratio_text(self, digits: int = 3) -> str:
+        """ "ratio [low, high]" with ``digits`` decimals."""
+        return f"{self.ratio:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+
+    def iqm_text(self, digits: int = 3) -> str:
+        """ "iqm [iqm_low, iqm_high]" with ``digits`` decimals."""
+        return f"{self.iqm:.{digits}f} [{self.iqm_low:.{digits}f}, {self.iqm_high:.{digits}f}]"
+
 
 def _scores(name: str, values) -> np.ndarray:
     x = np.asarray(values, dtype=float)

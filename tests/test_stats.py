@@ -129,3 +129,9 @@ def test_any_pairs_give_ordered_intervals_within_the_unit_ratios_and_reciprocal_
     for est, low, high in ((p.ratio, p.low, p.high), (p.iqm, p.iqm_low, p.iqm_high)):
         assert lo <= low <= high <= hi and lo <= est <= hi
     assert q.iqm == pytest.approx(1 / p.iqm, rel=1e-9) and q.iqm_low == pytest.approx(1 / p.iqm_high, rel=1e-9)
+
+
+def test_the_texts_give_each_estimate_with_its_interval():
+    p = paired_ratio([1.0, 2.0, 3.0, 4.0], [2.0, 2.0, 2.0, 2.0])
+    assert p.ratio_text(2) == f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}]"
+    assert p.iqm_text() == f"{p.iqm:.3f} [{p.iqm_low:.3f}, {p.iqm_high:.3f}]"

@@ -262,11 +262,7 @@ def paired_cells(row: dict) -> list[str]:
     p = row.get("paired")
     if not p:
         return ["", "", ""]
-    return [
-        f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}]",
-        f"{p.win_rate:.2f}",
-        f"{p.iqm:.2f} [{p.iqm_low:.2f}, {p.iqm_high:.2f}]",
-    ]
+    return [p.ratio_text(2), f"{p.win_rate:.2f}", p.iqm_text(2)]
 
 
 def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (°), mean over trials") -> None:

@@ -193,8 +193,7 @@ def main(argv=None) -> int:
                 rows.append({"fold": f, "group": name, "trial": t.name, "agent": x, "vqf": y})
                 log(f"    {t.name}: agent {x:.3f} vqf {y:.3f}")
             r = paired_ratio(a, b)
-            ci = f"[{r.low:.3f}, {r.high:.3f}]"
-            log(f"  {name}: agent {np.mean(a):.3f} vqf {np.mean(b):.3f} ratio {r.ratio:.3f} {ci}")
+            log(f"  {name}: agent {np.mean(a):.3f} vqf {np.mean(b):.3f} ratio {r.ratio_text()}")
         (args.out / f"cv_fold{f}.json").write_text(json.dumps([r for r in rows if r["fold"] == f], indent=1))
     return 0
 

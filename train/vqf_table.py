@@ -61,7 +61,7 @@ def main(argv=None) -> int:
             if name != "vqf" and len(keys) > 1:
                 r = paired_ratio(a, b)
                 beats = " **beats**" if round(r.high, 3) < 1 else ""  # below 1 as printed
-                cell += f" · {r.ratio:.3f} [{r.low:.3f}, {r.high:.3f}] win {r.win_rate:.2f}{beats}"
+                cell += f" · {r.ratio_text()} win {r.win_rate:.2f}{beats}"
             elif name != "vqf":
                 cell += f" · {a[0] / b[0]:.3f}"
             cells.append(cell)
