@@ -53,6 +53,18 @@ observation, so rules in µT are exact at any site).
   same information already has. Tuned, it is the best rule measured on
   ``stationary_magnet``, but the protocols' reference rules stay kf_model_tuned
   and kf_adaptive_tuned (the papers' rules).
+* ``kf_perp`` — :class:`PerpPullTrust`: magenv's own rule on ``d_perp``, the
+  causal estimate of the signed heading error that the extended observation
+  reads from the field across the disturbance's sensor-frame direction
+  (``magenv.envs.kalman_memory``; ``pull_perp``, a full update's heading
+  correction against it, ° > 0: toward the truth as d_perp sees it;
+  ``perp_info`` ∈ [0, 1], how much heading d_perp sees):
+      γ = γ_m                          if perp_info < i_min,
+      γ = max(γ_m, γ_pull)             if pull_perp > p_min,
+      γ = 0                            otherwise,
+  with γ_m kf_model's γ (σ_d). It is the hand-written use of the information
+  the Kalman student's ``d_perp`` inputs carry, as kf_still is of the still
+  anchor's; defaults σ_d = 1.20 µT, p_min = 0°, γ_pull = 0, i_min = 0.
 """
 
 from __future__ import annotations
@@ -159,7 +171,7 @@ class ModelTrust(KalmanRule):
 
     name = "kf_model"
     PARAM_BOUNDS = {"sigma_dist_ut": (0.1, 20.0)}
-    NEEDS = ("model_dist",)
+    NEEDS: tuple[str, ...] = ("model_dist",)
 
     def __init__(self, sigma_dist_ut: float = TH_MAG, features: Sequence[str] | None = None):
         super().__init__(features)
@@ -209,12 +221,54 @@ class StillPullTrust(AdaptiveTrust):
         return 0.0
 
 
+class PerpPullTrust(ModelTrust):
+    """kf_model's γ where d_perp sees little heading (``perp_info`` < ``info_min``); elsewhere that γ where the
+    magnetometer pulls against d_perp's error by more than ``pull_min_deg`` (there at least ``gamma_pull``), else 0;
+    reads the extended observation."""
+
+    name = "kf_perp"
+    PARAM_BOUNDS = {
+        "sigma_dist_ut": (0.1, 20.0),
+        "pull_min_deg": (-5.0, 5.0),
+        "gamma_pull": (0.0, 1.0),
+        "info_min": (0.0, 1.0),
+    }
+    NEEDS = ("model_dist", "pull_perp", "perp_info")
+    #: the observation it reads: the base features and the two memory features it needs
+    FEATURES = (*FEATURES.names, "pull_perp", "perp_info")
+
+    def __init__(
+        self,
+        sigma_dist_ut: float = TH_MAG,
+        pull_min_deg: float = 0.0,
+        gamma_pull: float = 0.0,
+        info_min: float = 0.0,
+        features: Sequence[str] | None = None,
+    ):
+        super().__init__(sigma_dist_ut, self.FEATURES if features is None else features)
+        if not (math.isfinite(pull_min_deg) and 0.0 <= gamma_pull <= 1.0 and 0.0 <= info_min <= 1.0):
+            raise ValueError(
+                "pull_min_deg must be finite, gamma_pull and info_min in [0, 1]; "
+                f"got {pull_min_deg}, {gamma_pull}, {info_min}"
+            )
+        self.pull_min_deg, self.gamma_pull, self.info_min = float(pull_min_deg), float(gamma_pull), float(info_min)
+
+    def weight(self, obs: np.ndarray) -> float:
+        gamma = super().weight(obs)
+        if float(obs[self._ix["perp_info"]]) < self.info_min:  # d_perp sees too little heading to judge
+            return gamma
+        if float(obs[self._ix["pull_perp"]]) > self.pull_min_deg:
+            return max(gamma, self.gamma_pull)
+        return 0.0
+
+
 RULES: dict[str, type[KalmanRule]] = {
     "kf_constant": ConstantTrust,
     "kf_gate": GateTrust,
     "kf_adaptive": AdaptiveTrust,
     "kf_model": ModelTrust,
     "kf_still": StillPullTrust,
+    "kf_perp": PerpPullTrust,
 }
 
 
@@ -255,4 +309,5 @@ def methods() -> dict:
         "kf_adaptive": AdaptiveTrust,
         "kf_model": ModelTrust,
         "kf_still": StillPullTrust,
+        "kf_perp": PerpPullTrust,
     }

@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/eval_kalman_agent.py [--agent pretrained:magenv/MagKalman-v0] [--seeds 0:40]
         [--scenarios dynamic_magnet,stationary_magnet]
-        [--methods kf_model_tuned,kf_adaptive_tuned,kf_still_tuned,oracle_kalman]
+        [--methods kf_model_tuned,kf_adaptive_tuned,kf_still_tuned,kf_perp_tuned,oracle_kalman]
         [--json FILE] [--validation]
 
 For every scenario and held-out seed it runs the agent (if given) and the
@@ -11,11 +11,12 @@ each and, for the agent and the oracle, the paired ratio to the protocol's
 best rule (``kf_model_tuned`` on dynamic_magnet, ``kf_adaptive_tuned`` on
 stationary_magnet; ``magenv.stats.paired_ratio``: geometric mean of the
 per-trial ratios, bootstrap 95 % interval over the trials, win rate), and the
-share of the rule-to-oracle gap of the mean RMSEs the agent closes. With
-``kf_still_tuned`` among the methods (the default) it also gives the agent's
-paired ratio to that hand rule, which reads the same still anchor as the
-learned students: how much of the agent's gain is learning rather than
-information.
+share of the rule-to-oracle gap of the mean RMSEs the agent closes. With the
+scenario's hand rule on the students' own information among the methods (the
+default: ``kf_perp_tuned``, which reads ``d_perp``, on dynamic_magnet;
+``kf_still_tuned``, which reads the still anchor, on stationary_magnet) it
+also gives the agent's paired ratio to that rule: how much of the agent's gain
+is learning rather than information.
 ``--json`` writes every per-trial RMSE; with an existing file, methods already
 in it are read back instead of run again (the oracle is the slow one).
 ``--validation`` takes validation seeds (5000–9999) instead, for model
@@ -39,7 +40,8 @@ from magenv.train.seeds import REPORT_SEEDS, check_report_seeds, seeds_arg
 
 BEST_RULE = {"dynamic_magnet": "kf_model_tuned", "stationary_magnet": "kf_adaptive_tuned"}
 ORACLE = "oracle_kalman"
-SAME_INFORMATION = "kf_still_tuned"  # the hand rule on the students' still anchor (baselines/kalman_policies.py)
+#: per scenario, the hand rule on the students' own information (baselines/kalman_policies.py): d_perp, still anchor
+SAME_INFORMATION = {"dynamic_magnet": "kf_perp_tuned", "stationary_magnet": "kf_still_tuned"}
 
 
 def main() -> None:
@@ -47,7 +49,7 @@ def main() -> None:
     p.add_argument("--agent", default=None, help="run folder or pretrained:ENV_ID")
     p.add_argument("--seeds", type=seeds_arg, default=REPORT_SEEDS)
     p.add_argument("--scenarios", default="dynamic_magnet,stationary_magnet")
-    p.add_argument("--methods", default=f"kf_model_tuned,kf_adaptive_tuned,{SAME_INFORMATION},{ORACLE}")
+    p.add_argument("--methods", default=f"kf_model_tuned,kf_adaptive_tuned,kf_still_tuned,kf_perp_tuned,{ORACLE}")
     p.add_argument("--json", default=None)
     p.add_argument("--validation", action="store_true", help="validation seeds 5000–9999 (model selection)")
     args = p.parse_args()
@@ -85,8 +87,8 @@ def main() -> None:
         res = {m: np.array(v) for m, v in per_trial[sc].items()}
         rule = BEST_RULE.get(sc, "kf_model_tuned")
         cells = []
-        for m, ref, label in (("agent", rule, "agent"), (ORACLE, rule, ORACLE), ("agent", SAME_INFORMATION,
-                              f"agent/{SAME_INFORMATION}")):  # fmt: skip
+        same = SAME_INFORMATION.get(sc, "")
+        for m, ref, label in (("agent", rule, "agent"), (ORACLE, rule, ORACLE), ("agent", same, f"agent/{same}")):
             if m in res and ref in res:
                 pr = paired_ratio(res[m], res[ref])
                 cells.append(f"{label}: {pr.ratio_text()}, {pr.win_rate:.2f}; IQM {pr.iqm_text()}")

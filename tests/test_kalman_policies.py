@@ -87,6 +87,26 @@ def test_still_pull_rule():
         kp.StillPullTrust(features=list(FEATURES.names))
 
 
+def test_perp_pull_rule():
+    """kf_perp: kf_model's γ where d_perp sees too little heading, at least γ_pull where a full update pulls
+    against d_perp's error by more than p_min, else 0."""
+    p = kp.PerpPullTrust(sigma_dist_ut=2.0, pull_min_deg=0.5, gamma_pull=0.6, info_min=0.2)
+    assert p.env_kwargs == {"features": list(kp.PerpPullTrust.FEATURES)}
+
+    def gamma(info, pull, dist_ut=3.0):
+        return _gamma(p, _obs(dist_ut=dist_ut, names=p.features, perp_info=info, pull_perp=pull))
+
+    model = 1.0 / (1.0 + (3.0 / 2.0) ** 2)
+    assert gamma(0.1, -20.0) == pytest.approx(model, rel=1e-5)  # d_perp blind: the model rule
+    assert gamma(0.5, 0.6) == pytest.approx(0.6, rel=1e-5)  # pulls against the error: γ_pull ≥ γ_m
+    assert gamma(0.5, 0.6, dist_ut=0.5) == pytest.approx(1.0 / (1.0 + 0.25**2), rel=1e-5)  # γ_m > γ_pull
+    assert gamma(0.5, 0.4) == 0.0 and gamma(0.9, -3.0) == 0.0  # no pull against the error: skipped
+    with pytest.raises(ValueError, match="info_min"):
+        kp.PerpPullTrust(info_min=1.5)
+    with pytest.raises(ValueError, match="pull_perp"):
+        kp.PerpPullTrust(features=list(FEATURES.names))
+
+
 @pytest.mark.parametrize("cls", list(kp.RULES.values()))
 def test_params_round_trip_and_protocol(cls):
     p = cls()
@@ -125,7 +145,7 @@ def test_bad_parameters_and_missing_features():
 
 def test_registry_lists_the_methods():
     names = registry.names()
-    for n in ("kf_nominal", "kf_gate", "kf_adaptive", "kf_model", "kf_still"):
+    for n in ("kf_nominal", "kf_gate", "kf_adaptive", "kf_model", "kf_still", "kf_perp"):
         assert n in names
 
 
