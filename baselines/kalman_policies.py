@@ -184,6 +184,18 @@ class ModelTrust(KalmanRule):
         return 1.0 / (1.0 + a * a)
 
 
+def _check_pull(pull_min_deg: float, gamma_pull: float) -> tuple[float, float]:
+    """The pull gate's (p_min °, γ_pull), checked: p_min finite, γ_pull in [0, 1]."""
+    if not (math.isfinite(pull_min_deg) and 0.0 <= gamma_pull <= 1.0):
+        raise ValueError(f"pull_min_deg must be finite and gamma_pull in [0, 1], got {pull_min_deg}, {gamma_pull}")
+    return float(pull_min_deg), float(gamma_pull)
+
+
+def _pull_gate(gamma: float, pull_deg: float, pull_min_deg: float, gamma_pull: float) -> float:
+    """max(γ, γ_pull) where a full update pulls the heading the right way by more than p_min (°), else 0."""
+    return max(gamma, gamma_pull) if pull_deg > pull_min_deg else 0.0
+
+
 class StillPullTrust(AdaptiveTrust):
     """kf_adaptive's γ where the field is clean or the magnetometer pulls toward the still anchor by more
     than ``pull_min_deg`` (there at least ``gamma_pull``), else 0; reads the extended observation."""
@@ -208,17 +220,13 @@ class StillPullTrust(AdaptiveTrust):
         features: Sequence[str] | None = None,
     ):
         super().__init__(sigma_mag_ut, sigma_dip_deg, self.FEATURES if features is None else features)
-        if not (math.isfinite(pull_min_deg) and 0.0 <= gamma_pull <= 1.0):
-            raise ValueError(f"pull_min_deg must be finite and gamma_pull in [0, 1], got {pull_min_deg}, {gamma_pull}")
-        self.pull_min_deg, self.gamma_pull = float(pull_min_deg), float(gamma_pull)
+        self.pull_min_deg, self.gamma_pull = _check_pull(pull_min_deg, gamma_pull)
 
     def weight(self, obs: np.ndarray) -> float:
         gamma = super().weight(obs)
         if float(obs[self._ix["t_anchor"]]) <= 0.0:  # clean now: the anchor is this sample
             return gamma
-        if float(obs[self._ix["pull_still"]]) > self.pull_min_deg:
-            return max(gamma, self.gamma_pull)
-        return 0.0
+        return _pull_gate(gamma, float(obs[self._ix["pull_still"]]), self.pull_min_deg, self.gamma_pull)
 
 
 class PerpPullTrust(ModelTrust):
@@ -246,20 +254,16 @@ class PerpPullTrust(ModelTrust):
         features: Sequence[str] | None = None,
     ):
         super().__init__(sigma_dist_ut, self.FEATURES if features is None else features)
-        if not (math.isfinite(pull_min_deg) and 0.0 <= gamma_pull <= 1.0 and 0.0 <= info_min <= 1.0):
-            raise ValueError(
-                "pull_min_deg must be finite, gamma_pull and info_min in [0, 1]; "
-                f"got {pull_min_deg}, {gamma_pull}, {info_min}"
-            )
-        self.pull_min_deg, self.gamma_pull, self.info_min = float(pull_min_deg), float(gamma_pull), float(info_min)
+        self.pull_min_deg, self.gamma_pull = _check_pull(pull_min_deg, gamma_pull)
+        if not 0.0 <= info_min <= 1.0:
+            raise ValueError(f"info_min must be in [0, 1], got {info_min}")
+        self.info_min = float(info_min)
 
     def weight(self, obs: np.ndarray) -> float:
         gamma = super().weight(obs)
         if float(obs[self._ix["perp_info"]]) < self.info_min:  # d_perp sees too little heading to judge
             return gamma
-        if float(obs[self._ix["pull_perp"]]) > self.pull_min_deg:
-            return max(gamma, self.gamma_pull)
-        return 0.0
+        return _pull_gate(gamma, float(obs[self._ix["pull_perp"]]), self.pull_min_deg, self.gamma_pull)
 
 
 RULES: dict[str, type[KalmanRule]] = {

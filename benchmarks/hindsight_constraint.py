@@ -14,20 +14,17 @@ Validation seeds by default (an analysis, not a reported figure); it prints figu
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 
 import numpy as np
 
 import magenv  # noqa: F401
-from magenv import evaluation
+from magenv import evaluation, registry
 from magenv.baselines.constraint import ConstraintCF
 from magenv.scenarios import make_trial
 from magenv.train.seeds import seeds_arg
 
-TUNED = Path(__file__).resolve().parents[1] / "baselines" / "tuned" / "cf_constraint.json"
 SCALES = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 4.0, 8.0)
-K_MAX_LIMIT = 1.0  # ConstraintCF.PARAM_BOUNDS["k_max"]'s upper end
+K_MAX_LIMIT = ConstraintCF.PARAM_BOUNDS["k_max"][1]
 
 
 def scaled(params: dict, which: str, s: float) -> dict:
@@ -45,7 +42,7 @@ def main() -> None:
     ap.add_argument("--tests", default="constraint_test1,constraint_test2,constraint_test3")
     ap.add_argument("--seeds", type=seeds_arg, default="5000:5020")
     args = ap.parse_args()
-    params = json.loads(TUNED.read_text())["params"]
+    params = registry.tuned_params("cf_constraint")
     for test in args.tests.split(","):
         trials = [make_trial(test, s) for s in args.seeds]
         totals = {  # (which, scale) → per-trial total RMSE

@@ -101,6 +101,7 @@ def test_perp_pull_rule():
     assert gamma(0.5, 0.6) == pytest.approx(0.6, rel=1e-5)  # pulls against the error: γ_pull ≥ γ_m
     assert gamma(0.5, 0.6, dist_ut=0.5) == pytest.approx(1.0 / (1.0 + 0.25**2), rel=1e-5)  # γ_m > γ_pull
     assert gamma(0.5, 0.4) == 0.0 and gamma(0.9, -3.0) == 0.0  # no pull against the error: skipped
+    assert gamma(0.2, 0.5) == 0.0  # at the bounds: perp_info = i_min judges, a pull of exactly p_min is no pull
     with pytest.raises(ValueError, match="info_min"):
         kp.PerpPullTrust(info_min=1.5)
     with pytest.raises(ValueError, match="pull_perp"):
