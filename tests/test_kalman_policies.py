@@ -67,45 +67,45 @@ def test_model_formula():
         assert _gamma(p, _obs(dist_ut=d, norm_ut=50.0)) == pytest.approx(1.0 / (1.0 + (d / 3.0) ** 2), rel=1e-5)
 
 
-def test_still_pull_rule():
-    """kf_still: kf_adaptive's γ on a clean sample, at least γ_pull where the magnetometer pulls toward the
-    still anchor by more than p_min, else 0."""
-    p = kp.StillPullTrust(sigma_mag_ut=2.0, sigma_dip_deg=4.0, pull_min_deg=0.5, gamma_pull=0.6)
-    assert p.env_kwargs == {"features": list(kp.StillPullTrust.FEATURES)}
+PULL_RULES = [  # (rule, its base rule's input, observation where it takes the base γ, where the pull gate judges)
+    (
+        kp.StillPullTrust(sigma_mag_ut=2.0, sigma_dip_deg=4.0, pull_min_deg=0.5, gamma_pull=0.6),
+        "norm_ut",
+        {"t_anchor": 0.0},  # clean now: the anchor is this sample
+        {"t_anchor": 0.5},
+    ),
+    (
+        kp.PerpPullTrust(sigma_dist_ut=2.0, pull_min_deg=0.5, gamma_pull=0.6, info_min=0.2),
+        "dist_ut",
+        {"perp_info": 0.1},  # d_perp sees too little heading to judge
+        {"perp_info": 0.2},  # at i_min it judges
+    ),
+]
 
-    def gamma(t_anchor, pull, norm_ut=3.0):
-        return _gamma(p, _obs(norm_ut=norm_ut, names=p.features, t_anchor=t_anchor, pull_still=pull))
 
-    adaptive = 1.0 / (1.0 + (3.0 / 2.0) ** 2)
-    assert gamma(0.0, -20.0) == pytest.approx(adaptive, rel=1e-5)  # clean now: the adaptive rule
-    assert gamma(0.5, 0.6) == pytest.approx(0.6, rel=1e-5)  # pulled toward the anchor: γ_pull ≥ γ_a
-    assert gamma(0.5, 0.6, norm_ut=0.5) == pytest.approx(1.0 / (1.0 + 0.25**2), rel=1e-5)  # γ_a > γ_pull
-    assert gamma(0.5, 0.4) == 0.0 and gamma(2.0, -3.0) == 0.0  # not clean, no pull toward it: refused
+@pytest.mark.parametrize(("rule", "term", "base", "judged"), PULL_RULES, ids=["kf_still", "kf_perp"])
+def test_pull_gated_rules(rule, term, base, judged):
+    """kf_still and kf_perp: their base rule's γ (kf_adaptive's, kf_model's) where the gate is open, else at least
+    γ_pull where a full update pulls the heading the right way by more than p_min, else 0."""
+    assert rule.env_kwargs == {"features": list(type(rule).FEATURES)}
+    pull_feature = "pull_perp" if isinstance(rule, kp.PerpPullTrust) else "pull_still"
+
+    def gamma(at, pull, size=3.0):
+        return _gamma(rule, _obs(names=rule.features, **{term: size, **at, pull_feature: pull}))
+
+    assert gamma(base, -20.0) == pytest.approx(1.0 / (1.0 + (3.0 / 2.0) ** 2), rel=1e-5)
+    assert gamma(judged, 0.6) == pytest.approx(0.6, rel=1e-5)  # pulled the right way: γ_pull ≥ the base γ
+    assert gamma(judged, 0.6, size=0.5) == pytest.approx(1.0 / (1.0 + 0.25**2), rel=1e-5)  # base γ > γ_pull
+    assert gamma(judged, 0.5) == 0.0 and gamma(judged, -3.0) == 0.0  # a pull of p_min or less: refused
     with pytest.raises(ValueError, match="gamma_pull"):
-        kp.StillPullTrust(gamma_pull=1.5)
-    with pytest.raises(ValueError, match="pull_still"):
-        kp.StillPullTrust(features=list(FEATURES.names))
+        type(rule)(gamma_pull=1.5)
+    with pytest.raises(ValueError, match=pull_feature):
+        type(rule)(features=list(FEATURES.names))
 
 
-def test_perp_pull_rule():
-    """kf_perp: kf_model's γ where d_perp sees too little heading, at least γ_pull where a full update pulls
-    against d_perp's error by more than p_min, else 0."""
-    p = kp.PerpPullTrust(sigma_dist_ut=2.0, pull_min_deg=0.5, gamma_pull=0.6, info_min=0.2)
-    assert p.env_kwargs == {"features": list(kp.PerpPullTrust.FEATURES)}
-
-    def gamma(info, pull, dist_ut=3.0):
-        return _gamma(p, _obs(dist_ut=dist_ut, names=p.features, perp_info=info, pull_perp=pull))
-
-    model = 1.0 / (1.0 + (3.0 / 2.0) ** 2)
-    assert gamma(0.1, -20.0) == pytest.approx(model, rel=1e-5)  # d_perp blind: the model rule
-    assert gamma(0.5, 0.6) == pytest.approx(0.6, rel=1e-5)  # pulls against the error: γ_pull ≥ γ_m
-    assert gamma(0.5, 0.6, dist_ut=0.5) == pytest.approx(1.0 / (1.0 + 0.25**2), rel=1e-5)  # γ_m > γ_pull
-    assert gamma(0.5, 0.4) == 0.0 and gamma(0.9, -3.0) == 0.0  # no pull against the error: skipped
-    assert gamma(0.2, 0.5) == 0.0  # at the bounds: perp_info = i_min judges, a pull of exactly p_min is no pull
+def test_perp_info_must_be_a_fraction():
     with pytest.raises(ValueError, match="info_min"):
         kp.PerpPullTrust(info_min=1.5)
-    with pytest.raises(ValueError, match="pull_perp"):
-        kp.PerpPullTrust(features=list(FEATURES.names))
 
 
 @pytest.mark.parametrize("cls", list(kp.RULES.values()))
