@@ -85,7 +85,9 @@ class KalmanInputs(StudentInputs):
     absent) — the causal rules' own proposals, from which the student can learn deviations. A teacher with a
     ``still`` rule (run.yaml student ``still``: its σ_m, σ_θ, p_min, γ_pull) adds kf_still's γ on the block's
     still-anchor features: γ_a (σ_m, σ_θ) where ``t_anchor`` = 0, max(γ_a, γ_pull) where ``pull_still`` > p_min,
-    else 0 (``magenv.baselines.kalman_policies.StillPullTrust``).
+    else 0 (``magenv.baselines.kalman_policies.StillPullTrust``). A teacher with a ``perp`` rule (run.yaml student
+    ``perp``: its σ_d, p_min, γ_pull, i_min) adds kf_perp's γ after it: γ_m (σ_d) where ``perp_info`` < i_min,
+    max(γ_m, γ_pull) where ``pull_perp`` > p_min, else 0 (``PerpPullTrust``).
 
     With a teacher of ``rule_candidates`` (run.yaml student ``rule_candidates: true``), these rules' γ on the
     current block are also state-dependent candidates (``candidate_actions``, float64: bit for bit the
@@ -105,7 +107,21 @@ class KalmanInputs(StudentInputs):
             out["rule_candidates"] = True
         if getattr(teacher, "still_params", None) is not None:
             out["still"] = [float(v) for v in teacher.still_params]
+        if getattr(teacher, "perp_params", None) is not None:
+            out["perp"] = [float(v) for v in teacher.perp_params]
         return out
+
+    @staticmethod
+    def perp_gamma(blk: np.ndarray, meta: dict) -> np.ndarray:
+        """(D,) float64 kf_perp's γ (run.yaml student ``perp``) on (D, ≥ block) features."""
+        from magenv.envs.kalman import EXTENDED
+
+        sd, p_min, g_pull, i_min = (float(v) for v in meta["perp"])
+        i_p, i_i = EXTENDED.index("pull_perp"), EXTENDED.index("perp_info")
+        ((a, b, c),) = KalmanInputs.rule_terms(blk.astype(np.float64), {"scales": [sd, math.inf, math.inf]})
+        g = 1.0 / (1.0 + a + b + c)  # kf_model's, summed from 1 as the rule's ``weight``
+        pulled = np.where(blk[:, i_p].astype(np.float64) > p_min, np.maximum(g, g_pull), 0.0)
+        return np.where(blk[:, i_i].astype(np.float64) < i_min, g, pulled)
 
     @staticmethod
     def still_gamma(blk: np.ndarray, meta: dict) -> np.ndarray:
@@ -144,10 +160,12 @@ class KalmanInputs(StudentInputs):
                 parts.append((1.0 / (1.0 + (a + b + c)))[:, None].astype(np.float32))
             if "still" in meta:
                 parts.append(self.still_gamma(blk, meta)[:, None].astype(np.float32))
+            if "perp" in meta:
+                parts.append(self.perp_gamma(blk, meta)[:, None].astype(np.float32))
         return np.concatenate(parts, 1)
 
     def n_state_candidates(self, meta: dict) -> int:
-        n = 1 + len(meta.get("proposals", [])) + ("still" in meta)
+        n = 1 + len(meta.get("proposals", [])) + ("still" in meta) + ("perp" in meta)
         return n if meta.get("rule_candidates") else 0
 
     def candidate_actions(self, obs: np.ndarray, meta: dict) -> np.ndarray:
@@ -157,6 +175,8 @@ class KalmanInputs(StudentInputs):
         gammas = [1.0 / (1.0 + a + b + c) for a, b, c in self.rule_terms(blk, meta)]  # summed from 1 (``weight``)
         if "still" in meta:
             gammas.append(self.still_gamma(blk, meta))
+        if "perp" in meta:
+            gammas.append(self.perp_gamma(blk, meta))
         return np.stack(gammas, 1)[:, :, None]
 
 

@@ -45,7 +45,9 @@ Three options (all off in the packaged ``oracle_kalman``):
   state-dependent candidate, searched last (with ``rule_candidates``). It is
   a candidate only, never a continuation: the roll-outs do not carry the
   still anchor's memory. Its runners must be extended (``KalmanRunner(trial,
-  extended=True)``).
+  extended=True)``);
+* ``perp``: a ``kf_perp`` rule (``PerpPullTrust`` on the extended observation),
+  the same kind of candidate on ``d_perp``, searched after ``still``.
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ import math
 import numpy as np
 from numba import njit
 
-from magenv.baselines.kalman_policies import AdaptiveTrust, KalmanRule, ModelTrust, StillPullTrust
+from magenv.baselines.kalman_policies import AdaptiveTrust, KalmanRule, ModelTrust, PerpPullTrust, StillPullTrust
 from magenv.envs import KALMAN_ID
 from magenv.envs.kalman import EXTENDED, KalmanRunner
 from magenv.filters import kalman_trust as kt
@@ -157,6 +159,8 @@ class KalmanOracle:
             on offer (None: all); on any other trial it costs inf, so the oracle never takes it there and a
             DAgger student's loss gives it the most regret (``regret_clip``). Privileged (the teacher knows the
             trial's scenario); the student sees the observation only.
+        perp, perp_scenarios: a ``PerpPullTrust`` reading ``EXTENDED``, the state candidate after ``still``
+            (a student sees its γ too: ``perp_params``), and the scenarios it is on offer on, as for ``still``.
     """
 
     name = "oracle_kalman"
@@ -174,18 +178,30 @@ class KalmanOracle:
         continuations: tuple[KalmanRule, ...] = (),
         still: StillPullTrust | None = None,
         still_scenarios: tuple[str, ...] | None = None,
+        perp: PerpPullTrust | None = None,
+        perp_scenarios: tuple[str, ...] | None = None,
     ):
         self.rule = ModelTrust() if rule is None else rule
         default = ModelTrust().features
         if any(r.features != default for r in (self.rule, *proposals, *continuations)):
             raise ValueError("the continuation and proposal rules must read the env's default observation")
-        if still is not None and not (
-            isinstance(still, StillPullTrust) and still.features == EXTENDED.names and rule_candidates
+        #: the extra state candidates, in their order after the rules': (name, rule, scenarios or None)
+        self.extras: tuple[tuple[str, KalmanRule, tuple[str, ...] | None], ...] = ()
+        for name, kind, extra, scenarios in (
+            ("still", StillPullTrust, still, still_scenarios),
+            ("perp", PerpPullTrust, perp, perp_scenarios),
         ):
-            raise ValueError("still must be a kf_still rule reading the extended observation, with rule_candidates")
-        self.still = still
-        if still_scenarios is not None and (still is None or not all(isinstance(n, str) for n in still_scenarios)):
-            raise ValueError(f"still_scenarios must be scenario names, with a still rule; got {still_scenarios!r}")
+            if extra is not None and not (
+                isinstance(extra, kind) and extra.features == EXTENDED.names and rule_candidates
+            ):
+                raise ValueError(
+                    f"{name} must be a kf_{name} rule reading the extended observation, with rule_candidates"
+                )
+            if scenarios is not None and (extra is None or not all(isinstance(n, str) for n in scenarios)):
+                raise ValueError(f"{name}_scenarios must be scenario names, with a {name} rule; got {scenarios!r}")
+            if extra is not None:
+                self.extras += ((name, extra, None if scenarios is None else tuple(scenarios)),)
+        self.still, self.perp = still, perp
         self.still_scenarios = None if still_scenarios is None else tuple(still_scenarios)
         self.scales = rule_scales(self.rule)
         self.proposals = tuple(proposals)
@@ -213,14 +229,20 @@ class KalmanOracle:
         s = self.still
         return None if s is None else [s.sigma_mag_ut, s.sigma_dip_deg, s.pull_min_deg, s.gamma_pull]
 
+    @property
+    def perp_params(self) -> list[float] | None:
+        """(σ_d µT, p_min °, γ_pull, i_min) of ``perp``, or None."""
+        p = self.perp
+        return None if p is None else [p.sigma_dist_ut, p.pull_min_deg, p.gamma_pull, p.info_min]
+
     def rule_actions(self, runner: KalmanRunner) -> np.ndarray:
-        """(R, 1) the γ of the continuation rule, of each proposal and of ``still`` on the env's observation of
-        ``runner``'s next sample (float64; the same numbers as
+        """(R, 1) the γ of the continuation rule, of each proposal and of the extras (``still``, ``perp``) on the
+        env's observation of ``runner``'s next sample (float64; the same numbers as
         ``magenv.agents.student_inputs.KalmanInputs.candidate_actions`` on that observation)."""
-        if self.still is not None and not runner.extended:
-            raise ValueError("a teacher with a still candidate needs an extended runner (extended=True)")
+        if self.extras and not runner.extended:
+            raise ValueError(f"a teacher with a {self.extras[0][0]} candidate needs an extended runner (extended=True)")
         obs = runner.feat.astype(np.float32)
-        rules = (self.rule, *self.proposals, *(() if self.still is None else (self.still,)))
+        rules = (self.rule, *self.proposals, *(rule for _, rule, _ in self.extras))
         return np.array([[r.weight(obs)] for r in rules])
 
     def state_candidates(self, runner: KalmanRunner) -> np.ndarray:
@@ -231,15 +253,17 @@ class KalmanOracle:
     def candidate_costs(self, runner: KalmanRunner, candidates=None) -> np.ndarray:
         """(C,) Σ (total error, °)² over the horizon of each candidate from ``runner``'s state: of ``candidates``
         ((C, 1) or (C,) γ) if given, else of the fixed levels then ``state_candidates(runner)``; with
-        ``continuations`` the lowest over the continuation rules; with ``still_scenarios``, on a trial of another
-        scenario the still candidate (the last of that order) costs inf."""
+        ``continuations`` the lowest over the continuation rules; on a trial of a scenario not among an extra's
+        scenarios (``still_scenarios``, ``perp_scenarios``) that extra candidate costs inf."""
         if candidates is None:
             gammas = np.concatenate([self.levels, self.state_candidates(runner)[:, 0]])
         else:
             gammas = _gammas(candidates, columns=True)
-        refused = self.still_scenarios is not None and runner.trial.meta.get("scenario") not in self.still_scenarios
-        if refused and gammas.size != self.levels.size + 2 + len(self.proposals):  # levels, rule, proposals, still
-            raise ValueError("with still_scenarios the candidates must be the levels then the state candidates")
+        first = self.levels.size + 1 + len(self.proposals)  # levels, rule, proposals, then the extras
+        scenario = runner.trial.meta.get("scenario")
+        refused = [first + k for k, (_, _, on) in enumerate(self.extras) if on is not None and scenario not in on]
+        if refused and gammas.size != first + len(self.extras):
+            raise ValueError("with an extra's scenarios the candidates must be the levels then the state candidates")
         horizon = int(round(self.horizon_s * runner.trial.rate))
         state = runner.state
         scratch = kt.State(np.empty_like(state.q), np.empty_like(state.p))
@@ -250,8 +274,7 @@ class KalmanOracle:
             candidate_costs(runner.params, state, runner.sensors, runner.q_true, runner.mdist, runner.pos, horizon,
                             self.decision_every, gammas, scales, scratch, peek, sig, costs)  # fmt: skip
             np.minimum(best, costs, out=best)
-        if refused:
-            best[-1] = np.inf
+        best[refused] = np.inf
         return best
 
     def best_gamma(self, runner: KalmanRunner) -> float:
@@ -267,7 +290,7 @@ class KalmanOracle:
     def run(self, trial: Trial) -> Estimate:
         """The oracle's estimate of every sample of ``trial`` (reads ``trial.q_true``), in the env's filter with
         its default options."""
-        runner = KalmanRunner(trial, extended=self.still is not None)
+        runner = KalmanRunner(trial, extended=bool(self.extras))
         while not runner.done:
             runner.advance(self.decision_every, self.best_gamma(runner))
         return Estimate(q=runner.est.copy(), trust=runner.trust.copy())

@@ -19,9 +19,9 @@ a fresh one. ``names()`` lists them all:
   (``magenv.baselines.oracle``, continuing with ``fan_lambda_tuned``): it
   reads truth, so it is an upper bound (compare's headroom row), never a
   baseline; likewise ``oracle_kalman`` for MagKalman-v0 (``magenv.baselines.oracle_kalman``, continuing with
-  ``kf_model_tuned``; its DAgger teachers ``oracle_kalman_rules``, ``oracle_kalman_still`` and
-  ``oracle_kalman_skip`` also search the tuned rules' γ), ``oracle_constraint`` (MagConstraint-v0, continuing
-  with ``cf_constraint_tuned``,
+  ``kf_model_tuned``; its DAgger teachers ``oracle_kalman_rules``, ``oracle_kalman_still``,
+  ``oracle_kalman_skip`` and ``oracle_kalman_perp`` also search the tuned rules' γ), ``oracle_constraint``
+  (MagConstraint-v0, continuing with ``cf_constraint_tuned``,
   ``magenv.baselines.oracle_constraint``; ``oracle_constraint_rules`` also searches the rule's w),
   ``oracle_qsf`` (MagQSF-v0, continuing with
   ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``; ``oracle_qsf_hold`` with ``qsf_hold``) and
@@ -131,6 +131,29 @@ def _kalman_skip_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     )
 
 
+PERP_SCENARIOS = ("dynamic_magnet",)  # where oracle_kalman_perp offers kf_perp_tuned's γ
+
+
+def _kalman_perp_oracle(params: dict) -> oracle_kalman.KalmanOracle:
+    """``oracle_kalman_perp``: ``oracle_kalman_skip`` with a fourth candidate, kf_perp_tuned's γ (the hand rule
+    on ``d_perp``; on ``dynamic_magnet`` trials only, elsewhere it costs inf), so that a student can fall back on
+    the best rule with its own information on either protocol. Needs tuned kf_adaptive, kf_still and kf_perp
+    files (else TunedParamsError)."""
+    still = _kalman_still_oracle(params)
+    perp = kalman_policies.PerpPullTrust.from_params(tuned_params("kf_perp"), features=KALMAN_EXTENDED.names)
+    return oracle_kalman.KalmanOracle.from_model_params(
+        params,
+        candidates=SKIP_LEVELS,
+        rule_candidates=True,
+        continuations=still.proposals,
+        horizon_s=still.horizon_s,
+        still=still.still,
+        still_scenarios=STILL_SCENARIOS,
+        perp=perp,
+        perp_scenarios=PERP_SCENARIOS,
+    )
+
+
 def _constraint_rules_oracle(params: dict) -> oracle_constraint.ConstraintOracle:
     """``oracle_constraint_rules``: ``oracle_constraint`` that also searches cf_constraint_tuned's own w at each
     state (``rule_candidates``), so that its DAgger student can fall back on the rule exactly."""
@@ -146,6 +169,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "oracle_kalman_rules": ("kf_model", _kalman_rules_oracle),
     "oracle_kalman_still": ("kf_model", _kalman_still_oracle),
     "oracle_kalman_skip": ("kf_model", _kalman_skip_oracle),
+    "oracle_kalman_perp": ("kf_model", _kalman_perp_oracle),
     "oracle_constraint": ("cf_constraint", oracle_constraint.ConstraintOracle.from_constraint_params),
     "oracle_constraint_rules": ("cf_constraint", _constraint_rules_oracle),
     "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),

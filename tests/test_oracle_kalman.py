@@ -233,3 +233,33 @@ def test_the_rules_teachers_need_their_tuned_rules(tmp_path, monkeypatch):
         with pytest.raises(registry.TunedParamsError, match="kf_adaptive"):
             registry.make(name)
     assert registry.make("oracle_kalman").proposals == ()
+
+
+def test_the_perp_teacher_adds_kf_perp_tuned_on_dynamic_magnet_trials_only(trial):
+    """``oracle_kalman_perp``: ``oracle_kalman_skip``'s candidates, costed the same, then kf_perp_tuned's γ on the
+    extended observation, which costs inf on a trial of another scenario than ``dynamic_magnet``; its student
+    computes that γ bit for bit from the observation and sees it after each block."""
+    teacher, skip = registry.make("oracle_kalman_perp"), registry.make("oracle_kalman_skip")
+    perp = registry.make("kf_perp_tuned")
+    inputs = inputs_for(KALMAN_ID)
+    meta = inputs.meta(teacher)
+    assert meta["perp"] == teacher.perp_params and inputs.n_state_candidates(meta) == 3
+    seen = set()
+    for obs, student in _student_and_teacher_candidates(trial, teacher, meta):
+        assert student[2, 0] == perp.weight(obs[[EXTENDED.index(n) for n in perp.features]])
+        x = inputs(obs, meta)[0]
+        block = len(obs) // 3
+        assert x.size == obs.size + 3 * 3 and x[block + 2] == np.float32(student[2, 0])
+        seen.add(float(student[2, 0]))
+    assert len(seen) > 5
+    on_dynamic = dataclasses.replace(trial, meta={**trial.meta, "scenario": "dynamic_magnet"})
+    for tr, offered in ((trial, False), (on_dynamic, True)):
+        runner = KalmanRunner(tr, extended=True)
+        runner.advance(160, 0.5)
+        got = teacher.candidate_costs(runner)
+        np.testing.assert_array_equal(got[:3], skip.candidate_costs(runner))
+        assert np.isfinite(got[3]) == offered
+    with pytest.raises(ValueError, match="perp must be"):  # without rule_candidates
+        KalmanOracle(RULE, perp=teacher.perp)
+    with pytest.raises(ValueError, match="perp_scenarios"):
+        KalmanOracle(RULE, rule_candidates=True, perp_scenarios=("dynamic_magnet",))
