@@ -110,7 +110,7 @@ SKIP_LEVELS = (0.0,)  # γ levels of oracle_kalman_skip: the magnetometer's upda
 STILL_SCENARIOS = ("stationary_magnet",)  # where oracle_kalman_skip offers kf_still_tuned's γ
 
 
-def _kalman_skip_oracle(params: dict) -> oracle_kalman.KalmanOracle:
+def _kalman_skip_oracle(params: dict, **extra) -> oracle_kalman.KalmanOracle:
     """``oracle_kalman_skip``: three candidates at each state, γ = 0 (the magnetometer's update skipped),
     kf_model_tuned's γ and kf_still_tuned's γ (on ``stationary_magnet`` trials only: elsewhere it costs inf),
     searched 1 s ahead continuing with the cheaper of kf_model_tuned and kf_adaptive_tuned; the DAgger teacher of
@@ -118,7 +118,8 @@ def _kalman_skip_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     kf_model_tuned's γ is partly predictable from the student's causal inputs, that of a full update (γ = 1) is
     not (``benchmarks/probe_advantage.py --env kalman``); and there kf_still_tuned's γ often looks cheapest
     over 1 s, yet students that take it follow that rule, which loses to kf_model_tuned over whole trials.
-    Needs tuned kf_adaptive and kf_still files (else TunedParamsError)."""
+    Needs tuned kf_adaptive and kf_still files (else TunedParamsError). ``extra``: further options of the
+    oracle (``perp``, ``perp_scenarios``)."""
     still = _kalman_still_oracle(params)
     return oracle_kalman.KalmanOracle.from_model_params(
         params,
@@ -128,6 +129,7 @@ def _kalman_skip_oracle(params: dict) -> oracle_kalman.KalmanOracle:
         horizon_s=still.horizon_s,
         still=still.still,
         still_scenarios=STILL_SCENARIOS,
+        **extra,
     )
 
 
@@ -139,19 +141,8 @@ def _kalman_perp_oracle(params: dict) -> oracle_kalman.KalmanOracle:
     on ``d_perp``; on ``dynamic_magnet`` trials only, elsewhere it costs inf), so that a student can fall back on
     the best rule with its own information on either protocol. Needs tuned kf_adaptive, kf_still and kf_perp
     files (else TunedParamsError)."""
-    still = _kalman_still_oracle(params)
     perp = kalman_policies.PerpPullTrust.from_params(tuned_params("kf_perp"), features=KALMAN_EXTENDED.names)
-    return oracle_kalman.KalmanOracle.from_model_params(
-        params,
-        candidates=SKIP_LEVELS,
-        rule_candidates=True,
-        continuations=still.proposals,
-        horizon_s=still.horizon_s,
-        still=still.still,
-        still_scenarios=STILL_SCENARIOS,
-        perp=perp,
-        perp_scenarios=PERP_SCENARIOS,
-    )
+    return _kalman_skip_oracle(params, perp=perp, perp_scenarios=PERP_SCENARIOS)
 
 
 def _constraint_rules_oracle(params: dict) -> oracle_constraint.ConstraintOracle:

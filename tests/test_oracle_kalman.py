@@ -137,27 +137,35 @@ def test_rule_candidates_are_the_rules_gamma_bit_for_bit(trial):
     assert len(seen) > 10  # the candidates move with the state
 
 
+def _the_last_candidate_is(trial, teacher, key: str, rule) -> set:
+    """Asserts that the teacher's last state candidate is ``rule``'s γ on the extended observation, bit for bit
+    the student's (run.yaml student ``key``), which the student also sees after each block (on the features of
+    now, 8 and 32 decisions before); returns the γ seen."""
+    inputs = inputs_for(KALMAN_ID)
+    meta = inputs.meta(teacher)
+    assert meta[key] == getattr(teacher, f"{key}_params") and inputs.n_state_candidates(meta) == 3
+    seen = set()
+    for obs, student in _student_and_teacher_candidates(trial, teacher, meta):
+        assert student[2, 0] == rule.weight(obs[[EXTENDED.index(n) for n in rule.features]])
+        x = inputs(obs, meta)[0]
+        block = len(obs) // 3
+        assert x.size == obs.size + 3 * 3 and x[block + 2] == np.float32(student[2, 0])
+        for b in (1, 2):  # the lagged blocks
+            shifted = obs.copy()
+            shifted[:block] = obs[b * block : (b + 1) * block]
+            lagged = rule.weight(shifted[[EXTENDED.index(n) for n in rule.features]])
+            assert x[b * (block + 3) + block + 2] == np.float32(lagged)
+        seen.add(float(student[2, 0]))
+    return seen
+
+
 def test_the_still_candidate_is_kf_still_tuned_bit_for_bit(trial):
     """``oracle_kalman_still`` searches, after the two rules' γ, kf_still_tuned's γ on the extended observation;
     the student computes the same number from that observation (and sees it after each block), and the
     oracle's own run uses an extended runner."""
     oracle = registry.make("oracle_kalman_still")
     still = registry.make("kf_still_tuned")
-    inputs = inputs_for(KALMAN_ID)
-    meta = inputs.meta(oracle)
-    assert meta["still"] == oracle.still_params and inputs.n_state_candidates(meta) == 3
-    seen = set()
-    for obs, student in _student_and_teacher_candidates(trial, oracle, meta):
-        assert student[2, 0] == still.weight(obs[[EXTENDED.index(n) for n in still.features]])
-        x = inputs(obs, meta)[0]
-        block = len(obs) // 3
-        assert x.size == obs.size + 3 * 3 and x[block + 2] == np.float32(student[2, 0])
-        for b in (1, 2):  # the lagged blocks: kf_still's γ on the features of 8 and 32 decisions before
-            shifted = obs.copy()
-            shifted[:block] = obs[b * block : (b + 1) * block]
-            lagged = still.weight(shifted[[EXTENDED.index(n) for n in still.features]])
-            assert x[b * (block + 3) + block + 2] == np.float32(lagged)
-        seen.add(float(student[2, 0]))
+    seen = _the_last_candidate_is(trial, oracle, "still", still)
     assert len(seen) > 5 and 0.0 in seen  # it moves with the state and refuses where the anchor disagrees
     with pytest.raises(ValueError, match="extended runner"):
         oracle.state_candidates(KalmanRunner(trial))
@@ -240,18 +248,7 @@ def test_the_perp_teacher_adds_kf_perp_tuned_on_dynamic_magnet_trials_only(trial
     extended observation, which costs inf on a trial of another scenario than ``dynamic_magnet``; its student
     computes that γ bit for bit from the observation and sees it after each block."""
     teacher, skip = registry.make("oracle_kalman_perp"), registry.make("oracle_kalman_skip")
-    perp = registry.make("kf_perp_tuned")
-    inputs = inputs_for(KALMAN_ID)
-    meta = inputs.meta(teacher)
-    assert meta["perp"] == teacher.perp_params and inputs.n_state_candidates(meta) == 3
-    seen = set()
-    for obs, student in _student_and_teacher_candidates(trial, teacher, meta):
-        assert student[2, 0] == perp.weight(obs[[EXTENDED.index(n) for n in perp.features]])
-        x = inputs(obs, meta)[0]
-        block = len(obs) // 3
-        assert x.size == obs.size + 3 * 3 and x[block + 2] == np.float32(student[2, 0])
-        seen.add(float(student[2, 0]))
-    assert len(seen) > 5
+    assert len(_the_last_candidate_is(trial, teacher, "perp", registry.make("kf_perp_tuned"))) > 5
     on_dynamic = dataclasses.replace(trial, meta={**trial.meta, "scenario": "dynamic_magnet"})
     for tr, offered in ((trial, False), (on_dynamic, True)):
         runner = KalmanRunner(tr, extended=True)
