@@ -117,11 +117,21 @@ class KalmanInputs(StudentInputs):
         from magenv.envs.kalman import EXTENDED
 
         sd, p_min, g_pull, i_min = (float(v) for v in meta["perp"])
-        i_p, i_i = EXTENDED.index("pull_perp"), EXTENDED.index("perp_info")
-        ((a, b, c),) = KalmanInputs.rule_terms(blk.astype(np.float64), {"scales": [sd, math.inf, math.inf]})
-        g = 1.0 / (1.0 + a + b + c)  # kf_model's, summed from 1 as the rule's ``weight``
-        pulled = np.where(blk[:, i_p].astype(np.float64) > p_min, np.maximum(g, g_pull), 0.0)
-        return np.where(blk[:, i_i].astype(np.float64) < i_min, g, pulled)
+        i_i = EXTENDED.index("perp_info")
+        bypass = blk[:, i_i].astype(np.float64) < i_min  # d_perp sees too little heading: kf_model's γ
+        return KalmanInputs.pull_gated(blk, [sd, math.inf, math.inf], bypass, "pull_perp", p_min, g_pull)
+
+    @staticmethod
+    def pull_gated(blk: np.ndarray, scales, bypass: np.ndarray, pull: str, p_min: float, g_pull: float) -> np.ndarray:
+        """(D,) float64 the pull gate of kf_still and kf_perp (``kalman_policies._pull_gate``) on (D, ≥ block)
+        features: the base rule's γ (``scales`` (σ_d, σ_m, σ_θ)) where ``bypass``, else max(γ, γ_pull) where the
+        feature ``pull`` > p_min, else 0 — in float64 (the rule's arithmetic) also for float32 inputs."""
+        from magenv.envs.kalman import EXTENDED
+
+        ((a, b, c),) = KalmanInputs.rule_terms(blk.astype(np.float64), {"scales": scales})
+        g = 1.0 / (1.0 + a + b + c)  # summed from 1 as the rule's ``weight``
+        pulled = np.where(blk[:, EXTENDED.index(pull)].astype(np.float64) > p_min, np.maximum(g, g_pull), 0.0)
+        return np.where(bypass, g, pulled)
 
     @staticmethod
     def still_gamma(blk: np.ndarray, meta: dict) -> np.ndarray:
@@ -129,12 +139,8 @@ class KalmanInputs(StudentInputs):
         from magenv.envs.kalman import EXTENDED
 
         sm, sth, p_min, g_pull = (float(v) for v in meta["still"])
-        i_t, i_p = EXTENDED.index("t_anchor"), EXTENDED.index("pull_still")
-        terms = KalmanInputs.rule_terms(blk.astype(np.float64), {"scales": [math.inf, sm, sth]})  # kf_adaptive's,
-        ((a, b, c),) = terms  # in float64 (the rule's arithmetic) also for float32 inputs; a = 0
-        g = 1.0 / (1.0 + a + b + c)  # summed from 1 as the rule's ``weight``
-        pulled = np.where(blk[:, i_p].astype(np.float64) > p_min, np.maximum(g, g_pull), 0.0)
-        return np.where(blk[:, i_t] <= 0.0, g, pulled)
+        bypass = blk[:, EXTENDED.index("t_anchor")] <= 0.0  # clean now: kf_adaptive's γ
+        return KalmanInputs.pull_gated(blk, [math.inf, sm, sth], bypass, "pull_still", p_min, g_pull)
 
     @staticmethod
     def rule_terms(blk: np.ndarray, meta: dict) -> list[tuple]:

@@ -30,7 +30,7 @@ error of eq. 22 (``magenv.metrics.errors1``; samples without truth add 0):
 what the trial's RMSE adds up. The cheapest candidate is applied for k
 samples, then the search repeats from the new state.
 
-Three options (all off in the packaged ``oracle_kalman``):
+Four options (all off in the packaged ``oracle_kalman``):
 
 * ``rule_candidates``: the γ that the continuation rule and each ``proposals``
   rule give on the env's observation of the current state are searched as
