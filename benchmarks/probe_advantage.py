@@ -1,7 +1,7 @@
 """Probe: do a DAgger student's causal inputs say when departing from the rule pays, on trials it was not fitted on?
 
     .venv/bin/python benchmarks/probe_advantage.py [--env qsf|constraint|kalman] [--trials 24] [--folds 8] [--history]
-        [--json FILE]
+        [--horizon S] [--label-every N] [--truth] [--json FILE]
 
 It rolls the teacher's continuation rule on ``--trials`` training trials
 (seeds 10000, …) of the test where the student misses its target and labels,
@@ -28,8 +28,15 @@ and the advantage summed where the prediction is positive (a student departing
 there) against where the truth is (the oracle's choice) and everywhere. With
 ``--history`` the inputs also carry their causal exponential moving averages
 over ``HISTORY_DECISIONS`` decisions along the trial (a proxy for what a
-recurrent student could draw from a longer past). This is a measurement (it
-prints figures), not a test.
+recurrent student could draw from a longer past). ``--horizon S`` labels with
+a look-ahead of S seconds instead of the teacher's own (what a start or a
+refusal costs over longer than the teacher sees), ``--label-every N`` only
+every N-th decision (long look-aheads are expensive). ``--truth`` also fits on
+privileged inputs alone: the estimate's true signed heading error (yaw of
+q̂ ⊗ q_true*, °, ``magenv.metrics.euler_error``) at the decision and
+``TRUTH_LAGS`` decisions earlier, and its magnitude — if even these do not
+predict the advantage, it depends on what comes next, not on the state. This
+is a measurement (it prints figures), not a test.
 """
 
 from __future__ import annotations
@@ -41,7 +48,7 @@ import time
 import numpy as np
 
 import magenv  # noqa: F401
-from magenv import registry
+from magenv import metrics, registry
 from magenv.agents import dagger
 from magenv.agents.student_inputs import inputs_for
 from magenv.scenarios import make_trial
@@ -57,6 +64,7 @@ PROBES = {
 CLIP = 20.0  # units: a few diverged roll-outs otherwise decide the fits
 RIDGES = (1.0, 100.0, 1.0e4)
 HISTORY_DECISIONS = (10.0, 40.0, 160.0)  # EMA time constants of --history, in decisions
+TRUTH_LAGS = (10, 40)  # decisions: the true heading error this many decisions earlier is a --truth input too
 
 
 def with_history(x: np.ndarray) -> np.ndarray:
@@ -72,32 +80,46 @@ def with_history(x: np.ndarray) -> np.ndarray:
     return np.concatenate(out, 1)
 
 
-def labelled(env: str, n_trials: int, history: bool = False):
-    """(inputs (D, n_in), {departure: its advantage over the rule (D,)}, trial index (D,)) at the probed decisions;
-    ``history``: the inputs followed by their EMAs (:func:`with_history`, over all of a trial's decisions)."""
+def labelled(env: str, n_trials: int, history: bool = False, horizon_s: float | None = None, label_every: int = 1):
+    """(inputs (D, n_in), {departure: its advantage over the rule (D,)}, trial index (D,), privileged inputs (D, 4))
+    at the probed decisions. ``history``: the inputs followed by their EMAs (:func:`with_history`, over the labelled
+    decisions of a trial); ``horizon_s``: the teacher's look-ahead (None: its own); ``label_every``: one decision in
+    that many is labelled. The privileged inputs: the true signed heading error (°) at the decision and
+    ``TRUTH_LAGS`` decisions earlier, and its magnitude."""
     scenario, name, rule_col, departures = PROBES[env]
     teacher = registry.make(name)
+    if horizon_s is not None:
+        teacher.horizon_s = horizon_s  # every oracle reads its look-ahead from this attribute at each search
     inputs = inputs_for(teacher.env_id)
     meta = inputs.meta(teacher)
     kwargs = dagger.student_env_kwargs(inputs, teacher, teacher.decision_every)
     episodes = dagger.teacher_episodes(teacher.env_id, kwargs, teacher, inputs, meta, teacher.candidates)
     horizon = int(round(teacher.horizon_s * make_trial(scenario, 10000).rate))
 
-    def rule(o, runner, costs):
-        return teacher.continuation_action(runner)
-
-    xs, groups, ys = [], [], {d: [] for d in departures}
+    xs, groups, ys, privileged = [], [], {d: [] for d in departures}, []
     for i in range(n_trials):
         trial = make_trial(scenario, 10000 + i)
-        lab = episodes.run(trial, rule)
+        fused = []  # samples fused before each decision
+
+        def rule(o, runner, costs, fused=fused):
+            fused.append(runner.pos)
+            return teacher.continuation_action(runner)
+
+        lab = episodes.run(trial, rule, label_every)
+        yaw = metrics.euler_error(episodes.env(trial).estimate, trial.q_true)[:, 0]
+        yaw = np.nan_to_num(yaw)[np.maximum(np.array(fused) - 1, 0)]  # at the last sample fused (0 before any)
+        d = np.arange(0, len(fused), label_every)
+        truth = np.c_[yaw[d], *(yaw[np.maximum(d - lag, 0)] for lag in TRUTH_LAGS), np.abs(yaw[d])]
         regret = dagger.regret_units(lab.costs, horizon, lab.rmse**2)
         at = lab.rule == rule_col
-        x = inputs(lab.obs, meta)
-        xs.append((with_history(np.asarray(x, np.float64)) if history else x)[at])
+        x = np.asarray(inputs(lab.obs, meta), np.float64)
+        xs.append((with_history(x) if history else x)[at])  # EMAs over the labelled decisions
+        privileged.append(truth[at])
         groups.append(np.full(int(at.sum()), i))
-        for d, col in departures.items():
-            ys[d].append(np.clip(regret[at, rule_col] - regret[at, col], -CLIP, CLIP))
-    return np.concatenate(xs), {d: np.concatenate(y) for d, y in ys.items()}, np.concatenate(groups)
+        for dep, col in departures.items():
+            ys[dep].append(np.clip(regret[at, rule_col] - regret[at, col], -CLIP, CLIP))
+    ys = {dep: np.concatenate(y) for dep, y in ys.items()}
+    return np.concatenate(xs), ys, np.concatenate(groups), np.concatenate(privileged)
 
 
 def ridge(lam: float):
@@ -129,6 +151,31 @@ def mlp(x, y, x_test, hidden: int = 64, epochs: int = 30, seed: int = 0):
         return net(torch.as_tensor(x_test, dtype=torch.float32))[:, 0].numpy()
 
 
+def probe(x, y, fold, folds: int) -> dict:
+    """Per model: mean held-out R² and correlation over the folds, and the advantage summed on the held-out trials
+    where the prediction is positive (``gain``) and where the truth is (``truth_gain``)."""
+    models = {f"ridge λ={lam:g}": ridge(lam) for lam in RIDGES}
+    models["MLP 64 tanh"] = mlp
+    result = {}
+    for name, fit_predict in models.items():
+        r2, corr, gain, best = [], [], 0.0, 0.0
+        for k in range(folds):
+            train, test = fold != k, fold == k
+            mu, sd = x[train].mean(0), x[train].std(0) + 1e-6
+            p = fit_predict((x[train] - mu) / sd, y[train], (x[test] - mu) / sd)
+            yt = y[test]
+            r2.append(1.0 - np.mean((p - yt) ** 2) / np.var(yt))
+            corr.append(float(np.corrcoef(p, yt)[0, 1]))
+            gain += float(yt[p > 0].sum())
+            best += float(yt[yt > 0].sum())
+        result[name] = {"r2": float(np.mean(r2)), "corr": float(np.mean(corr)), "corr_by_fold": corr,
+                        "gain": gain, "truth_gain": best}  # fmt: skip
+        print(f"  {name:14s} held-out R² {np.mean(r2):6.2f}, correlation {np.mean(corr):5.2f} "
+              f"(folds {min(corr):.2f}…{max(corr):.2f}); departing where predicted > 0 saves {gain:8.0f} units "
+              f"(the truth's choice {best:.0f})")  # fmt: skip
+    return result
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--env", choices=sorted(PROBES), default="qsf")
@@ -136,42 +183,35 @@ def main() -> None:
     ap.add_argument("--folds", type=int, default=8)
     taus = ", ".join(f"{t:g}" for t in HISTORY_DECISIONS)
     ap.add_argument("--history", action="store_true", help=f"the inputs' EMAs over {taus} decisions too")
+    ap.add_argument("--horizon", type=float, default=None, help="look-ahead of the labels, s (default: the teacher's)")
+    ap.add_argument("--label-every", type=int, default=1, help="label one decision in N")
+    ap.add_argument("--truth", action="store_true", help="also fit on the true signed heading error (privileged)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     if args.trials < 2 or not 2 <= args.folds <= args.trials:
         ap.error("need --trials ≥ 2 and 2 ≤ --folds ≤ --trials")
+    if args.label_every < 1 or (args.horizon is not None and not args.horizon > 0):
+        ap.error("need --label-every ≥ 1 and --horizon > 0")
     t = time.time()
-    x, advantages, trial = labelled(args.env, args.trials, args.history)
+    x, advantages, trial, truth = labelled(args.env, args.trials, args.history, args.horizon, args.label_every)
     fold = trial % args.folds
     scenario = PROBES[args.env][0]
     print(f"{scenario}: {len(x)} decisions of the rule's probed candidate on {args.trials} trials "
           f"({time.time() - t:.0f} s)")  # fmt: skip
-    models = {f"ridge λ={lam:g}": ridge(lam) for lam in RIDGES}
-    models["MLP 64 tanh"] = mlp
     result: dict = {}
     for departure, y in advantages.items():
         print(f"{departure} instead of the rule: it pays at {np.mean(y > 0):.0%} of them; departing at every one "
               f"saves {y.sum():.0f} units")  # fmt: skip
-        result[departure] = {"always": float(y.sum())}
-        for name, fit_predict in models.items():
-            r2, corr, gain, best = [], [], 0.0, 0.0
-            for k in range(args.folds):
-                train, test = fold != k, fold == k
-                mu, sd = x[train].mean(0), x[train].std(0) + 1e-6
-                p = fit_predict((x[train] - mu) / sd, y[train], (x[test] - mu) / sd)
-                yt = y[test]
-                r2.append(1.0 - np.mean((p - yt) ** 2) / np.var(yt))
-                corr.append(float(np.corrcoef(p, yt)[0, 1]))
-                gain += float(yt[p > 0].sum())
-                best += float(yt[yt > 0].sum())
-            result[departure][name] = {"r2": float(np.mean(r2)), "corr": float(np.mean(corr)),
-                                       "corr_by_fold": corr, "gain": gain, "truth_gain": best}  # fmt: skip
-            print(f"  {name:14s} held-out R² {np.mean(r2):6.2f}, correlation {np.mean(corr):5.2f} "
-                  f"(folds {min(corr):.2f}…{max(corr):.2f}); departing where predicted > 0 saves {gain:8.0f} units "
-                  f"(the truth's choice {best:.0f})")  # fmt: skip
+        result[departure] = {"always": float(y.sum()), **probe(x, y, fold, args.folds)}
+        if args.truth:
+            lags = ", ".join(str(lag) for lag in TRUTH_LAGS)
+            print(f" from the true signed heading error (now, {lags} decisions earlier) and its magnitude:")
+            result[departure]["truth"] = probe(truth, y, fold, args.folds)
     if args.json:
+        options = {"horizon_s": args.horizon, "label_every": args.label_every, "history": args.history}
         with open(args.json, "w") as f:
-            json.dump({"scenario": scenario, "trials": args.trials, "folds": args.folds, **result}, f, indent=1)
+            json.dump({"scenario": scenario, "trials": args.trials, "folds": args.folds, **options, **result}, f,
+                      indent=1)  # fmt: skip
 
 
 if __name__ == "__main__":
