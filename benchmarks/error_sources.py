@@ -15,18 +15,22 @@ seeds by default (an analysis, not a reported target); it prints figures, nothin
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import numpy as np
 
 import magenv  # noqa: F401
 from magenv import evaluation, registry
 from magenv.scenarios import make_trial
+from magenv.scenarios.twolink import MTW
 from magenv.stats import paired_ratio
 from magenv.train.seeds import seeds_arg
 
 NO_BIAS = {"gyro_bias": (0.0, 0.0, 0.0)}  # the bias the paper adds to link i's gyroscope (§3.1)
 NO_LAB = {"lab_inhomogeneity": 0.0}  # the lab's weak field inhomogeneity
 NO_TOOL = {"tool_moment": 0.0}  # the magnetised tool's approaches
+#: the sensors' constant errors: accelerometer bias, the magnetometer's residual hard- and soft-iron
+NO_OFFSETS = {"sensor": dataclasses.replace(MTW, acc_bias=0.0, mag_hard_iron_ut=0.0, mag_soft_iron=0.0)}
 #: case → scenario overrides
 REMOVED = {
     "as simulated": {},
@@ -35,6 +39,8 @@ REMOVED = {
     "no tool": NO_TOOL,
     "no lab field, no tool": {**NO_LAB, **NO_TOOL},
     "none of the three": {**NO_BIAS, **NO_LAB, **NO_TOOL},
+    "no sensor offsets": NO_OFFSETS,
+    "none of the four": {**NO_BIAS, **NO_LAB, **NO_TOOL, **NO_OFFSETS},
 }
 
 
