@@ -10,8 +10,9 @@ advantage of one departure over the rule (the regret of the rule's candidate
 minus that of the departure, in ``magenv.agents.dagger``'s unit: % of the
 trial's rule MSE per look-ahead; clipped at ±20; > 0: the departure pays):
 
-* ``qsf`` — ``handheld_texting``, ``oracle_qsf``: starting a new QSF period where the tuned detector keeps its
-  period (candidates none, keep .3, keep 1, start);
+* ``qsf`` — ``handheld_texting``, ``oracle_qsf``: starting a new QSF period, refusing the magnetometer (none)
+  and keeping the period with trust 0.3 where the tuned detector keeps its period with trust 1 (candidates none,
+  keep .3, keep 1, start);
 * ``constraint`` — ``constraint_test1``, ``oracle_constraint_rules``: the magnetometer alone (w = 0, eq. 15's
   weights (1 − w) on it, w on the constraint) and the constraint alone (w = 1, the magnetometer refused) instead
   of the rule's own w (candidates w 0, .25, .5, .75, 1, the rule's w);
@@ -57,7 +58,7 @@ from magenv.scenarios import make_trial
 #: where the rule's candidate is the given one (``dagger.Labelled.rule``; constraint: the rule's w is the last;
 #: kalman: kf_model_tuned's γ, the first of the three rules' γ)
 PROBES = {
-    "qsf": ("handheld_texting", "oracle_qsf", 2, {"start": 3}),
+    "qsf": ("handheld_texting", "oracle_qsf", 2, {"start": 3, "none": 0, "keep, trust 0.3": 1}),
     "constraint": ("constraint_test1", "oracle_constraint_rules", 5, {"w = 0": 0, "w = 1": 4}),
     "kalman": ("dynamic_magnet", "oracle_kalman_still", 4, {"γ = 0": 0, "γ = 1": 3}),
 }
