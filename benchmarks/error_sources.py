@@ -3,34 +3,36 @@
     .venv/bin/python benchmarks/error_sources.py [--scenario constraint_test1] [--methods cf_constraint_tuned,…]
         [--seeds 10000:10016]
 
-It simulates the same seeds of a two-link scenario (``magenv.scenarios.twolink``) as they are and with the
+It simulates the same seeds of a two-link test (``magenv.scenarios.twolink``) as they are and with the
 sources of ``REMOVED`` taken out (scenario overrides: every other stream of the trial stays bit for bit the same),
 runs each method (a registry name, or ``agent:RUN`` / ``agent:pretrained:ENV_ID``) on every version and prints
 the mean total RMSE (°) and the paired ratio to the trials as simulated (geometric mean with its bootstrap 95 %
 interval, ``magenv.stats.paired_ratio``). Where the error barely falls with every source removed, it is the
-filter's own (sensor noise and the accelerometer under external acceleration), not the disturbances'. Training
-seeds by default (an analysis, not a reported target); it prints figures, nothing here is a test.
+filter's own (the sensors' noise and bias drift, the accelerometer under external acceleration), not the
+disturbances'. Training seeds by default (an analysis, not a reported target); it prints figures, nothing here is
+a test.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 import numpy as np
 
 import magenv  # noqa: F401
 from magenv import evaluation, registry
 from magenv.scenarios import make_trial
-from magenv.scenarios.twolink import MTW
 from magenv.stats import paired_ratio
 from magenv.train.seeds import seeds_arg
 
-NO_BIAS = {"gyro_bias": (0.0, 0.0, 0.0)}  # the bias the paper adds to link i's gyroscope (§3.1)
-NO_LAB = {"lab_inhomogeneity": 0.0}  # the lab's weak field inhomogeneity
-NO_TOOL = {"tool_moment": 0.0}  # the magnetised tool's approaches
-#: the sensors' constant errors: accelerometer bias, the magnetometer's residual hard- and soft-iron
-NO_OFFSETS = {"sensor": dataclasses.replace(MTW, acc_bias=0.0, mag_hard_iron_ut=0.0, mag_soft_iron=0.0)}
+NO_BIAS = {"gyro_bias": (0.0, 0.0, 0.0)}  # rad/s: the bias the paper adds to link i's gyroscope (§3.1)
+NO_LAB = {"lab_inhomogeneity": 0.0}  # fraction of m0: the lab's weak field inhomogeneity
+NO_TOOL = {"tool_moment": 0.0}  # A·m²: the magnetised tool's approaches
+#: the sensors' constant errors (fields of the scenario's own ``SensorConfig``): accelerometer bias (m/s²), the
+#: magnetometer's residual hard iron (µT) and soft iron (dimensionless)
+NO_OFFSETS = {"acc_bias": 0.0, "mag_hard_iron_ut": 0.0, "mag_soft_iron": 0.0}
+#: the fixed tests (``constraint_random`` draws its bias, lab field and tool per trial and ignores these fields)
+TESTS = ("constraint_test1", "constraint_test2", "constraint_test3")
 #: case → scenario overrides
 REMOVED = {
     "as simulated": {},
@@ -46,7 +48,7 @@ REMOVED = {
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scenario", default="constraint_test1")
+    ap.add_argument("--scenario", choices=TESTS, default="constraint_test1")
     ap.add_argument("--methods", default="cf_constraint_tuned")
     ap.add_argument("--seeds", type=seeds_arg, default="10000:10016")
     args = ap.parse_args()

@@ -29,15 +29,16 @@ and the advantage summed where the prediction is positive (a student departing
 there) against where the truth is (the oracle's choice) and everywhere. With
 ``--history`` the inputs also carry their causal exponential moving averages
 over ``HISTORY_DECISIONS`` decisions along the trial (a proxy for what a
-recurrent student could draw from a longer past). ``--horizon S`` labels with
-a look-ahead of S seconds instead of the teacher's own (what a start or a
-refusal costs over longer than the teacher sees), ``--label-every N`` only
-every N-th decision (long look-aheads are expensive). ``--truth`` also fits on
-privileged inputs alone: the estimate's true signed heading error (yaw of
-q̂ ⊗ q_true*, °, ``magenv.metrics.euler_error``) at the decision and
-``TRUTH_LAGS`` decisions earlier, and its magnitude — if even these do not
-predict the advantage, it depends on what comes next, not on the state. This
-is a measurement (it prints figures), not a test.
+recurrent student could draw from a longer past; time constants in labelled
+decisions). ``--horizon S`` labels with a look-ahead of S seconds (cut short
+at a trial's end) instead of the teacher's own (what a start or a refusal
+costs over longer than the teacher sees), ``--label-every N`` only every N-th
+decision (long look-aheads are expensive). ``--truth`` also fits on privileged
+inputs alone: the estimate's true signed heading error (yaw of q̂ ⊗ q_true*,
+°, ``magenv.metrics.euler_error``) at the decision and ``TRUTH_LAGS``
+decisions earlier, and its magnitude — if even these do not predict the
+advantage, what the student lacks is not its own error. This is a measurement
+(it prints figures), not a test.
 """
 
 from __future__ import annotations
@@ -84,9 +85,11 @@ def with_history(x: np.ndarray) -> np.ndarray:
 def labelled(env: str, n_trials: int, history: bool = False, horizon_s: float | None = None, label_every: int = 1):
     """(inputs (D, n_in), {departure: its advantage over the rule (D,)}, trial index (D,), privileged inputs (D, 4))
     at the probed decisions. ``history``: the inputs followed by their EMAs (:func:`with_history`, over the labelled
-    decisions of a trial); ``horizon_s``: the teacher's look-ahead (None: its own); ``label_every``: one decision in
-    that many is labelled. The privileged inputs: the true signed heading error (°) at the decision and
-    ``TRUTH_LAGS`` decisions earlier, and its magnitude."""
+    decisions of a trial: with ``label_every`` N each time constant spans N times as many decisions);
+    ``horizon_s``: the teacher's look-ahead, s (None: its own; cut short at the trial's end, as the teacher's is);
+    ``label_every``: one decision in that many is labelled. The privileged inputs: the true signed heading error (°)
+    at the decision and ``TRUTH_LAGS`` decisions earlier (the first decision's value before it), and its
+    magnitude."""
     scenario, name, rule_col, departures = PROBES[env]
     teacher = registry.make(name)
     if horizon_s is not None:
@@ -96,6 +99,8 @@ def labelled(env: str, n_trials: int, history: bool = False, horizon_s: float | 
     kwargs = dagger.student_env_kwargs(inputs, teacher, teacher.decision_every)
     episodes = dagger.teacher_episodes(teacher.env_id, kwargs, teacher, inputs, meta, teacher.candidates)
     horizon = int(round(teacher.horizon_s * make_trial(scenario, 10000).rate))
+    if horizon < 1:
+        raise ValueError(f"a look-ahead of {teacher.horizon_s} s is under one sample")
 
     xs, groups, ys, privileged = [], [], {d: [] for d in departures}, []
     for i in range(n_trials):
@@ -183,7 +188,7 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=24)
     ap.add_argument("--folds", type=int, default=8)
     taus = ", ".join(f"{t:g}" for t in HISTORY_DECISIONS)
-    ap.add_argument("--history", action="store_true", help=f"the inputs' EMAs over {taus} decisions too")
+    ap.add_argument("--history", action="store_true", help=f"the inputs' EMAs over {taus} labelled decisions too")
     ap.add_argument("--horizon", type=float, default=None, help="look-ahead of the labels, s (default: the teacher's)")
     ap.add_argument("--label-every", type=int, default=1, help="label one decision in N")
     ap.add_argument("--truth", action="store_true", help="also fit on the true signed heading error (privileged)")
