@@ -202,7 +202,6 @@ class KalmanOracle:
             if extra is not None:
                 self.extras += ((name, extra, None if scenarios is None else tuple(scenarios)),)
         self.still, self.perp = still, perp
-        self.still_scenarios = None if still_scenarios is None else tuple(still_scenarios)
         self.scales = rule_scales(self.rule)
         self.proposals = tuple(proposals)
         self.proposal_scales = [rule_scales(p) for p in proposals]
@@ -228,6 +227,11 @@ class KalmanOracle:
         """(σ_m µT, σ_θ °, p_min °, γ_pull) of ``still``, or None."""
         s = self.still
         return None if s is None else [s.sigma_mag_ut, s.sigma_dip_deg, s.pull_min_deg, s.gamma_pull]
+
+    @property
+    def still_scenarios(self) -> tuple[str, ...] | None:
+        """The scenarios the ``still`` candidate is on offer on (None: all, or no still rule)."""
+        return next((on for name, _, on in self.extras if name == "still"), None)
 
     @property
     def perp_params(self) -> list[float] | None:

@@ -52,12 +52,13 @@ def main() -> None:
     ap.add_argument("--methods", default="cf_constraint_tuned")
     ap.add_argument("--seeds", type=seeds_arg, default="10000:10016")
     args = ap.parse_args()
+    runner = evaluation.PolicyRunner()  # one env per policy, reused over the trials
     for name in args.methods.split(","):
         method = registry.make(name)
         totals = {
             case: np.array(
                 [
-                    evaluation.run_method(name, method, make_trial(args.scenario, s, **overrides)).score.total
+                    evaluation.run_method(name, method, make_trial(args.scenario, s, **overrides), runner).scored.total
                     for s in args.seeds
                 ]
             )
