@@ -161,3 +161,40 @@ def test_bias_corrected_twin_follows_the_estimate_a_bias_free_gyro_would_give(co
     assert abs(ext.feat[names.index("d_btwin")] - expected) < 0.15 * abs(expected)
     drift = np.rad2deg(rotate1(q, bias)[2])
     assert abs(ext.feat[names.index("drift")] - drift) < 0.15 * abs(drift)
+
+
+def test_constraint_error_estimate_tracks_the_tilt_error_and_steps_are_eq14s():
+    """`cerr_*` estimate the earth-frame error of link i's estimate from the constraint alone: its east and north
+    (tilt) components follow the true error along a roll-out of random w; `step*` are eq. 14's steps as
+    earth-frame rotations (exp(ε·r) ⊗ q ≈ q + ε·Δq)."""
+    from magenv import metrics
+    from magenv import quaternion as quat
+    from magenv.filters import constraint as cf
+
+    trial = scenarios.make_trial("constraint_test1", 1, duration=20.0)
+    ext = constraint.ConstraintRunner(trial, True)
+    rng = np.random.default_rng(1)
+    names = constraint.EXTENDED.names
+    cols = [names.index(n) for n in ("cerr_e_05", "cerr_n_05", "cerr_e_2", "cerr_n_2")]
+    est, at = [], []
+    while not ext.done:
+        ext.advance(4, (float(rng.uniform()), None))
+        if not ext.done:
+            est.append(ext.feat[cols].copy())
+            at.append(ext.pos - 1)
+            if len(at) == 300:  # the steps at one decision, from the env's own state
+                q, (seen, ref, con) = ext.est[ext.pos - 1], cf.directions(ext.filter.params, ext.filter.inputs, ext.pos)
+                for w, first in ((0.0, "step0_e"), (1.0, "step1_e")):
+                    dq, jac = np.zeros(4), np.empty((9, 4))
+                    cf.gn_step(q, seen, ref, w, con, jac, dq)
+                    r = np.deg2rad(ext.feat[names.index(first) : names.index(first) + 3])
+                    eps = 1e-4
+                    moved = quat.mul(quat.from_rotvec(eps * r), q)
+                    np.testing.assert_allclose(moved, (q + eps * dq) / np.linalg.norm(q + eps * dq), atol=1e-9)
+    err = np.rad2deg(quat.to_rotvec(metrics.error_quaternion(ext.est, trial.q_true)))[at]
+    assert len(at) > 300
+    est, late = np.array(est), np.array(at) >= 300  # after the 3 s at rest
+    for c, (k, axis) in enumerate(((0, 0), (1, 1), (2, 0), (3, 1))):
+        truth, guess = err[late, axis], est[late, k]
+        assert np.corrcoef(truth, guess)[0, 1] > 0.8, names[cols[c]]
+        assert np.sqrt(np.mean((truth - guess) ** 2)) < 0.5 * truth.std(), names[cols[c]]

@@ -32,6 +32,23 @@ detector's gyro threshold is never learned (rest is never flagged). The
 (and k) the env applied at each sample, k by eq. 18 where the env took it so
 (the estimate had the gyro been corrected); one with w = 1 (the constraint
 alone, k by eq. 18).
+
+Constraint error estimate: the *error* of an orientation q is the earth-frame
+rotation vector δθ of q ⊗ q_true* (° , components east, north, up), so a
+correction r (an earth-frame rotation applied as exp(r) ⊗ q) takes it to
+≈ δθ + r. Link j's orientation is known, so eq. 9's mismatch is
+C(q)h_i − C(q_j)h_j ≈ δθ × v with v = C(q)h_i (m/s²): each sample gives the
+two components of δθ across v (tilt, since v ≈ g·up; heading only as far as
+the joint centre accelerates horizontally). The mismatch is taken against a
+*gyro frame* q_g — the bias-corrected gyro (ω_i − b̂) integrated from the
+start q0 — whose error changes only with the gyro's noise and residual bias,
+and solved by least squares with forgetting: δθ_g = (Σ SᵀS)⁻¹ Σ −Sᵀ(C(q_g)h_i
+− C(q_j)h_j), S = [C(q_g)h_i]×, each sum an EMA of time constant τ (per
+sample weight Δt/τ; a ridge of 10⁻³ (m/s²)² keeps it solvable before any
+motion). The estimate's own error is then that of (q ⊗ q_g*) ⊗ exp(δθ_g),
+exact given δθ_g. The *steps* are eq. 14's Gauss–Newton step Δq at the
+estimate with the next sample's directions, as the earth-frame rotation
+2·vec(Δq ⊗ q*) (° per unit gain): where one points against δθ, it corrects.
 """
 
 from __future__ import annotations
@@ -46,10 +63,11 @@ from magenv.envs.features import Feature, FeatureTable
 from magenv.envs.headings import dip_deg, norm3, planar_heading, wrap_deg
 from magenv.filters import constraint as cf
 from magenv.filters import stationary
-from magenv.quaternion import GRAVITY, rotate1
+from magenv.quaternion import GRAVITY, conj1, from_rotvec1, integrate_gyro1, mul1, rotate1, to_rotvec1
 
 _DEG = "°"
 _HEADING = -180.0, 180.0
+_ERR = -30.0, 30.0  # degrees: the range of the error estimates
 EXTRA = FeatureTable(
     Feature("mh_ema_025", *_HEADING, _DEG, "EMA (τ 0.25 s) of the mag heading"),
     Feature("mh_ema_1", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading"),
@@ -79,17 +97,36 @@ EXTRA = FeatureTable(
     Feature("d_btwin", *_HEADING, _DEG, "heading(q_bt ⊗ q*), q_bt the parallel filter on ω_i − b̂ with the w applied"),
     Feature("d_bcon", *_HEADING, _DEG, "heading(q_bc ⊗ q*), q_bc the parallel w = 1 filter on ω_i − b̂"),
     Feature("drift", -5.0, 5.0, "°/s", "C(q)b̂'s up component: the heading drift b̂ causes (+ anticlockwise, as d_*)"),
+    Feature("cerr_e_05", *_ERR, _DEG, "constraint error estimate of q (τ 0.5 s), east component (tilt)"),
+    Feature("cerr_n_05", *_ERR, _DEG, "as `cerr_e_05`, north component (tilt)"),
+    Feature("cerr_e_2", *_ERR, _DEG, "constraint error estimate of q (τ 2 s), east component"),
+    Feature("cerr_n_2", *_ERR, _DEG, "as `cerr_e_2`, north component"),
+    Feature("cerr_e_30", *_ERR, _DEG, "constraint error estimate of q (τ 30 s), east component"),
+    Feature("cerr_n_30", *_ERR, _DEG, "as `cerr_e_30`, north component"),
+    Feature("cerr_u_30", *_ERR, _DEG, "as `cerr_e_30`, up component (heading: only as the joint centre accelerates)"),
+    Feature("step0_e", *_HEADING, "° per unit gain", "step with w = 0 (gravity + magnetometer), east component"),
+    Feature("step0_n", *_HEADING, "° per unit gain", "as `step0_e`, north component"),
+    Feature("step0_u", *_HEADING, "° per unit gain", "as `step0_e`, up component"),
+    Feature("step1_e", *_HEADING, "° per unit gain", "step with w = 1 (gravity + constraint), east component"),
+    Feature("step1_n", *_HEADING, "° per unit gain", "as `step1_e`, north component"),
+    Feature("step1_u", *_HEADING, "° per unit gain", "as `step1_e`, up component"),
+    Feature("step0_dot", -1.0e3, 1.0e3, "°²", "step0 · (cerr_e_05, cerr_n_05), east/north: < 0 corrects tilt"),
+    Feature("step1_dot", -1.0e3, 1.0e3, "°²", "as `step0_dot` for step1"),
 )
 X = EXTRA.ix
 _LOW, _HIGH = EXTRA.low64, EXTRA.high64
 LAGS = (25, 100)  # decisions: 1 s and 4 s at the env's default k = 4, 100 Hz
+ERR_TAUS = (0.5, 2.0, 30.0)  # s, forgetting time constants of the constraint error estimates
+ERR_RIDGE = 1.0e-3  # (m/s²)², keeps the normal equations solvable before any motion
 
-# layout of the state vector: five quaternions, the bias sums (3), then the scalars
-Q_MAG, Q_CON, Q_ANC, Q_BTWIN, Q_BCON = 0, 4, 8, 12, 16
-B_SUM = 20  # (3,) sum of link i's gyro over the rest samples, rad/s
+# layout of the state vector: six quaternions, the bias sums (3), the scalars, then per ERR_TAUS the forgetting
+# sums of the error estimate's normal equations (SᵀS row-major (9), −Sᵀ·mismatch (3))
+Q_MAG, Q_CON, Q_ANC, Q_BTWIN, Q_BCON, Q_GYRO = 0, 4, 8, 12, 16, 20
+B_SUM = 24  # (3,) sum of link i's gyro over the rest samples, rad/s
 (S_MH025, S_MH1, S_MH4, S_JH025, S_JH1, S_JH4, S_JA1, S_DEV05, S_DEV2, S_ND2, S_DD2, S_G1, S_TCLEAN,
- S_CLEAN4, S_NREST, S_RUN) = range(23, 39)  # fmt: skip
-N_STATE = 39
+ S_CLEAN4, S_NREST, S_RUN) = range(27, 43)  # fmt: skip
+LS = 43  # start of the normal equations' sums, 12 per time constant
+N_STATE = LS + 12 * len(ERR_TAUS)
 CLEAN_DEV = 0.03  # fraction of m0
 JOINT_FULL = 0.2 * GRAVITY  # m/s², horizontal joint acceleration at which the joint heading counts fully
 REST_HOLD_S = 0.25  # s the stationary detector must have flagged in a row before a sample counts as rest
@@ -109,7 +146,7 @@ class Memory(NamedTuple):
     def start(cls, q0: np.ndarray, n: int, rate: float) -> Memory:
         """Memory at the start of an ``n``-sample trial at ``rate`` Hz: every parallel filter at the start ``q0``."""
         state = np.zeros(N_STATE)
-        for o in (Q_MAG, Q_CON, Q_ANC, Q_BTWIN, Q_BCON):
+        for o in (Q_MAG, Q_CON, Q_ANC, Q_BTWIN, Q_BCON, Q_GYRO):
             state[o : o + 4] = q0
         return cls(state, cf.Trace.empty(n), np.zeros((n, 3)), stationary.make_state(rate), np.zeros(len(EXTRA)))
 
@@ -159,6 +196,9 @@ def update(p, inputs, trace, mem, start, stop, gain_by_rule):
             s[B_SUM : B_SUM + 3] += g
         for k in range(3):
             mem.gyr_c[i, k] = g[k] - (s[B_SUM + k] / s[S_NREST] if s[S_NREST] > 0 else 0.0)
+        if i > 0:
+            s[Q_GYRO : Q_GYRO + 4] = integrate_gyro1(s[Q_GYRO : Q_GYRO + 4], mem.gyr_c[i], dt)
+        _accumulate(s, rotate1(s[Q_GYRO : Q_GYRO + 4], inputs.joint_i[i]), inputs.joint_j[i], dt)
         cf.fuse(
             p,
             s[Q_BTWIN : Q_BTWIN + 4],
@@ -197,5 +237,70 @@ def update(p, inputs, trace, mem, start, stop, gain_by_rule):
     if s[S_NREST] > 0:
         b_up = rotate1(q, s[B_SUM : B_SUM + 3])[2] / s[S_NREST]
     out[X.drift] = np.rad2deg(b_up)
+    _error_features(p, inputs, s, q, stop, out)
     for k in range(out.shape[0]):
         out[k] = min(max(out[k], _LOW[k]), _HIGH[k])
+
+
+@njit(cache=True)
+def _accumulate(s, v, c_j, dt):
+    """Add one sample to each time constant's forgetting sums: SᵀS = ‖v‖²I − vvᵀ and −Sᵀ·mis = v × mis,
+    v = C(q_g)h_i, mis = v − C(q_j)h_j (m/s², ENU)."""
+    mis = v - c_j
+    vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    cross = np.array([v[1] * mis[2] - v[2] * mis[1], v[2] * mis[0] - v[0] * mis[2], v[0] * mis[1] - v[1] * mis[0]])
+    for t in range(len(ERR_TAUS)):
+        keep = 1.0 - min(dt / ERR_TAUS[t], 1.0)
+        o = LS + 12 * t
+        for r in range(3):
+            for c in range(3):
+                s[o + 3 * r + c] = keep * s[o + 3 * r + c] + ((vv if r == c else 0.0) - v[r] * v[c])
+            s[o + 9 + r] = keep * s[o + 9 + r] + cross[r]
+
+
+@njit(cache=True)
+def _solve3(a, b):
+    """x of (a + ERR_RIDGE·I)x = b for a symmetric 3×3 ``a`` (row-major (9,)), by Cramer's rule."""
+    m00, m01, m02 = a[0] + ERR_RIDGE, a[1], a[2]
+    m10, m11, m12 = a[3], a[4] + ERR_RIDGE, a[5]
+    m20, m21, m22 = a[6], a[7], a[8] + ERR_RIDGE
+    c0 = m11 * m22 - m12 * m21
+    c1 = m12 * m20 - m10 * m22
+    c2 = m10 * m21 - m11 * m20
+    det = m00 * c0 + m01 * c1 + m02 * c2
+    x = np.zeros(3)
+    if not det > 0.0:
+        return x
+    x[0] = (b[0] * c0 + m01 * (b[2] * m12 - b[1] * m22) + m02 * (b[1] * m21 - b[2] * m11)) / det
+    x[1] = (m00 * (b[1] * m22 - b[2] * m12) + b[0] * c1 + m02 * (b[2] * m10 - b[1] * m20)) / det
+    x[2] = (m00 * (b[2] * m11 - b[1] * m21) + m01 * (b[1] * m20 - b[2] * m10) + b[0] * c2) / det
+    return x
+
+
+@njit(cache=True)
+def _error_features(p, inputs, s, q, stop, out):
+    """The constraint error estimates of ``q`` and the w = 0 / w = 1 steps at sample ``stop`` (module docstring)."""
+    to_q = mul1(q, conj1(s[Q_GYRO : Q_GYRO + 4]))  # q ⊗ q_g*
+    cols = ((X.cerr_e_05, X.cerr_n_05, -1), (X.cerr_e_2, X.cerr_n_2, -1), (X.cerr_e_30, X.cerr_n_30, X.cerr_u_30))
+    err = np.zeros(3)
+    for t in range(len(ERR_TAUS)):
+        o = LS + 12 * t
+        d = np.rad2deg(to_rotvec1(mul1(to_q, from_rotvec1(_solve3(s[o : o + 9], s[o + 9 : o + 12])))))
+        ie, i_n, iu = cols[t]
+        out[ie], out[i_n] = d[0], d[1]
+        if iu >= 0:
+            out[iu] = d[2]
+        if t == 0:
+            err[:] = d
+    n = inputs.gyr.shape[0]
+    seen, ref, con = cf.directions(p, inputs, stop if stop < n else n - 1)
+    jac, dq = np.empty((9, 4)), np.zeros(4)
+    firsts = (X.step0_e, X.step1_e)
+    dots = (X.step0_dot, X.step1_dot)
+    for c in range(2):
+        cf.gn_step(q, seen, ref, float(c), con, jac, dq)
+        r = mul1(dq, conj1(q))
+        for k in range(3):
+            v = np.rad2deg(2.0 * r[k + 1])
+            out[firsts[c] + k] = v if np.isfinite(v) else 0.0
+        out[dots[c]] = out[firsts[c]] * err[0] + out[firsts[c] + 1] * err[1]
