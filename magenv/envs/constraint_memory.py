@@ -248,7 +248,7 @@ def _accumulate(s, v, c_j, dt):
     v = C(q_g)h_i, mis = v − C(q_j)h_j (m/s², ENU)."""
     mis = v - c_j
     vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
-    cross = np.array([v[1] * mis[2] - v[2] * mis[1], v[2] * mis[0] - v[0] * mis[2], v[0] * mis[1] - v[1] * mis[0]])
+    cross = (v[1] * mis[2] - v[2] * mis[1], v[2] * mis[0] - v[0] * mis[2], v[0] * mis[1] - v[1] * mis[0])
     for t in range(len(ERR_TAUS)):
         keep = 1.0 - min(dt / ERR_TAUS[t], 1.0)
         o = LS + 12 * t
