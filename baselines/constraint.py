@@ -18,10 +18,26 @@ All start from the e-compass of the first sample (never truth) and take the
 lever arms r_i, r_j from ``trial.meta`` unless given. ``trust`` is the
 magnetometer's weight 1 − w (eq. 15; 1 for the conventional CF, NaN-free).
 
-Policy: ``ConstraintWeightRule`` acts in ``magenv/MagConstraint-v0`` on the
-observation alone: w by eq. 16 from the ``mag_dev`` feature; the env applies
-eq. 18 for k. With one decision per sample (``decision_every=1``) it is the
-``cf_constraint`` estimator up to float32 rounding of the observation.
+Policies (act in ``magenv/MagConstraint-v0`` on the observation alone; the env
+applies eq. 18 for k):
+
+* ``constraint_rule`` — ``ConstraintWeightRule``: w by eq. 16 from the
+  ``mag_dev`` feature. With one decision per sample (``decision_every=1``) it
+  is the ``cf_constraint`` estimator up to float32 rounding of the observation.
+* ``cf_cerr`` — ``ErrorStepRule``: magenv's own rule (no paper's), eq. 16
+  overruled by the constraint error estimate of the extended observation
+  (``magenv.envs.constraint_memory``: ``step0_dot``, ``step1_dot`` — eq. 14's
+  step at w = 0 and at w = 1 against the estimated tilt error, °², < 0
+  corrects). With d = step0_dot − step1_dot (< 0: the magnetometer's step
+  corrects more than the constraint's):
+      w = min(w₁₆, w_mag)    if d < −d_min,
+      w = max(w₁₆, w_con)    if d > d_min,
+      w = w₁₆                otherwise,
+  w₁₆ eq. 16's weight (th1), one decision per sample, k by eq. 18 (th2, th3,
+  k_min, k_max, tuned with it). It is the hand-written use of the information
+  the constraint student's ``cerr_*``/``step*`` inputs add, as ``kf_perp`` is
+  for the Kalman student's ``d_perp``. Defaults: the published eq. 16/18
+  values and w_mag = 1, w_con = 0, d_min = 1 °², i.e. ``cf_constraint`` itself.
 
 Paper check (Table 2): ``magenv paper constraint --seeds 0:5``.
 """
@@ -33,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from magenv.checks import check_number
 from magenv.envs import CONSTRAINT_ID as ENV_ID
 from magenv.envs.constraint import FEATURES
 from magenv.filters import constraint as cf
@@ -182,6 +199,63 @@ class ConstraintWeightRule(Tunable):
         return np.array([w, min(k / self.gain_max, 1.0)], dtype=np.float32)
 
 
+class ErrorStepRule(Tunable):
+    """eq. 16's w, overruled where eq. 14's steps at w = 0 and w = 1 differ in how far they correct the constraint
+    error estimate (see the module docstring); one decision per sample, k by eq. 18 with this rule's parameters."""
+
+    env_id = ENV_ID
+    name = "cf_cerr"
+    PARAM_BOUNDS = {
+        **ConstraintCF.PARAM_BOUNDS,
+        "d_min": (0.01, 100.0),
+        "w_mag": (0.0, 1.0),
+        "w_con": (0.0, 1.0),
+    }
+    FEATURES = ("mag_dev", "step0_dot", "step1_dot")  # the observation it reads (extended table)
+
+    def __init__(
+        self,
+        th1: float = cf.TH1,
+        th2: float = cf.TH2,
+        th3: float = cf.TH3,
+        k_min: float = cf.K_MIN,
+        k_max: float = cf.K_MAX,
+        d_min: float = 1.0,
+        w_mag: float = 1.0,
+        w_con: float = 0.0,
+    ):
+        # CMA-ES may propose k_min > k_max: as ConstraintCF, the larger one is k_max
+        lo, hi = min(k_min, k_max), max(k_min, k_max)
+        self.th1, self.th2, self.th3, self.k_min, self.k_max = cf.check_rule_params(th1, th2, th3, lo, hi)
+        self.d_min = check_number("d_min (°²)", d_min, 0.0)
+        self.w_mag = check_number("w_mag", w_mag, 0.0, 1.0)
+        self.w_con = check_number("w_con", w_con, 0.0, 1.0)
+        self.env_kwargs: dict[str, Any] = {
+            "features": list(self.FEATURES),
+            "decision_every": 1,
+            "th2": self.th2,
+            "th3": self.th3,
+            "k_min": self.k_min,
+            "k_max": self.k_max,
+        }
+
+    def reset(self) -> None:
+        """Memoryless."""
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        dev, step0_dot, step1_dot = (float(v) for v in obs)
+        w = float(cf.weight_rule(dev, self.th1))  # eq. 16
+        d = step0_dot - step1_dot
+        if d < -self.d_min:  # the magnetometer's step corrects the estimated error more
+            w = min(w, self.w_mag)
+        elif d > self.d_min:  # the constraint's step does
+            w = max(w, self.w_con)
+        return np.array([w], dtype=np.float32)
+
+    def __repr__(self) -> str:
+        return f"ErrorStepRule({', '.join(f'{k}={v:g}' for k, v in self.params.items())})"
+
+
 def methods() -> dict:
     """Name → factory for ``magenv compare`` (picked up by ``magenv.registry``)."""
     return {
@@ -190,4 +264,5 @@ def methods() -> dict:
         "cf_constraint": ConstraintCF,
         "cf_gated": gated,
         "constraint_rule": ConstraintWeightRule,
+        "cf_cerr": ErrorStepRule,
     }

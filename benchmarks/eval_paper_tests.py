@@ -10,6 +10,9 @@ bound that reads truth) and, with ``--agent``, a trained agent; it prints a Mark
 (°) and, for every other method, the paired ratio to the rule (``magenv.stats.paired_ratio``: geometric
 mean of the per-trial ratios, bootstrap 95 % interval over the trials, 10 000 resamples, seed 0) with the win
 rate and the interquartile-mean ratio (the middle half of the per-trial log ratios) with its interval.
+With the hand rule on the constraint student's own information among the methods (``SAME_INFORMATION``:
+``cf_cerr_tuned``, which reads the constraint error estimate) each agent's paired ratio to that rule follows:
+how much of the agent's gain is learning rather than information.
 ``--agent`` may be given more than once (each compared on the same trials; named by its argument).
 ``--json`` writes every per-trial RMSE. ``--validation`` takes validation seeds (5000–9999) instead, for model
 selection (never reported figures). It prints what it measures; nothing here is a test.
@@ -34,7 +37,9 @@ TESTS = {
     "qsf": ("handheld_texting", "handheld_swinging", "handheld_corridor", "handheld_free"),
 }
 RULE = {"constraint": "cf_constraint_tuned", "qsf": "qsf_detector_tuned"}
-OTHERS = {"constraint": ("cf_constraint",), "qsf": ("delay_magyq_tuned", "qsf_hold")}
+#: per env, the hand rule on its student's own extended inputs (baselines/constraint.py: cf_cerr)
+SAME_INFORMATION = {"constraint": "cf_cerr_tuned"}
+OTHERS = {"constraint": ("cf_constraint", SAME_INFORMATION["constraint"]), "qsf": ("delay_magyq_tuned", "qsf_hold")}
 ORACLE = {"constraint": "oracle_constraint", "qsf": "oracle_qsf"}
 
 
@@ -73,15 +78,16 @@ def main() -> None:
                 json.dump(
                     {"env": args.env, "agent": args.agent, "seeds": list(args.seeds), "per_trial_rmse": per_trial}, f
                 )
-    paired = [m for m in methods if m != rule]
+    same = SAME_INFORMATION.get(args.env)
+    pairs = [(m, rule) for m in methods if m != rule] + [(a, same) for a in agents if same in methods]
     kind = "validation" if args.validation else "held-out"
     print(f"{kind} seeds {args.seeds[0]}:{args.seeds[-1] + 1} ({len(args.seeds)} per test); RMSE °, mean over trials")
-    head = " | ".join(list(methods) + [f"{m}/{rule} [95% CI] (win; IQM [95% CI])" for m in paired])
+    head = " | ".join([*methods, *(f"{m}/{ref} [95% CI] (win; IQM [95% CI])" for m, ref in pairs)])
     print(f"| test | {head} |")
-    print("|---" * (1 + len(methods) + len(paired)) + "|")
+    print("|---" * (1 + len(methods) + len(pairs)) + "|")
     for sc, res in per_trial.items():
         cells = [f"{np.mean(res[m]):.3f}" for m in methods]
-        cells += [_cell(paired_ratio(np.array(res[m]), np.array(res[rule]))) for m in paired]
+        cells += [_cell(paired_ratio(np.array(res[m]), np.array(res[ref]))) for m, ref in pairs]
         print(f"| {sc} | {' | '.join(cells)} |")
     print(f"({time.time() - t0:.0f} s)")
 

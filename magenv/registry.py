@@ -209,6 +209,7 @@ def tunable_rules() -> dict[str, type[Tunable]]:
         **kalman_policies.RULES,
         **vqf_rules.RULES,
         "cf_constraint": constraint.ConstraintCF,
+        "cf_cerr": constraint.ErrorStepRule,
         "delay_magyq": qsf.DetectedDelayMAGYQ,
     }
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import magenv  # noqa: F401  (registers the envs)
-from magenv import metrics, registry
+from magenv import evaluation, metrics, registry
 from magenv import quaternion as quat
 from magenv import scenarios as cs
 from magenv.baselines import constraint as bc
@@ -273,6 +273,45 @@ def test_paper_rule_in_the_env_is_the_estimator(short_trials):
     est = bc.ConstraintCF().run(tr)
     np.testing.assert_allclose(env.estimate, est.q, atol=1e-6)  # float32 observation rounding only
     np.testing.assert_allclose(1.0 - env.weights, est.trust, atol=1e-5)
+
+
+@pytest.mark.parametrize("params", [{}, {"th1": 0.1, "th2": 0.05, "th3": 0.1, "k_min": 0.001, "k_max": 0.4}])
+def test_error_step_rule_with_neutral_overrides_is_the_paper_filter(short_trials, params):
+    """cf_cerr with w_mag = 1, w_con = 0 (its defaults) is eq. 16 + eq. 18 per sample: ConstraintCF at the same
+    parameters (the k parameters reach the env)."""
+    tr = short_trials[0]
+    run = evaluation.run_method("cf_cerr", bc.ErrorStepRule(**params), tr)
+    np.testing.assert_allclose(run.q, bc.ConstraintCF(**params).run(tr).q, atol=1e-6)
+
+
+def test_error_step_rule_overrules_eq16_only_as_the_steps_say(short_trials):
+    """w below eq. 16's only where the magnetometer's step corrects the error estimate more (d < −d_min), above
+    it only where the constraint's does (d > d_min); both happen on a disturbed trial."""
+    rule = bc.ErrorStepRule(d_min=0.5, w_mag=0.2, w_con=0.8)
+    env = MagConstraintEnv(scenario=[short_trials[1]], **rule.env_kwargs)
+    obs, _ = env.reset(seed=0)
+    lower = higher = 0
+    trunc = False
+    while not trunc:
+        dev, step0_dot, step1_dot = (float(v) for v in obs)
+        w16, d = cf.weight_rule(dev, rule.th1), step0_dot - step1_dot
+        obs, _, _, trunc, info = env.step(rule(obs))
+        if info["w"] < w16 - 1e-6:
+            assert d < -rule.d_min and info["w"] == pytest.approx(rule.w_mag)
+            lower += 1
+        elif info["w"] > w16 + 1e-6:
+            assert d > rule.d_min and info["w"] == pytest.approx(rule.w_con)
+            higher += 1
+    assert lower > 10 and higher > 10
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"w_mag": 1.5}, "w_mag"), ({"w_con": -0.1}, "w_con"), ({"d_min": -1.0}, "d_min"), ({"th1": 0.0}, "th1")],
+)
+def test_error_step_rule_names_a_bad_parameter(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        bc.ErrorStepRule(**kwargs)
 
 
 def test_gain_action_sets_k(short_trials):

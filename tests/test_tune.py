@@ -35,3 +35,19 @@ def test_held_out_seeds_are_refused(capsys):
     assert "held out for evaluation" in capsys.readouterr().err
     assert cli(["tune", "--rule", "nope", "--seeds", "10000:10001", "--scenarios", "dynamic_clean"]) == 2
     assert "unknown rule 'nope'" in capsys.readouterr().err
+
+
+def test_tuning_starts_from_given_parameters_and_never_returns_worse():
+    trials = [make_trial("dynamic_magnet", 10_000, duration=10.0)]
+    cls = registry.rule_class("threshold")
+    record = tune_rule("threshold", cls, trials, iterations=2, popsize=4, progress=False, start={"norm_th": 0.5})
+    assert record["start_params"] == {**cls().params, "norm_th": 0.5}
+    assert record["objective_deg"] <= min(record["start_objective_deg"], record["published_objective_deg"])
+    with pytest.raises(ValueError, match="no parameter"):
+        tune_rule("threshold", cls, trials, iterations=2, popsize=4, progress=False, start={"k_max": 0.5})
+
+
+def test_start_from_needs_shared_tuned_parameters(capsys):
+    args = ["tune", "--rule", "threshold", "--seeds", "10000:10001", "--scenarios", "dynamic_clean"]
+    assert cli([*args, "--start-from", "kf_perp"]) == 2
+    assert "shares no parameter" in capsys.readouterr().err

@@ -2,6 +2,7 @@
 
     magenv tune --rule fan_lambda [--scenarios random] [--seeds 10000:10016] [--iterations 30]
     magenv tune --rule vqf_fan_lambda --scenarios dynamic_magnet,recording:2*   # simulated and real trials
+    magenv tune --rule cf_cerr --start-from cf_constraint   # start from the parameters it shares with a tuned rule
 
 The objective is the mean total-orientation RMSE (degrees) of the rule over
 fixed training trials (seeds at or above ``TRAIN_SEED_START``, so never the
@@ -47,6 +48,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="folder for RULE.json (default: the user's data directory, see magenv.registry)",
     )
+    p.add_argument(
+        "--start-from",
+        default=None,
+        metavar="RULE",
+        help="start from RULE's tuned parameters where this rule shares them (e.g. cf_cerr from cf_constraint)",
+    )
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -76,8 +83,16 @@ def run(args: argparse.Namespace) -> int:
     try:
         trials = training_trials(args.scenarios, seeds)
         cls = registry.rule_class(args.rule)
-        record = tune_rule(args.rule, cls, trials, args.iterations, args.popsize, args.seed, not args.no_progress)
-    except (KeyError, ValueError) as exc:
+        start = None
+        if args.start_from is not None:
+            shared = registry.tuned_params(args.start_from)
+            start = {k: v for k, v in shared.items() if k in cls.PARAM_BOUNDS}
+            if not start:
+                raise CommandError(f"{args.start_from} shares no parameter with {args.rule}")
+        record = tune_rule(
+            args.rule, cls, trials, args.iterations, args.popsize, args.seed, not args.no_progress, start
+        )
+    except (KeyError, ValueError) as exc:  # TunedParamsError is a ValueError
         raise CommandError(str(exc)) from None
     folder = args.out or registry.user_tuned_dir()
     folder.mkdir(parents=True, exist_ok=True)
