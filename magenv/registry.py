@@ -202,8 +202,8 @@ def register(name: str, factory: Callable[[], Any], description: str = "", overw
 
 def tunable_rules() -> dict[str, type[Tunable]]:
     """Every method with tunable parameters (``PARAM_BOUNDS``, ``params``, ``from_params``), by name:
-    the λ rules, the Kalman-trust rules (policies), the constraint filter and Delay MAGYQ's QSF detector
-    (estimators)."""
+    the λ rules, the Kalman-trust rules and cf_cerr (policies), the constraint filter and Delay MAGYQ's QSF
+    detector (estimators)."""
     return {
         **rules.RULES,
         **kalman_policies.RULES,

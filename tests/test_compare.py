@@ -85,6 +85,14 @@ def test_the_table_shows_the_paired_ratio_win_rate_and_interquartile_mean(trials
     )
 
 
+def test_the_title_names_the_reference_only_where_it_ran(capsys):
+    args = ["compare", "--scenario", "dynamic_clean", "--seeds", "10000:10002", "--no-progress"]
+    assert main([*args, "--methods", "mimu,imu"]) == 0  # the default reference fan_lambda_tuned did not run
+    assert "fan_lambda_tuned" not in capsys.readouterr().out
+    assert main([*args, "--methods", "mimu,imu", "--reference", "imu"]) == 0
+    assert "÷ imu: paired ratio" in capsys.readouterr().out
+
+
 def test_an_unknown_reference_is_a_clear_error(capsys):
     code = main(["compare", "--methods", "mimu,imu", "--reference", "fan", "--seeds", "0:1", "--no-progress"])
     assert code == 2 and "--reference 'fan' is not among the methods: mimu, imu" in capsys.readouterr().err

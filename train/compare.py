@@ -343,7 +343,10 @@ def run(args: argparse.Namespace) -> int:
         runs = run_comparison(methods, trials, labels, env_kwargs, progress=not args.no_progress)
     rows = mark_headroom(evaluation.summarize(runs), headroom_names(methods))
     rows = evaluation.add_paired(rows, runs, args.reference)
-    status = finish(rows, f"orientation RMSE (°), mean over trials; ÷ {args.reference}: paired ratio", args.csv)
+    title = "orientation RMSE (°), mean over trials"
+    if any("paired" in row for row in rows):  # the reference ran beside another method
+        title += f"; ÷ {args.reference}: paired ratio"
+    status = finish(rows, title, args.csv)
     if args.plot:  # runs are trial by trial, every method once per trial
         print(f"wrote {evaluation.plot_runs(runs[: len(methods)], args.plot)}")
     return status
