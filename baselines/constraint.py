@@ -243,7 +243,10 @@ class ErrorStepRule(Tunable):
         """Memoryless."""
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        dev, step0_dot, step1_dot = (float(v) for v in obs)
+        obs = np.asarray(obs, dtype=float)
+        if obs.shape != (len(self.FEATURES),):
+            raise ValueError(f"cf_cerr reads the observation {self.FEATURES}, got one of shape {obs.shape}")
+        dev, step0_dot, step1_dot = obs
         w = float(cf.weight_rule(dev, self.th1))  # eq. 16
         d = step0_dot - step1_dot
         if d < -self.d_min:  # the magnetometer's step corrects the estimated error more

@@ -184,9 +184,10 @@ def test_methods_are_in_the_registry():
     from magenv import registry
 
     names = registry.names()
-    for m in ("strapdown", "cf_conventional", "cf_constraint", "constraint_rule"):
+    for m in ("strapdown", "cf_conventional", "cf_constraint", "constraint_rule", "cf_cerr", "cf_cerr_tuned"):
         assert m in names
     assert isinstance(registry.make("cf_constraint"), bc.ConstraintCF)
+    assert registry.make("cf_cerr_tuned").params == registry.tuned_params("cf_cerr")  # the shipped file
 
 
 # ------------------------------------------------------------------ bad input
@@ -312,6 +313,8 @@ def test_error_step_rule_overrules_eq16_only_as_the_steps_say(short_trials):
 def test_error_step_rule_names_a_bad_parameter(kwargs, match):
     with pytest.raises(ValueError, match=match):
         bc.ErrorStepRule(**kwargs)
+    with pytest.raises(ValueError, match="shape"):
+        bc.ErrorStepRule()(np.zeros(13, np.float32))  # the base observation, not the three features it reads
 
 
 def test_gain_action_sets_k(short_trials):
