@@ -259,25 +259,6 @@ def _accumulate(s, v, c_j, dt):
 
 
 @njit(cache=True)
-def _solve3(a, b):
-    """x of (a + ERR_RIDGE·I)x = b for a symmetric 3×3 ``a`` (row-major (9,)), by Cramer's rule."""
-    m00, m01, m02 = a[0] + ERR_RIDGE, a[1], a[2]
-    m10, m11, m12 = a[3], a[4] + ERR_RIDGE, a[5]
-    m20, m21, m22 = a[6], a[7], a[8] + ERR_RIDGE
-    c0 = m11 * m22 - m12 * m21
-    c1 = m12 * m20 - m10 * m22
-    c2 = m10 * m21 - m11 * m20
-    det = m00 * c0 + m01 * c1 + m02 * c2
-    x = np.zeros(3)
-    if not det > 0.0:
-        return x
-    x[0] = (b[0] * c0 + m01 * (b[2] * m12 - b[1] * m22) + m02 * (b[1] * m21 - b[2] * m11)) / det
-    x[1] = (m00 * (b[1] * m22 - b[2] * m12) + b[0] * c1 + m02 * (b[2] * m10 - b[1] * m20)) / det
-    x[2] = (m00 * (b[2] * m11 - b[1] * m21) + m01 * (b[1] * m20 - b[2] * m10) + b[0] * c2) / det
-    return x
-
-
-@njit(cache=True)
 def _error_features(p, inputs, s, q, stop, out):
     """The constraint error estimates of ``q`` and the w = 0 / w = 1 steps at sample ``stop`` (module docstring)."""
     to_q = mul1(q, conj1(s[Q_GYRO : Q_GYRO + 4]))  # q ⊗ q_g*
@@ -285,7 +266,8 @@ def _error_features(p, inputs, s, q, stop, out):
     err = np.zeros(3)
     for t in range(len(ERR_TAUS)):
         o = LS + 12 * t
-        d = np.rad2deg(to_rotvec1(mul1(to_q, from_rotvec1(_solve3(s[o : o + 9], s[o + 9 : o + 12])))))
+        normal = s[o : o + 9].reshape(3, 3) + ERR_RIDGE * np.eye(3)  # positive definite: SᵀS ⪰ 0 plus the ridge
+        d = np.rad2deg(to_rotvec1(mul1(to_q, from_rotvec1(np.linalg.solve(normal, s[o + 9 : o + 12])))))
         ie, i_n, iu = cols[t]
         out[ie], out[i_n] = d[0], d[1]
         if iu >= 0:
