@@ -46,7 +46,23 @@ def _write(path: Path, tensors: dict, meta: dict) -> None:
         str(tmp),
         metadata={"format": FORMAT, **{k: json.dumps(v) for k, v in meta.items()}},
     )
+    _sort_header(tmp)
     os.replace(tmp, path)
+
+
+def _sort_header(path: Path) -> None:
+    """Rewrite the JSON header of the safetensors file ``path`` with its keys sorted, in place: the library writes
+    its metadata map in an order that varies from one write to the next, so the same tensors and metadata would
+    otherwise give different bytes. The sorted header has the same characters, so its length (and with it every
+    tensor offset, counted from the header's end) is unchanged."""
+    with open(path, "r+b") as f:
+        n = int.from_bytes(f.read(8), "little")
+        header = json.loads(f.read(n))
+        text = json.dumps(header, sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()
+        if len(text) > n:  # never for the library's compact JSON; refuse rather than write a broken file
+            raise RuntimeError(f"{path}: sorted safetensors header is {len(text)} bytes, the written one {n}")
+        f.seek(8)
+        f.write(text + b" " * (n - len(text)))  # the format pads its header with spaces
 
 
 def read(path: Path, algo: str | None = None) -> tuple[dict, dict]:

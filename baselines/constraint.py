@@ -120,13 +120,8 @@ class ConstraintCF(Tunable, _Base):
     ):
         super().__init__(lever_i, lever_j, q0)
         self.use_constraint = bool(use_constraint)
-        if not (th1 > 0 and th3 > 0 and 0 <= th2 <= 1 and 0 <= k_min):
-            raise ValueError(
-                f"need th1 > 0, th3 > 0, 0 ≤ th2 ≤ 1, k_min ≥ 0; got th1={th1}, th2={th2}, th3={th3}, k_min={k_min}"
-            )
-        # CMA-ES may propose k_min > k_max: eq. 18 then needs k_max ≥ k_min, so the larger one is k_max.
-        self.th1, self.th2, self.th3 = float(th1), float(th2), float(th3)
-        self.k_min, self.k_max = float(min(k_min, k_max)), float(max(k_min, k_max))
+        rule = cf.check_rule_params(th1, th2, th3, k_min, k_max, sort_gains=True)
+        self.th1, self.th2, self.th3, self.k_min, self.k_max = rule
 
     def run(self, trial: Trial) -> Estimate:
         trace = self._filter(trial, use_constraint=self.use_constraint, **self.params).run()  # eqs. 16 and 18
@@ -224,9 +219,8 @@ class ErrorStepRule(Tunable):
         w_mag: float = 1.0,
         w_con: float = 0.0,
     ):
-        # CMA-ES may propose k_min > k_max: as ConstraintCF, the larger one is k_max
-        lo, hi = min(k_min, k_max), max(k_min, k_max)
-        self.th1, self.th2, self.th3, self.k_min, self.k_max = cf.check_rule_params(th1, th2, th3, lo, hi)
+        rule = cf.check_rule_params(th1, th2, th3, k_min, k_max, sort_gains=True)
+        self.th1, self.th2, self.th3, self.k_min, self.k_max = rule
         self.d_min = check_number("d_min (°²)", d_min, 0.0)
         self.w_mag = check_number("w_mag", w_mag, 0.0, 1.0)
         self.w_con = check_number("w_con", w_con, 0.0, 1.0)

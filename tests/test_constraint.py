@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import gymnasium as gym
 import numpy as np
@@ -178,6 +179,17 @@ def test_tuning_interface():
     assert bc.ConstraintCF.from_params({"th1": 0.3}).th1 == 0.3
     with pytest.raises(ValueError, match="no parameter"):
         bc.ConstraintCF.from_params({"bogus": 1.0})
+
+
+@pytest.mark.parametrize("rule", [bc.ConstraintCF, bc.ErrorStepRule])
+def test_rule_params_checked_and_gains_sorted(rule):
+    est = rule(k_min=0.5, k_max=0.1)  # CMA-ES may propose k_min > k_max: the larger gain is k_max
+    assert (est.k_min, est.k_max) == (0.1, 0.5)
+    bad = [({"k_min": "x"}, TypeError), ({"k_max": None}, TypeError), ({"th3": math.nan}, ValueError),
+           ({"th2": 2.0}, ValueError)]  # fmt: skip
+    for kwargs, error in bad:
+        with pytest.raises(error, match=next(iter(kwargs))):  # the message names the parameter
+            rule(**kwargs)
 
 
 def test_methods_are_in_the_registry():

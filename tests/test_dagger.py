@@ -10,7 +10,7 @@ from magenv import evaluation, registry
 from magenv.agents import dagger
 from magenv.agents.loading import RunError, load_agent
 from magenv.agents.student_inputs import StudentInputs, inputs_for
-from magenv.agents.weights import FORMAT, read
+from magenv.agents.weights import FORMAT
 from magenv.baselines.rules import FanLambda
 from magenv.envs import BLEND_ID
 from magenv.envs.blend import BlendRunner
@@ -280,15 +280,10 @@ def test_an_argmax_student_acts_with_its_most_probable_candidate(run_dir, tmp_pa
 
 
 def _same_chain(a, b):
-    """Two run folders with the same students, data and validation log (all but the fit times); safetensors
-    files compared by content (their metadata's order varies from one write to the next)."""
-    for name in ["run.yaml", *(f"data/it_{i}.npz" for i in range(3))]:
+    """Two run folders with the same students, data and validation log (all but the fit times), byte for byte."""
+    weights = ["best.safetensors", *(f"checkpoints/it_{i}.safetensors" for i in range(3))]
+    for name in ["run.yaml", *(f"data/it_{i}.npz" for i in range(3)), *weights]:
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
-    for name in ["best.safetensors", *(f"checkpoints/it_{i}.safetensors" for i in range(3))]:
-        (ta, ma), (tb, mb) = read(a / name), read(b / name)
-        assert ma == mb and sorted(ta) == sorted(tb), name
-        for key in ta:
-            np.testing.assert_array_equal(ta[key].numpy(), tb[key].numpy())
 
     def log(run):
         lines = (run / "iterations.csv").read_text().splitlines()

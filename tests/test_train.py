@@ -204,3 +204,21 @@ def test_the_progress_of_a_run_without_a_checkpoint_is_its_state_file(tmp_path):
     (tmp_path / "state.json").write_text('{"timesteps": ')
     with pytest.raises(RunError, match="state.json: corrupt"):
         progress(tmp_path, "ppo")
+
+
+def test_weight_files_are_the_same_bytes_for_the_same_content(tmp_path):
+    """The safetensors library writes its metadata map in a varying order; magenv sorts the header, so the same
+    tensors and metadata give the same file (and it still reads back)."""
+    import torch
+
+    from magenv.agents.weights import _write, read
+
+    tensors = {"b": torch.arange(5.0), "a": torch.ones(2, 3)}
+    meta = {"algo": "dagger", "zeta": [1, 2], "alpha": {"x": "é"}, "mid": 3}
+    files = [tmp_path / f"{i}.safetensors" for i in range(4)]
+    for path in files:
+        _write(path, tensors, meta)
+    assert len({p.read_bytes() for p in files}) == 1
+    got, got_meta = read(files[0])
+    assert sorted(got) == ["a", "b"] and torch.equal(got["a"], tensors["a"]) and got_meta["zeta"] == [1, 2]
+    assert got_meta["alpha"] == {"x": "é"} and got_meta["mid"] == 3

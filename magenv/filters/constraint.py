@@ -378,12 +378,17 @@ def make_params(
     )
 
 
-def check_rule_params(th1=TH1, th2=TH2, th3=TH3, k_min=K_MIN, k_max=K_MAX) -> tuple[float, float, float, float, float]:
+def check_rule_params(
+    th1=TH1, th2=TH2, th3=TH3, k_min=K_MIN, k_max=K_MAX, sort_gains: bool = False
+) -> tuple[float, float, float, float, float]:
     """The parameters of eqs. 16 and 18 as floats: ``th1`` (field deviation, fraction of m0) and ``th3`` (‖Δq‖)
     finite > 0, ``th2`` (a weight) in [0, 1], gains ``k_min`` finite ≥ 0 and ``k_max`` finite ≥ k_min (1/s);
-    ValueError / TypeError naming a bad one."""
+    ValueError / TypeError naming a bad one. With ``sort_gains`` the larger gain is k_max whichever was given as
+    which (CMA-ES may propose k_min > k_max; eq. 18 needs k_max ≥ k_min)."""
     th1, th3 = check_positive("th1", th1), check_positive("th3", th3)
     th2, k_min = check_number("th2", th2, 0.0, 1.0), check_number("k_min", k_min, 0.0)
+    if sort_gains:
+        k_min, k_max = sorted((k_min, check_number("k_max", k_max, 0.0)))
     k_max = check_number(f"k_max (≥ k_min = {k_min:g})", k_max, k_min)
     return th1, th2, th3, k_min, k_max
 
