@@ -64,7 +64,8 @@ def _circular_mean_deg(h: np.ndarray) -> float:
     return float(np.degrees(np.angle(np.mean(np.exp(1j * np.radians(h))))))
 
 
-def _wrap(deg: float) -> float:
+def _wrap(deg):
+    """Angles (°, a float or an array) wrapped to [−180, 180)."""
     return (deg + 180.0) % 360.0 - 180.0
 
 
@@ -123,7 +124,7 @@ def probe_trial(oracle: QSFOracle, trial, every: int, hold: int, horizon_s: floa
             for first in DEPARTURES.values():
                 est = _roll(oracle, runner, first, hold, j + horizon)
                 yaw = metrics.euler_error(est[-tail:], truth[-tail:])[:, 0]
-                row += [float(np.mean((yaw - yaw_base + 180.0) % 360.0 - 180.0)),
+                row += [float(np.mean(_wrap(yaw - yaw_base))),
                         float(np.nanmean(metrics.errors(est, truth)[:, 0] ** 2) - cost_base)]  # fmt: skip
             rows.append(row)
         code, trust, _ = decode_action(action)
@@ -136,7 +137,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="handheld_texting")
     ap.add_argument("--trials", type=int, default=6)
-    ap.add_argument("--every", type=int, default=20, help="fork every N-th decision where the rule keeps")
+    ap.add_argument("--every", type=int, default=20, help="fork at every N-th decision, where the rule keeps")
     ap.add_argument("--hold", type=int, default=10, help="decisions each departure is held")
     ap.add_argument("--horizon", type=float, default=5.0, help="s after the fork")
     ap.add_argument("--json", default=None)
