@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/probe_qsf_steering.py [--scenario handheld_texting] [--trials 6] [--every 20]
         [--hold 10] [--horizon 5] [--json FILE]
+    .venv/bin/python benchmarks/probe_qsf_steering.py --levers [--scenario …] [--trials 6] [--validation]
 
 It rolls the tuned QSF detector (``qsf_detector_tuned``'s thresholds; the
 continuation rule of ``oracle_qsf``, ``baselines/oracle_qsf.py``) through the
@@ -29,8 +30,17 @@ It prints per departure the least-squares slope of Δe on e (< 0: the
 departure moves the error toward zero, so a policy that knows its error
 could steer with it; > 0: away), the correlations of Δe with e and with m,
 the share of forks where the departure pays and where it moves the error
-toward zero, and the correlation of m with e. This is a measurement (it
-prints figures), not a test.
+toward zero, and the correlation of m with e.
+
+``--levers`` asks instead whether a policy could use a magnetic gain above
+the box: it runs the same rule over whole trials with every magnetic update's
+gain multiplied by a constant (``LEVERS``: 1.25 … 2) or by 1.5 or 2 only where
+|m| exceeds a threshold, and with the filter's magnetometer noise σ_m (µT; the
+paper's 0.1 m0 by default) set to a constant or lowered only where |m|
+exceeds a threshold (the filter's parameters swapped between decisions), and
+prints each variant's paired ratio to the rule as it is (geometric mean of the
+per-trial RMSE ratios); ``--validation`` runs it on validation seeds (5000, …)
+instead, to check a variant chosen on the training trials. This is a measurement (it prints figures), not a test.
 """
 
 from __future__ import annotations
@@ -48,7 +58,7 @@ from magenv.envs.qsf import decode_action, fill_decision
 from magenv.filters import qsf
 from magenv.quaternion import rotate1
 from magenv.scenarios import make_trial
-from magenv.seeding import HELD_OUT_BELOW
+from magenv.seeding import HELD_OUT_BELOW, VALIDATION_START
 
 #: departure name → (magnetic action code, trust); "keep, trust 2" lies outside the env's action box
 DEPARTURES = {
@@ -73,6 +83,44 @@ def _mag_heading(q: np.ndarray, mag: np.ndarray) -> np.ndarray:
     """(n,) heading (°) of q̂_i y_m,i q̂_i* for rows i."""
     v = np.array([rotate1(qi, mi) for qi, mi in zip(q, mag)])
     return np.degrees(np.arctan2(v[:, 0], v[:, 1]))
+
+
+class ErrorEstimate:
+    """The causal estimate m of the heading error (module docstring) along one trial's estimate ``q`` (N, 4):
+    ``at(j)`` reads rows < j only; None until the start window has passed."""
+
+    def __init__(self, trial, q: np.ndarray):
+        self.trial, self.q, self.h0 = trial, q, None
+        self.start, self.window = (int(round(s * trial.rate)) for s in (START_S, CAUSAL_S))
+
+    def at(self, j: int) -> float | None:
+        if self.h0 is None and j >= self.start:
+            self.h0 = _circular_mean_deg(_mag_heading(self.q[:j], self.trial.mag[:j]))
+        if self.h0 is None or j < self.window:
+            return None
+        a = j - self.window
+        return _wrap(_circular_mean_deg(_mag_heading(self.q[a:j], self.trial.mag[a:j])) - self.h0)
+
+
+def _switch(high, low, threshold: float):
+    """m → ``high`` where |m| exceeds ``threshold`` (°), else ``low`` (also before m exists)."""
+    return lambda m: high if m is not None and abs(m) > threshold else low
+
+
+def _const(value):
+    """m → ``value``."""
+    return lambda m: value
+
+
+#: --levers: name → (trust of m, σ_m of m in µT or None for the filter's default); trust above 1 lies outside the box
+LEVERS = {
+    **{f"trust {c:g}": (_const(c), _const(None)) for c in (1.25, 1.5, 1.75, 2.0)},
+    **{f"trust {c:g} where m is beyond ±{t:g}°": (_switch(c, 1.0, t), _const(None)) for c in (1.5, 2.0)
+       for t in (0.5, 1.0, 2.0)},
+    **{f"σ_m {s:g} µT": (_const(1.0), _const(s)) for s in (2.0, 1.0, 0.5)},
+    **{f"σ_m {s:g} µT where m is beyond ±{t:g}°": (_const(1.0), _switch(s, None, t)) for s in (1.0, 2.0)
+       for t in (0.5, 1.0, 2.0)},
+}  # fmt: skip
 
 
 def _roll(oracle: QSFOracle, runner, first, hold: int, stop: int) -> np.ndarray:
@@ -104,18 +152,16 @@ def probe_trial(oracle: QSFOracle, trial, every: int, hold: int, horizon_s: floa
     """Forks of one trial: rows [e, m, Δe and Δcost per departure]."""
     runner = oracle.make_runner(trial)
     k, rate = oracle.decision_every, trial.rate
-    horizon, tail, causal = (int(round(s * rate)) for s in (horizon_s, TAIL_S, CAUSAL_S))
-    h0 = None
+    horizon, tail = (int(round(s * rate)) for s in (horizon_s, TAIL_S))
+    estimate = ErrorEstimate(trial, runner.est)
     rows, decision = [], 0
     while not runner.done:
         j = runner.pos
         action = oracle.continuation_action(runner)
-        if h0 is None and j >= START_S * rate:
-            h0 = _circular_mean_deg(_mag_heading(runner.est[:j], trial.mag[:j]))
+        m = estimate.at(j)
         keeps = action[0] == 0.0 and runner.state.period_active[0]
-        if h0 is not None and decision % every == every // 2 and keeps and j >= causal and j + horizon <= runner.n:
+        if m is not None and decision % every == every // 2 and keeps and j + horizon <= runner.n:
             e = float(metrics.euler_error(runner.est[j - 1], trial.q_true[j - 1])[0])
-            m = _wrap(_circular_mean_deg(_mag_heading(runner.est[j - causal : j], trial.mag[j - causal : j])) - h0)
             truth = trial.q_true[j : j + horizon]
             base = _roll(oracle, runner, None, hold, j + horizon)
             yaw_base = metrics.euler_error(base[-tail:], truth[-tail:])[:, 0]
@@ -133,6 +179,41 @@ def probe_trial(oracle: QSFOracle, trial, every: int, hold: int, horizon_s: floa
     return rows
 
 
+def lever_rmse(oracle: QSFOracle, trial, trust_of, sigma_of) -> float:
+    """Total RMSE (°) of the rule over ``trial`` with each decision's trust ``trust_of(m)`` and magnetometer noise
+    ``sigma_of(m)`` (µT; None: the filter's own), m the causal error estimate before the decision."""
+    runner = oracle.make_runner(trial)
+    k, n, dt = oracle.decision_every, runner.n, float(trial.dt)
+    state, sensors, out = runner.state, runner.inputs, qsf.Outputs.empty(runner.n)
+    inputs = qsf.Inputs(sensors.gyr, sensors.acc, sensors.mag, np.zeros(n, np.int8), np.zeros(n))
+    estimate, params = ErrorEstimate(trial, out.q), {None: runner.params}
+    for j in range(0, n, k):
+        m = estimate.at(j)
+        sigma = sigma_of(m)
+        if sigma not in params:
+            params[sigma] = runner.params._replace(sigma_mag=float(sigma))
+        fill_decision(inputs, rule_code(runner.codes, state.period_active[0], j), trust_of(m), j, min(j + k, n))
+        if qsf.run_kernel(params[sigma], state, inputs, dt, j, min(j + k, n), out)[0] >= 0:
+            return float("inf")  # the filter failed (a gain far above 1 diverges)
+    return metrics.score(out.q, trial.q_true, trial.score_mask).total
+
+
+def levers(oracle: QSFOracle, scenario: str, seeds: range) -> dict:
+    """{variant: paired ratio to the rule} over the trials ``seeds`` of ``scenario``; prints them."""
+    base, runs = [], {name: [] for name in LEVERS}
+    for s in seeds:
+        trial = make_trial(scenario, s)
+        base.append(lever_rmse(oracle, trial, _const(1.0), _const(None)))
+        for name, (trust_of, sigma_of) in LEVERS.items():
+            runs[name].append(lever_rmse(oracle, trial, trust_of, sigma_of))
+    ratios = {name: float(np.exp(np.mean(np.log(np.array(v) / base)))) for name, v in runs.items()}
+    print(f"{scenario}, seeds {seeds.start}:{seeds.stop}: the rule {np.mean(base):.2f}° mean RMSE; ratio to it:")
+    print("| variant | ratio |\n|---|---|")
+    for name, ratio in ratios.items():
+        print(f"| {name} | {ratio:.3f} |")
+    return ratios
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="handheld_texting")
@@ -140,9 +221,18 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=20, help="fork at every N-th decision, where the rule keeps")
     ap.add_argument("--hold", type=int, default=10, help="decisions each departure is held")
     ap.add_argument("--horizon", type=float, default=5.0, help="s after the fork")
+    ap.add_argument("--levers", action="store_true", help="gains above the box and σ_m instead of the forks")
+    ap.add_argument("--validation", action="store_true", help="--levers on validation seeds (5000, …)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     oracle = QSFOracle.from_detector_params(registry.tuned_params("delay_magyq"))
+    if args.levers:
+        first = VALIDATION_START if args.validation else HELD_OUT_BELOW
+        out = {"scenario": args.scenario, "levers": levers(oracle, args.scenario, range(first, first + args.trials))}
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(out, f, indent=1)
+        return
     t0, rows = time.perf_counter(), []
     for s in range(HELD_OUT_BELOW, HELD_OUT_BELOW + args.trials):
         rows += probe_trial(oracle, make_trial(args.scenario, s), args.every, args.hold, args.horizon)
