@@ -163,12 +163,10 @@ class ConstraintWeightRule(Tunable):
         k_min: float = cf.K_MIN,
         k_max: float = cf.K_MAX,
     ):
-        if not th1 > 0:
-            raise ValueError(f"th1 must be > 0, got {th1!r}")
-        self.th1 = float(th1)
+        self.th1, *gain_params = cf.check_rule_params(th1, th2, th3, k_min, k_max)
+        self.gain_params = tuple(gain_params)  # eq. 18's th2, th3, k_min, k_max
         self.control_gain = bool(control_gain)
         self.gain_max = float(gain_max)
-        self.gain_params = (float(th2), float(th3), float(k_min), float(k_max))
         self.features = tuple(FEATURES.names if features is None else features)
         need = ("mag_dev", "step_mag", "step_con") if control_gain else ("mag_dev",)
         missing = [f for f in need if f not in self.features]
