@@ -29,7 +29,9 @@ Training (Ross et al. 2011; β, config ``beta``, is the teacher's share of the d
    cheapest candidate; ``first: rule``: the continuation rule's) on
    ``trials_per_scenario`` training trials (seeds ≥ ``train_seed`` ≥ 10000)
    per scenario (an integer, or a mapping scenario → n: iteration j then takes
-   seeds ``train_seed`` + n·j … + n·j + n − 1 of that scenario), the visited
+   seeds ``train_seed`` + n·j … + n·j + n − 1 of that scenario; a real recording,
+   ``recording:PATH`` or ``recording:GLOB`` for each file it matches, is one trial
+   that every iteration revisits with its newest student), the visited
    states labelled with the candidate costs (every decision, or one in
    ``label_every``: the labels are the expensive part);
 2. each iteration: fit a fresh student on all data so far, with the
@@ -102,6 +104,7 @@ from magenv.envs import BLEND_ID
 from magenv.seeding import HELD_OUT_BELOW, VALIDATION_START
 
 ALGO = "dagger"
+RECORDING = "recording:"  # a config entry of a real recording (``recording:PATH`` or ``recording:GLOB``)
 RUN_FILE, BEST, CHECKPOINTS, LOG, DATA = "run.yaml", "best.safetensors", "checkpoints", "iterations.csv", "data"
 DEFAULTS: dict[str, Any] = {
     "iterations": 6,
@@ -123,7 +126,9 @@ DEFAULTS: dict[str, Any] = {
     "regret_scale": "rule",
     "regret_clip": None,
     "rule_margin": 0.0,
+    "guard": None,
 }
+GUARD_KEYS = {"fallback", "margin", "disagree"}  # the ``guard`` config: see :class:`Student`
 RESUMABLE = ("iterations", "ensemble")  # the config keys a resumed run may change
 # the fit keys a refit may change
 REFIT_KEYS = ("hidden", "fit_steps", "batch_size", "learning_rate", "seed", "regret_clip", "rule_margin")
@@ -131,7 +136,7 @@ ACTS = ("mean", "argmax")  # how the student turns its candidate probabilities i
 REGRET_SCALES = ("rule", "best_rule")  # the trial MSE a unit of regret is 1 % of
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
 TEACHER_NEEDS = ("env_id", "candidates", "decision_every", "candidate_costs", "continuation_action", "horizon_s")
-_SHAPE_KEYS = ("hidden", "candidates", "n_inputs", "act")  # run.yaml student keys that are not input constants
+_SHAPE_KEYS = ("hidden", "candidates", "n_inputs", "act", "guard")  # run.yaml student keys: not input constants
 
 
 def check_config(config: dict | None) -> dict:
@@ -144,15 +149,14 @@ def check_config(config: dict | None) -> dict:
     from magenv.scenarios import expand_mixture
 
     if isinstance(cfg["scenarios"], (str, list)):
-        cfg["scenarios"] = expand_mixture(cfg["scenarios"])  # "twins:DIR" entries: the twins of DIR's recordings
+        cfg["scenarios"] = expand_recordings(expand_mixture(cfg["scenarios"]))  # "twins:DIR", "recording:GLOB"
     if not isinstance(cfg["scenarios"], list) or not cfg["scenarios"]:
         raise ValueError(f"DAgger config 'scenarios' must be a non-empty list, got {cfg['scenarios']!r}")
     per = cfg["trials_per_scenario"]
     if isinstance(per, dict):  # scenario → trials: more distinct trials where the student needs them
-        if set(per) != set(cfg["scenarios"]):
-            raise ValueError(
-                f"trials_per_scenario names scenarios {sorted(per)}; it must name exactly {sorted(cfg['scenarios'])}"
-            )
+        simulated = sorted(sc for sc in cfg["scenarios"] if not sc.startswith(RECORDING))
+        if sorted(per) != simulated:
+            raise ValueError(f"trials_per_scenario names scenarios {sorted(per)}; it must name exactly {simulated}")
         counts = list(per.values())
     else:
         counts = [per]
@@ -196,10 +200,60 @@ def check_config(config: dict | None) -> dict:
     clip = cfg["regret_clip"]
     if clip is not None and (isinstance(clip, bool) or not isinstance(clip, (int, float)) or not 0 < clip < np.inf):
         raise ValueError(f"regret_clip must be a positive number (or null: no clip), got {clip!r}")
+    guard = cfg["guard"]
+    if guard is not None:
+        if not isinstance(guard, dict) or set(guard) != GUARD_KEYS:
+            raise ValueError(f"guard must be null or a mapping of exactly {sorted(GUARD_KEYS)}, got {guard!r}")
+        fb = guard["fallback"]
+        if not isinstance(fb, list) or not fb or not all(_is_number(v) for v in fb):
+            raise ValueError(f"guard fallback must be a list of numbers (an action), got {fb!r}")
+        if not (_is_number(guard["margin"]) and 0 <= guard["margin"] < np.inf):
+            raise ValueError(f"guard margin must be a non-negative number, got {guard['margin']!r}")
+        if not (_is_number(guard["disagree"]) and 0 < guard["disagree"] <= np.inf):
+            raise ValueError(f"guard disagree must be a positive number (.inf: never), got {guard['disagree']!r}")
     hidden = cfg["hidden"]
     if not isinstance(hidden, list) or not hidden or not all(_is_int(h) and h >= 1 for h in hidden):
         raise ValueError(f"hidden must be a list of positive layer widths, got {hidden!r}")
     return cfg
+
+
+def expand_recordings(names: list) -> list:
+    """``names`` with each ``recording:GLOB`` entry replaced by ``recording:PATH`` of every file it matches
+    (``magenv.recordings.match_recordings``; ValueError if none); other entries as they are."""
+    from magenv.recordings import match_recordings
+
+    out: list = []
+    for name in names:
+        if isinstance(name, str) and name.startswith(RECORDING):
+            out += [f"{RECORDING}{p}" for p in match_recordings(name[len(RECORDING) :])]
+        else:
+            out.append(name)
+    return out
+
+
+def make_trial(name: str, seed: int):
+    """The trial of a config entry: a real recording (``recording:PATH``, the same trial whatever ``seed``), else
+    ``magenv.scenarios.make_trial(name, seed)``."""
+    from magenv import scenarios
+    from magenv.recordings import load_recording
+
+    if name.startswith(RECORDING):
+        return load_recording(name[len(RECORDING) :])
+    return scenarios.make_trial(name, seed)
+
+
+def trials_per(cfg: dict, name: str) -> int:
+    """New training trials of config entry ``name`` per iteration: 1 for a recording, else
+    ``trials_per_scenario``'s."""
+    if name.startswith(RECORDING):
+        return 1
+    per = cfg["trials_per_scenario"]
+    return per[name] if isinstance(per, dict) else per
+
+
+def _is_number(v) -> bool:
+    """A finite or infinite float or int, not a bool."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and not np.isnan(v)
 
 
 def _is_int(v) -> bool:
@@ -229,9 +283,18 @@ class Student:
         inputs: the env's feature function (``magenv.agents.student_inputs``); meta: its per-run constants
             (with them, ``inputs.n_state_candidates(meta)`` state-dependent candidates follow the fixed ones).
         act: ``mean`` (the probability-weighted mean candidate) or ``argmax`` (the most probable one).
+        bounds: (lo, hi) (n_in,) the range of each input over the data the student was fitted on, or None.
+        guard: the config's ``guard`` (run.yaml student ``guard``), or None.
+
+    **Guard** (``fallback`` an action, ``margin`` m, ``disagree`` d): the student
+    acts with ``fallback`` (e.g. MagVQF-v0's u = 1: VQF's own decision) wherever an input leaves its fitted
+    range widened by m·(hi − lo) on each side — a state unlike any it learned from — and, in an ensemble,
+    wherever the members' actions spread by more than d. ``guarded`` counts those decisions, ``decisions``
+    all of them (since construction).
     """
 
-    def __init__(self, layers, mu, sd, candidates, inputs: StudentInputs, meta: dict, act: str = "mean"):
+    def __init__(self, layers, mu, sd, candidates, inputs: StudentInputs, meta: dict, act: str = "mean",
+                 bounds=None, guard: dict | None = None):  # fmt: skip
         if act not in ACTS:
             raise ValueError(f"act must be one of {list(ACTS)}, got {act!r}")
         self.layers = [(np.asarray(w, np.float32), np.asarray(b, np.float32)) for w, b in layers]
@@ -240,6 +303,27 @@ class Student:
         self._columns = [np.ascontiguousarray(c) for c in self.candidates.T]
         self.feature_fn, self.meta, self.act = inputs, dict(meta), act
         self.n_state = state_candidate_count(inputs, self.meta)
+        self.bounds = None if bounds is None else tuple(np.asarray(b, np.float32) for b in bounds)
+        self.guard = None if guard is None else dict(guard)
+        self.guarded = self.decisions = 0
+
+    def outside(self, x: np.ndarray) -> bool:
+        """Whether inputs ``x`` (1, n_in) leave the guard's widened fitted range (False without a guard)."""
+        if self.guard is None or self.bounds is None:
+            return False
+        lo, hi = self.bounds
+        pad = float(self.guard["margin"]) * (hi - lo)
+        return bool(np.any(x < lo - pad) or np.any(x > hi + pad))
+
+    def _choose(self, p: np.ndarray, obs: np.ndarray) -> np.ndarray:
+        """The action of candidate probabilities ``p`` (C + S,) at ``obs``: their weighted mean or the argmax."""
+        cands, columns = self.candidates, self._columns
+        if self.n_state:  # (fixed-candidate students: the arithmetic of before, bit for bit)
+            cands = self.candidates_at(obs)
+            columns = [np.ascontiguousarray(c) for c in cands.T]
+        if self.act == "argmax":
+            return cands[int(np.argmax(p))].copy()
+        return np.array([p @ col for col in columns])
 
     def inputs(self, obs: np.ndarray) -> np.ndarray:
         """(D, n_obs) observations → (D, n_in) network inputs."""
@@ -262,20 +346,21 @@ class Student:
 
     def action(self, obs: np.ndarray) -> np.ndarray:
         """(action_dim,) float64 for one observation: the probability-weighted mean of the candidates
-        (``act="mean"``) or the most probable candidate (``"argmax"``, the first on ties)."""
-        p = self.probabilities(self.inputs(obs))[0]
-        cands, columns = self.candidates, self._columns
-        if self.n_state:  # (fixed-candidate students: the arithmetic of before, bit for bit)
-            cands = self.candidates_at(obs)
-            columns = [np.ascontiguousarray(c) for c in cands.T]
-        if self.act == "argmax":
-            return cands[int(np.argmax(p))].copy()
-        return np.array([p @ col for col in columns])
+        (``act="mean"``) or the most probable candidate (``"argmax"``, the first on ties); the guard's
+        fallback where it holds (class docstring)."""
+        x = self.inputs(obs)
+        self.decisions += 1
+        if self.outside(x):
+            self.guarded += 1
+            return np.asarray(self.guard["fallback"], np.float64)
+        return self._choose(self.probabilities(x)[0], obs)
 
     def tensors(self) -> dict:
         import torch
 
         out = {"mu": torch.as_tensor(self.mu), "sd": torch.as_tensor(self.sd)}
+        if self.bounds is not None:
+            out["guard/lo"], out["guard/hi"] = (torch.as_tensor(b) for b in self.bounds)
         for i, (w, b) in enumerate(self.layers):
             out[f"layer{i}/weight"], out[f"layer{i}/bias"] = torch.as_tensor(w), torch.as_tensor(b)
         return out
@@ -315,7 +400,16 @@ class Student:
         act = student.get("act", "mean")  # run folders from before ``act`` act with the mean
         if act not in ACTS:
             raise RunError(f"{path}: run.yaml's student act {act!r} is not one of {list(ACTS)}")
-        return cls(layers, mu, sd, candidates, inputs, meta, act)
+        bounds = None
+        if "guard/lo" in tensors:  # students fitted since the guard: their inputs' range
+            bounds = (tensors["guard/lo"].numpy(), tensors["guard/hi"].numpy())
+            if any(b.shape != (n_in,) or not np.all(np.isfinite(b)) for b in bounds) or np.any(bounds[0] > bounds[1]):
+                raise RunError(f"{path}: the guard's input range must be two finite ({n_in},) arrays, lo ≤ hi")
+        guard = student.get("guard")
+        if guard is not None and (not isinstance(guard, dict) or set(guard) != GUARD_KEYS or bounds is None):
+            raise RunError(f"{path}: run.yaml's student guard must hold {sorted(GUARD_KEYS)} and the weights its "
+                           "input range")  # fmt: skip
+        return cls(layers, mu, sd, candidates, inputs, meta, act, bounds, guard)
 
 
 class Ensemble(Student):
@@ -326,9 +420,26 @@ class Ensemble(Student):
         first = members[0]
         self.members, self.candidates, self._columns = list(members), first.candidates, first._columns
         self.feature_fn, self.meta, self.act, self.n_state = first.feature_fn, first.meta, first.act, first.n_state
+        self.guard = first.guard
+        self.guarded = self.decisions = 0
 
     def probabilities(self, x: np.ndarray) -> np.ndarray:
         return np.mean([m.probabilities(x) for m in self.members], axis=0)
+
+    def action(self, obs: np.ndarray) -> np.ndarray:
+        """The members' mean probabilities acted on as by one student; with a guard, its fallback where any
+        member's inputs leave its range or the members' own actions spread by more than ``disagree``."""
+        guard = self.guard
+        if guard is None:
+            return self._choose(self.probabilities(self.inputs(obs))[0], obs)
+        x = self.inputs(obs)
+        self.decisions += 1
+        probs = [m.probabilities(x)[0] for m in self.members]
+        acts = np.array([m._choose(p, obs) for m, p in zip(self.members, probs)])
+        if any(m.outside(x) for m in self.members) or np.any(np.ptp(acts, axis=0) > float(guard["disagree"])):
+            self.guarded += 1
+            return np.asarray(guard["fallback"], np.float64)
+        return self._choose(np.mean(probs, axis=0), obs)
 
     def tensors(self) -> dict:
         raise TypeError("an ensemble is saved as its members' checkpoints (run.yaml 'ensemble')")
@@ -399,7 +510,8 @@ def fit(x: np.ndarray, regret: np.ndarray, cfg: dict, seed: int, candidates, inp
             sched.step()
     linear = [m for m in net if isinstance(m, torch.nn.Linear)]
     weights = [(m.weight.detach().numpy().copy(), m.bias.detach().numpy().copy()) for m in linear]
-    return Student(weights, mu, sd, candidates, inputs, meta, cfg["act"])
+    bounds = (x.min(0), x.max(0)) if cfg["guard"] is not None else None
+    return Student(weights, mu, sd, candidates, inputs, meta, cfg["act"], bounds, cfg["guard"])
 
 
 def with_rule_margin(regret: np.ndarray, rule: np.ndarray, margin: float) -> np.ndarray:
@@ -553,8 +665,6 @@ def train(
     (see the module docstring); returns ``out``. With ``resume`` ``out`` is an existing run that continues with
     its own config, ``config`` giving only a new ``iterations`` (in all) or ``ensemble`` (any other key that
     differs from the run's raises ValueError)."""
-    from magenv.scenarios import make_trial
-
     env_id = check_teacher(teacher, env_id)
     out = Path(out)
     run = _resumed_run(out, teacher, env_id, config) if resume else None
@@ -568,7 +678,7 @@ def train(
     if not resume and (out / RUN_FILE).exists():
         raise ValueError(f"{out} already holds a run; choose another --out (or continue it with --resume)")
     out.mkdir(parents=True, exist_ok=True)
-    k, per = cfg["decision_every"], cfg["trials_per_scenario"]
+    k = cfg["decision_every"]
     inputs = inputs_for(env_id)
     cands, meta = candidate_matrix(teacher.candidates), inputs.meta(teacher)
     n_cands = len(cands) + state_candidate_count(inputs, meta)
@@ -578,6 +688,8 @@ def train(
     n_obs = episodes.env(validation.trials[0][1]).observation_space.shape[0]
     n_in = int(inputs(np.zeros((1, n_obs), np.float32), meta).shape[1])
     student_meta = {"hidden": [int(h) for h in cfg["hidden"]], "candidates": cands.tolist(), **meta, "n_inputs": n_in}
+    if cfg["guard"] is not None:  # run folders without a guard stay as they were
+        student_meta["guard"] = dict(cfg["guard"])
     if cfg["act"] != "mean":  # run folders of mean-acting students stay as they were
         student_meta["act"] = cfg["act"]
     new_run = {"env_id": env_id, "algo": ALGO, "env_kwargs": env_kwargs, "teacher": getattr(teacher, "name", "")}
@@ -636,7 +748,7 @@ def train(
 
             needs = cfg["beta"] > 0
         for sc in cfg["scenarios"]:
-            n_per = per[sc] if isinstance(per, dict) else per
+            n_per = trials_per(cfg, sc)
             first = cfg["train_seed"] + n_per * j
             for s in range(first, first + n_per):
                 trial = make_trial(sc, s)
@@ -750,10 +862,10 @@ class Validation:
     ratio of the mean RMSE to the continuation rule's, and their mean over scenarios (the score; lower is better)."""
 
     def __init__(self, episodes: Episodes, teacher, cfg: dict):
-        from magenv.scenarios import make_trial
-
         self.episodes, self.scenarios = episodes, list(cfg["scenarios"])
-        self.trials = [(sc, make_trial(sc, s)) for sc in self.scenarios for s in range(*cfg["val_seeds"])]
+        seeds = range(*cfg["val_seeds"])
+        self.trials = [(sc, make_trial(sc, s)) for sc in self.scenarios
+                       for s in (seeds[:1] if sc.startswith(RECORDING) else seeds)]  # fmt: skip
         rule = self.rmse(lambda o, runner, costs: teacher.continuation_action(runner))
         self.rule = {sc: float(np.mean(v)) for sc, v in rule.items()}
 

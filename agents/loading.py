@@ -38,7 +38,6 @@ from magenv.agents.weights import RunError, load_policy
 
 if TYPE_CHECKING:  # a run folder of either kind; dagger imports this module
     from magenv.agents.dagger import StudentPolicy
-    from magenv.agents.dagger_vqf import StudentPolicy as VQFStudentPolicy
 
 RUN_FILE = "run.yaml"
 PRETRAINED_PREFIX = "pretrained:"
@@ -194,7 +193,7 @@ def build_model(run: dict, env=None, where: str = "", **extra):
 
 def load_agent(
     run_dir: str | Path, env_id: str | None = None, which: str = "best", trust_pickle: bool = False
-) -> AgentPolicy | StudentPolicy | VQFStudentPolicy:
+) -> AgentPolicy | StudentPolicy:
     """Load the ``best`` (lowest held-out RMSE) or ``last`` model of a run folder.
 
     ``best`` falls back to ``last`` when the run has not been evaluated yet
@@ -206,14 +205,12 @@ def load_agent(
     Raises RunError if the folder is missing, corrupt or pickle-only, or if
     ``env_id`` is given and differs from the env the agent was trained on.
     """
-    from magenv.agents import dagger, dagger_vqf
+    from magenv.agents import dagger
 
     name = f"agent:{run_dir}" if str(run_dir).startswith(PRETRAINED_PREFIX) else None
     run_dir = _resolve(run_dir)
-    for module in (dagger, dagger_vqf):
-        if not module.is_run(run_dir):
-            continue
-        policy = module.load_policy(run_dir, name)
+    if dagger.is_run(run_dir):
+        policy = dagger.load_policy(run_dir, name)
         if env_id is not None and env_id != policy.env_id:
             raise RunError(f"{run_dir}: agent was trained on {policy.env_id}, cannot act in {env_id}")
         return policy

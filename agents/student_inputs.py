@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID
+from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID, VQF_ID
 from magenv.envs.features import DIP_SCALE_DEG
 
 
@@ -260,12 +260,38 @@ class QSFInputs(StudentInputs):
         return np.concatenate(parts, 1)
 
 
+class VQFInputs(StudentInputs):
+    """MagVQF-v0: the extended observation (``magenv.envs.vqf``: the 21 base features, the extra causal ones — VQF's
+    bookkeeping and EMAs — and their copies 4 and 16 decisions earlier) without the columns of run.yaml's
+    student ``drop`` (default ``delta``: the heading offset of the 9D frame from the 6D one, which starts from
+    the sensor's arbitrary initial heading, so that a student keyed to it would learn the trials' headings, not
+    the disturbance)."""
+
+    env_id = VQF_ID
+    env_kwargs = {"features": "extended"}
+    DROP = ("delta",)
+
+    def meta(self, teacher) -> dict:
+        from magenv.envs.vqf import EXTENDED, LAGS
+
+        return {"block": len(EXTENDED) // (1 + len(LAGS)), "drop": list(self.DROP)}
+
+    def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        from magenv.envs.vqf import EXTENDED
+
+        obs = np.atleast_2d(np.asarray(obs, np.float32))
+        block, drop = int(meta["block"]), set(meta.get("drop", ()))
+        keep = [i for i in range(obs.shape[1]) if EXTENDED.names[i % block] not in drop]
+        return np.ascontiguousarray(obs[:, keep])
+
+
 #: env id → what its student sees
 INPUTS: dict[str, StudentInputs] = {
     BLEND_ID: BlendInputs(),
     KALMAN_ID: KalmanInputs(),
     CONSTRAINT_ID: ConstraintInputs(),
     QSF_ID: QSFInputs(),
+    VQF_ID: VQFInputs(),
 }
 
 

@@ -264,14 +264,15 @@ def compare(
 def add_paired(rows: list[dict], runs: Sequence[Run], reference: str) -> list[dict]:
     """``rows`` (of :func:`summarize`) with ``row["paired"]``, the paired ratio of the row's method to ``reference``
     over the trials of its group (``magenv.stats.paired_ratio``: geometric mean of the per-trial ratios of total
-    RMSE, bootstrap 95 % interval, win rate), where both ran on every trial of the group and it has ≥ 2.
-    Runs pair by position within a group: :func:`evaluate` runs every method on the same trials in order."""
+    RMSE, bootstrap 95 % interval, win rate, the worst per-trial ratio), where both ran on every trial of the
+    group (one trial: its ratio, no interval). Runs pair by position within a group: :func:`evaluate` runs every
+    method on the same trials in order."""
     totals: dict[tuple[str, str], list] = {}
     for r in runs:
         totals.setdefault((r.method, r.label), []).append(None if r.score is None else r.score.total)
     for row in rows:
         mine, ref = totals.get((row["method"], row["scenario"])), totals.get((reference, row["scenario"]))
-        if row["method"] == reference or not mine or not ref or len(mine) != len(ref) or len(mine) < 2:
+        if row["method"] == reference or not mine or not ref or len(mine) != len(ref):
             continue
         if None not in mine and None not in ref:
             row["paired"] = paired_ratio(mine, ref)

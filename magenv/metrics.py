@@ -60,6 +60,18 @@ def errors1(q, t):
 
 
 @njit(cache=True, inline="always")
+def total_error1(q, t):
+    """The total error 2·acos(|w|) in degrees of estimate ``q`` (4,) against truth ``t`` (4,) alone (the first of
+    :func:`errors1`, for look-ahead costs): NaN where ``t`` has NaN, 180° where ``q`` is not finite."""
+    if not (np.isfinite(t[0]) and np.isfinite(t[1]) and np.isfinite(t[2]) and np.isfinite(t[3])):
+        return np.nan
+    w = q[0] * t[0] + q[1] * t[1] + q[2] * t[2] + q[3] * t[3]
+    if not np.isfinite(w):
+        return WORST_DEG
+    return np.rad2deg(2.0 * np.arccos(min(1.0, abs(w))))
+
+
+@njit(cache=True, inline="always")
 def add_errors(err, q, t, dist):
     """Add one sample to the error sums ``err`` (N_ERR,): estimate ``q`` (4,) against truth ``t`` (4,)
     (skipped where truth is missing, :func:`errors1`); ``dist`` (µT) is summed always."""

@@ -137,10 +137,12 @@ def dip_angle(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
     return np.rad2deg(np.arcsin(np.clip(-cosang, -1.0, 1.0)))
 
 
-def estimate_field(gyr, acc, mag, rate: float) -> tuple[float, float, str]:
+def estimate_field(
+    gyr, acc, mag, rate: float, documented: tuple[float, float] = (BERLIN_FIELD_NORM, BERLIN_FIELD_DIP)
+) -> tuple[float, float, str]:
     """Earth field ``(norm µT, dip °, source)`` from the initial rest, or the
-    documented Berlin constants with ``source="documented"`` when the rest is too
-    short, unsteady or implausible (see the module docstring)."""
+    ``documented`` site field (µT, °; default Berlin's) with ``source="documented"`` when the rest is too
+    short, unsteady or implausible (more than ``MAX_FIELD_DEVIATION`` from it; see the module docstring)."""
     rest = initial_rest(gyr, rate)
     m, a = np.asarray(mag[rest], float), np.asarray(acc[rest], float)
     if len(m) >= REST_MIN_SECONDS * rate:
@@ -149,12 +151,12 @@ def estimate_field(gyr, acc, mag, rate: float) -> tuple[float, float, str]:
         steady = norm.std() <= REST_MAX_NORM_STD and dip.std() <= REST_MAX_DIP_STD
         est_norm, est_dip = float(np.median(norm)), float(np.median(dip))
         plausible = (
-            abs(est_norm - BERLIN_FIELD_NORM) <= MAX_FIELD_DEVIATION[0]
-            and abs(est_dip - BERLIN_FIELD_DIP) <= MAX_FIELD_DEVIATION[1]
+            abs(est_norm - documented[0]) <= MAX_FIELD_DEVIATION[0]
+            and abs(est_dip - documented[1]) <= MAX_FIELD_DEVIATION[1]
         )
         if steady and plausible:
             return est_norm, est_dip, "initial_rest"
-    return BERLIN_FIELD_NORM, BERLIN_FIELD_DIP, "documented"
+    return float(documented[0]), float(documented[1]), "documented"
 
 
 def load_recording(path: str | Path) -> Trial:

@@ -49,6 +49,7 @@ class PairedRatio:
         iqm, iqm_low, iqm_high: interquartile-mean ratio and its interval (module docstring; NaN interval when
             n < 2).
         level: the intervals' coverage (0.95).
+        worst: the largest per-unit ratio (the method's worst unit relative to the reference).
     """
 
     n: int
@@ -60,6 +61,7 @@ class PairedRatio:
     iqm_low: float
     iqm_high: float
     level: float = DEFAULT_LEVEL
+    worst: float = float("nan")
 
     def ratio_text(self, digits: int = 3) -> str:
         """ "ratio [low, high]" with ``digits`` decimals."""
@@ -104,8 +106,9 @@ def paired_ratio(
     n = len(log_ratio)
     win = float(np.mean((m < r) + 0.5 * (m == r)))
     ratio, iqm = float(np.exp(log_ratio.mean())), float(np.exp(interquartile_mean(log_ratio)))
+    worst = float(np.exp(log_ratio.max()))
     if n < 2:
-        return PairedRatio(n, ratio, float("nan"), float("nan"), win, iqm, float("nan"), float("nan"), level)
+        return PairedRatio(n, ratio, float("nan"), float("nan"), win, iqm, float("nan"), float("nan"), level, worst)
     rng = np.random.default_rng(seed)
     rows = max(1, _BOOT_CELLS // n)  # resamples per draw: memory stays bounded for thousands of units
     boot, boot_iqm = [], []
@@ -116,4 +119,4 @@ def paired_ratio(
     q = [(1 - level) / 2, (1 + level) / 2]
     low, high = np.exp(np.quantile(np.concatenate(boot), q))  # on the log scale: swap-symmetric
     iqm_low, iqm_high = np.exp(np.quantile(np.concatenate(boot_iqm), q))
-    return PairedRatio(n, ratio, float(low), float(high), win, iqm, float(iqm_low), float(iqm_high), level)
+    return PairedRatio(n, ratio, float(low), float(high), win, iqm, float(iqm_low), float(iqm_high), level, worst)

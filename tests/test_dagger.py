@@ -513,3 +513,35 @@ def test_ensemble_members_are_best_or_checkpoints(run_dir, tmp_path):
         (folder / "run.yaml").write_text(yaml.safe_dump(run))
         with pytest.raises(RunError, match="ensemble member"):
             dagger.load_policy(folder)
+
+
+def test_a_guarded_student_falls_back_outside_its_inputs_range_and_where_members_disagree(tmp_path):
+    guard = {"fallback": [0.9], "margin": 0.1, "disagree": 0.2}
+    out = dagger.train(tmp_path / "g", registry.make("oracle"), {**TINY, "guard": guard, "ensemble": 2},
+                       log=lambda s: None)  # fmt: skip
+    run = yaml.safe_load((out / "run.yaml").read_text())
+    assert run["student"]["guard"] == guard
+    policy = dagger.load_policy(out)
+    student = policy.student
+    assert isinstance(student, dagger.Ensemble) and all(m.bounds is not None for m in student.members)
+    member = student.members[0]
+    lo, hi = member.bounds
+    env = dagger.Episodes(BLEND_ID, run["env_kwargs"], registry.make("oracle")).env(
+        dagger.make_trial("dynamic_clean", 5000)
+    )
+    o, _ = env.reset(seed=0)
+    member.guarded = member.decisions = 0
+    inside = member.action(o)
+    far = o.copy()
+    far[0] = 1e3 * (abs(float(hi[0])) + 1.0)  # norm_dev far beyond anything it was fitted on
+    assert member.outside(member.inputs(far)) and not member.outside(member.inputs(o))
+    np.testing.assert_array_equal(member.action(far), [0.9])
+    assert (member.guarded, member.decisions) == (1, 2) and inside.shape == (1,)
+    np.testing.assert_array_equal(student.action(far), [0.9])
+    loose = dagger.Ensemble([dagger.Student(m.layers, m.mu, m.sd, m.candidates, m.feature_fn, m.meta, m.act, m.bounds,
+                                            {**guard, "disagree": 1e-9}) for m in student.members])  # fmt: skip
+    acts = [m.action(o) for m in student.members]
+    if not np.allclose(*acts):  # members that differ at all disagree beyond 1e-9
+        np.testing.assert_array_equal(loose.action(o), [0.9])
+    with pytest.raises(ValueError, match="guard"):
+        dagger.check_config({**TINY, "guard": {"fallback": [1.0]}})

@@ -95,7 +95,7 @@ def test_zero_trust_ignores_the_disturbance(disturbed):
 
 
 def test_observation_reads_vqf_and_the_next_sample(disturbed):
-    env = MagVQFEnv(scenario=[disturbed], decision_every=10)
+    env = MagVQFEnv(scenario=[disturbed], decision_every=10, backend="cpp")
     obs, _ = env.reset(seed=0)
     assert obs[FEATURES.index("trust_prev")] == 1.0 and obs[FEATURES.index("ref_known")] == 0.0
     for _ in range(60):

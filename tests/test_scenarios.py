@@ -37,7 +37,7 @@ def test_unknown_scenario_lists_known_names():
 
 def test_registry_lists_every_worlds_scenarios():
     names = scenarios.scenario_names()
-    assert list(scenarios.WORLDS) == ["gimbal", "twolink", "handheld"]
+    assert list(scenarios.WORLDS) == ["gimbal", "twolink", "handheld", "board"]
     assert names == [n for world in scenarios.WORLDS.values() for n in world.names()]
     assert len(set(names)) == len(names)
     assert {"dynamic_magnet", "constraint_test2", "handheld_texting"} <= set(names)
@@ -63,7 +63,7 @@ def test_unknown_names_list_the_known_ones():
         match="unknown scenario 'nope'; known scenarios: stationary_magnet, .*constraint_test1, .*handheld_random",
     ):
         scenarios.world_of("nope")
-    with pytest.raises(ValueError, match="unknown world 'moon'; known worlds: gimbal, twolink, handheld"):
+    with pytest.raises(ValueError, match="unknown world 'moon'; known worlds: gimbal, twolink, handheld, board"):
         scenarios.scenario_names("moon")
     with pytest.raises(ValueError, match="unknown two-link scenario 'dynamic_magnet'; known: constraint_test1, "):
         scenarios.WORLDS["twolink"].make_trial("dynamic_magnet", 0)

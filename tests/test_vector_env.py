@@ -155,3 +155,13 @@ def test_trial_store_shares_evicts_and_grows():
     assert "a" not in store and d == a and store.version == 1
     for offset, v in ((b, 2.0), (c, 3.0), (d, 4.0)):
         np.testing.assert_array_equal(store.arrays["x"][offset : offset + 6], v)
+
+
+def test_the_extended_vqf_observation_is_batched_too():
+    """MagVQF-v0's extended observation (EMAs and lagged copies) in the vector env is the single env's."""
+    kwargs = {"scenario": ENVS[VQF_ID][0](), "decision_every": 8, "episode_seconds": 1.0, "features": "extended"}
+    actions = np.random.default_rng(3).uniform(0, 1, (50, 3, 1)).astype(np.float32)
+    got, want = vector_and_singles(VQF_ID, kwargs, 4, actions, 3)
+    assert want[2].sum() >= 3 and got[0].shape[-1] > 60
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)

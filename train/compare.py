@@ -11,6 +11,10 @@ over each trial's score mask, averaged over the trials of a scenario. The CSV
 header is ``magenv.evaluation.CSV_COLUMNS``. ``--plot`` draws total error and
 λ over time for the first trial.
 
+With two or more recordings, every method also gets a row over all of them (``all recordings``): the
+paired ratio over the recordings, each one a unit, and the worst recording's ratio (the ``worst`` column,
+per row the largest per-trial ratio to the reference).
+
 A method that cannot run a trial (say a two-link estimator on a one-sensor
 trial) does not stop the others: its cell is ``n/a`` (NaN in the CSV), the
 reason is printed under the table, and the exit status is 1.
@@ -26,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -37,6 +42,7 @@ from magenv.train.seeds import seeds_arg
 
 DEFAULT_METHODS = "mimu,imu,fan_lambda,threshold"
 DEFAULT_REFERENCE = "fan_lambda_tuned"  # the paired column's reference when it is among the methods
+ALL_RECORDINGS = "all recordings"  # the group of every recording's runs (two or more recordings)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -261,8 +267,9 @@ def paired_cells(row: dict) -> list[str]:
     interquartile-mean ratio "iqm [low, high]"; blank without."""
     p = row.get("paired")
     if not p:
-        return ["", "", ""]
-    return [p.ratio_text(2), f"{p.win_rate:.2f}", p.iqm_text(2)]
+        return ["", "", "", ""]
+    return [p.ratio_text(2) if p.n > 1 else f"{p.ratio:.2f}", f"{p.win_rate:.2f}", f"{p.worst:.2f}",
+            p.iqm_text(2) if p.n > 1 else ""]  # fmt: skip
 
 
 def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (°), mean over trials") -> None:
@@ -280,6 +287,7 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
     if paired:
         table.add_column("÷ ref [95 % CI]", justify="right", no_wrap=True)
         table.add_column("win", justify="right", no_wrap=True)
+        table.add_column("worst", justify="right", no_wrap=True)
         table.add_column("IQM ÷ ref", justify="right", no_wrap=True)
     for r in table_order(rows):
         cells = (
@@ -341,6 +349,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         trials, labels = make_trials(scenarios, args.seeds, args.recordings)
         runs = run_comparison(methods, trials, labels, env_kwargs, progress=not args.no_progress)
+    recorded = {Path(p).stem for p in args.recordings}
+    if len(recorded) > 1:  # every recording's runs once more, as one group
+        runs = [*runs, *(dataclasses.replace(r, label=ALL_RECORDINGS) for r in runs if r.label in recorded)]
     rows = mark_headroom(evaluation.summarize(runs), headroom_names(methods))
     rows = evaluation.add_paired(rows, runs, args.reference)
     title = "orientation RMSE (°), mean over trials"

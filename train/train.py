@@ -10,7 +10,10 @@ id, default ``agents/configs/dagger.yaml``; ``--iters`` overrides its iterations
 the DAgger run in ``--out`` with its own config up to ``--iters`` iterations in all; ``--refit SOURCE``
 fits one fresh student on all of the finished run SOURCE's labelled data into ``--out``, with the fit keys
 of ``--config``'s section — only ``dagger.REFIT_KEYS``, e.g. ``hidden``, ``fit_steps`` — replacing
-SOURCE's); the run folder is loadable with ``--agent RUN`` like any other.
+SOURCE's); ``--cv recordings [--folds K]`` runs leave-recordings-out cross-validation instead
+(``magenv.agents.dagger_cv``: K runs ``--out/foldF``, each without one group of the config's real
+recordings and their twins, scored on those; ``--out/cv.csv``); the run folder is loadable with
+``--agent RUN`` like any other.
 
 Progress bar, TensorBoard logs (``runs/NAME/tb``), periodic evaluation on
 held-out trials with the best model kept, checkpoints, and resume: running
@@ -26,6 +29,7 @@ import argparse
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 
 from magenv.agents.hyperparams import (
     DEFAULT_EVAL_EVERY,
@@ -119,6 +123,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="with --teacher and --config: one fresh student on all of the DAgger run SOURCE's data, into --out "
         "(the config's section: the fit keys to change, e.g. hidden, fit_steps)",
     )
+    p.add_argument(
+        "--cv",
+        choices=["recordings"],
+        default=None,
+        help="with --teacher: leave-recordings-out cross-validation (runs in --out/foldF, held-out scores in "
+        "--out/cv.csv)",
+    )
+    p.add_argument("--folds", type=rule_arg(POSITIVE_INT), default=3, help="with --cv: number of folds (default 3)")
 
 
 def run_dagger(args: argparse.Namespace) -> int:
@@ -154,7 +166,19 @@ def run_dagger(args: argparse.Namespace) -> int:
     def log(line: str) -> None:
         print(line, flush=True)
 
+    if args.cv is not None and (args.resume or args.refit is not None):
+        raise CommandError("--cv runs (and resumes) its folds itself; drop --resume and --refit")
     try:
+        if args.cv is not None:
+            from magenv.agents.dagger_cv import cross_validate
+
+            rows = cross_validate(args.out, teacher, config, args.folds, log)
+            ratios = [r["agent_rmse"] / r["rule_rmse"] for r in rows]
+            print(
+                f"held-out recordings: {len(rows)}, student / rule geometric mean "
+                f"{float(np.exp(np.mean(np.log(ratios)))):.3f}, worst {max(ratios):.3f}; {args.out / 'cv.csv'}"
+            )
+            return 0
         if args.refit is not None:
             out = dagger.refit(args.refit, args.out, teacher, config, log)
         else:

@@ -41,7 +41,7 @@ from magenv.trial import Trial
 
 RECORDING_PREFIX = "recording:"
 RESET_OPTIONS = ("trial",)  # the keys ``reset(options=…)`` takes
-TWIN_PREFIX = "twin:"  # a twin scenario, "twin:PATH" (magenv.scenarios.twin): made by make_trial like any scenario
+TWIN_PREFIXES = ("twin:", "rtwin:")  # a twin or randomised twin scenario "twin:PATH": made by make_trial like any
 
 
 def trial_source(scenario, world: str | None = None, require: Callable[[Trial], None] | None = None) -> tuple[str, Any]:
@@ -83,7 +83,9 @@ def trial_source(scenario, world: str | None = None, require: Callable[[Trial], 
         names = scenarios.expand_mixture(names)  # "twins:DIR": the twins of DIR's recordings
         names = [recording_family(n) if n.startswith(RECORDING_PREFIX) else n for n in names]
     bad = [
-        n for n in names if isinstance(n, str) and n not in known and not (world is None and n.startswith(TWIN_PREFIX))
+        n
+        for n in names
+        if isinstance(n, str) and n not in known and not (world is None and n.startswith(TWIN_PREFIXES))
     ]
     if bad:
         kind = "" if world is None else f"{scenarios.WORLDS[world].label} "

@@ -1,64 +1,59 @@
 """``magenv/MagVQF-v0``: choose how far VQF (Laidig & Seel 2023) trusts the magnetometer, window by window.
 
-The filter is the ``vqf`` package's online C++ class ``vqf.VQF``, run as its
-authors ship it; the env only sets its magnetometer gain before each window
-(``setTauMag``) and steps the window with ``updateBatch`` (a loop of
-``update`` inside C++). :class:`VQFRunner` owns one filter on one trial, its
-histories, the error sums against truth and the observation of the next sample
-(:func:`window_features`, one numba kernel); :class:`MagVQFVectorEnv` steps N of
-them behind ``magenv.envs.batch.BatchVectorEnv``.
-
-Trust → gain (:func:`tau_of_trust`). VQF's heading correction is the
-first-order step δ ← δ + k·e of the disagreement angle e (its eq. 30: δ is the
-heading offset of the 9D estimate from the 6D one, e the heading of the
-measured field in the 6D earth frame minus δ), with k = 1 − exp(−T_s/τ_mag)
-for τ_mag > 0, k = 1 for τ_mag = 0 and k = 0 for τ_mag < 0 (VQF's
-``gainFromTau``: a negative τ disables the update). The trust u ∈ [0, 1]
-scales the gain:
-
-    k(u) = u · k₁,   k₁ = 1 − exp(−T_s/τ_mag)        τ(u) = −T_s / ln(1 − u·k₁)  (0 < u < 1)
-
-with τ(1) = τ_mag exactly and τ(0) = −1 s (k = 0: the magnetometer is ignored
-exactly). Two VQF rules stay as VQF has them, whatever u: its fast initial
-convergence (the gain is at least 1/N at the N-th magnetometer sample until
-N·T_s exceeds the current τ; so the first sample aligns the heading) and, with
+The filter is VQF as numba kernels (``magenv.filters.vqf``, bit for bit the
+``vqf`` package's C++ filter at trust 1); the env sets the trust u of its
+magnetometer gain before each window of ``decision_every`` samples. Trust →
+gain (``magenv.filters.vqf.trust_gain``): k(u) = u·k₁, k₁ = 1 − exp(−T_s/τ_mag),
+so u = 0 ignores the magnetometer exactly and u = 1 is VQF's own gain. Two VQF
+rules stay as VQF has them, whatever u: its fast initial convergence (the gain
+is at least 1/N at the N-th magnetometer sample until N·T_s exceeds the
+current τ, so the first sample aligns the heading) and, with
 ``rejection="on"``, its disturbance rejection (k = 0 while a disturbance is
-detected, for at most ``magMaxRejectionTime`` = 60 s, then k/2).
+detected, for at most 60 s of rejection, then k/2). ``rejection="off"`` runs
+VQF's detector with its rejection neutral (``mag_max_rejection_time`` = −1 s,
+``mag_rejection_factor`` = 1): the estimate is VQF's without rejection, while
+the detector's flag and field reference stay in the observation.
 
-``rejection="off"`` runs VQF with its detector on but its rejection neutral
-(``magMaxRejectionTime`` = −1 s, ``magRejectionFactor`` = 1): the gain is
-never changed by the detector, so the estimate is bit for bit that of
-``magDistRejectionEnabled=False`` (``tests/test_env_vqf.py``), while the
-detector's flag and field reference stay in the observation.
+:func:`advance` is the one kernel of the env: it fuses samples ``start:stop``
+(``magenv.filters.vqf.step``), keeps the per-sample histories, the error sums
+against truth and the observation of the next sample j = ``stop``
+(:func:`window_features`). With ``features="extended"`` :func:`advance_extended`
+adds the extra causal features of :data:`EXTRA` (EMAs over VQF's internal
+signals, :func:`update_memory`) and the memory (copies of the base and extra
+features ``LAGS`` decisions earlier, ``magenv.envs.lagged``). :class:`VQFRunner`
+steps one trial; :class:`MagVQFVectorEnv` steps N of them in one compiled call.
+
+``backend="cpp"`` runs the ``vqf`` package's C++ class instead (``setTauMag``
+with τ(u), ``updateBatch`` per window), the reference the kernels are tested
+against; base features only.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from magenv.checks import check_bool, check_number
-from magenv.envs import VQF_ID
+from magenv.envs import VQF_ID, lagged
 from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.blend import NORM_RATE_SCALE, dip_deg
-from magenv.envs.common import TrialRunner, TrustEnv, scalar_action
+from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.filters import vqf
+from magenv.filters.sensors import Sensors
+from magenv.filters.vqf import P, S, tau_of_trust
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
 
 REJECTION = ("off", "on")  # the rejection option: the policy replaces VQF's rejection, or acts on top of it
-TAU_MAG_DEFAULT = 9.0  # s, VQF's default magnetometer time constant
-TAU_ACC_DEFAULT = 3.0  # s, VQF's default accelerometer time constant
-TAU_DISABLED = -1.0  # s, a negative τ: VQF's gain 0 (magnetometer ignored)
+BACKENDS = ("numba", "cpp")  # the filter: magenv.filters.vqf, or the vqf package's C++ class
 BIAS_SCALE_DPS = 1.0  # °/s: bias norms and uncertainties in °/s
 DELTA_RATE_SCALE_DPS = 10.0  # °/s: the rate of δ in units of 10 °/s
-#: vqf.VQF keyword arguments of rejection="off": detector running, its gain changes neutral
-NEUTRAL_REJECTION = {"magMaxRejectionTime": -1.0, "magRejectionFactor": 1.0}
 WINDOW = "the window"  # samples fused in the last step plus sample j
 
 FEATURES = FeatureTable(
@@ -119,18 +114,94 @@ FEATURES = FeatureTable(
 )
 F = FEATURES.ix
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
-# the VQF scalars the runner hands to window_features (indices of its ``vq`` array)
+
+# The extra causal features of the extended observation: VQF's own bookkeeping and EMAs (time constant τ: each
+# step of T seconds moves the EMA by 1 − exp(−T/τ) towards the step's mean) of per-sample signals.
+DIS_RATE_SCALE_DPS = 10.0  # °/s
+EXTRA = FeatureTable(
+    Feature("reject_frac", 0.0, 2.0, "of the limit", "VQF's rejection time used / its limit (60 s)"),
+    Feature("undisturbed_s", 0.0, 6.0, "units of 10 s", "time since VQF last flagged a disturbance (at most 60 s)"),
+    Feature("cand_frac", 0.0, 2.0, "of 20 s", "time a new field candidate has been steady in motion / VQF's 20 s"),
+    Feature("converging", 0.0, 1.0, "0/1", "VQF's initial heading convergence still on (gain ≥ 1/N)"),
+    Feature("dis_ema_1", -1.0, 1.0, "units of 180°", "EMA (τ 1 s) of the disagreement angle e"),
+    Feature("dis_ema_10", -1.0, 1.0, "units of 180°", "EMA (τ 10 s) of e"),
+    Feature(
+        "dis_rate_2",
+        0.0,
+        10.0,
+        f"units of {DIS_RATE_SCALE_DPS:g} °/s",
+        "EMA (τ 2 s) of |ē − ē_prev| / T, ē the mean e of a step, T the time between the steps' middles",
+    ),
+    Feature("dist_ema_5", 0.0, 1.0, "–", "EMA (τ 5 s) of VQF's disturbance flag"),
+    Feature("ref_norm_ema_2", 0.0, 10.0, "fraction of the reference", "EMA (τ 2 s) of |ref_norm_dev|"),
+    Feature("gyro_ema_1", 0.0, 10.0, "units of 2π rad/s", "EMA (τ 1 s) of ‖ω‖"),
+    Feature("rest_ema_5", 0.0, 1.0, "–", "EMA (τ 5 s) of VQF's rest flag"),
+    Feature("gain_ema_10", 0.0, 1.0, "–", "EMA (τ 10 s) of the trust that reached VQF's gain (0 where rejected)"),
+    Feature("gain_ema_60", 0.0, 1.0, "–", "EMA (τ 60 s) of that trust: how long the heading has gone uncorrected"),
+)
+X = EXTRA.ix
+_XLOW, _XHIGH = EXTRA.low64, EXTRA.high64
+#: per-sample sums the kernel keeps over a step for the EMAs (indices of ``Outputs.sums``)
+SUM_E, SUM_DIST, SUM_NORM, SUM_GYRO, SUM_REST, SUM_GAIN = range(6)
+N_SUMS = 6
+_EMA = (  # (feature, the sum it follows, τ s); dis_rate_2 follows the rate of the steps' mean e (update_memory)
+    (X.dis_ema_1, SUM_E, 1.0),
+    (X.dis_ema_10, SUM_E, 10.0),
+    (X.dist_ema_5, SUM_DIST, 5.0),
+    (X.ref_norm_ema_2, SUM_NORM, 2.0),
+    (X.gyro_ema_1, SUM_GYRO, 1.0),
+    (X.rest_ema_5, SUM_REST, 5.0),
+    (X.gain_ema_10, SUM_GAIN, 10.0),
+    (X.gain_ema_60, SUM_GAIN, 60.0),
+)
+_EMA_FEATURE = np.array([e[0] for e in _EMA], np.int64)
+_EMA_SUM = np.array([e[1] for e in _EMA], np.int64)
+_EMA_TAU = np.array([e[2] for e in _EMA])
+_SUM_SCALE = np.zeros(N_SUMS)  # sum → feature unit
+_SUM_SCALE[[SUM_E, SUM_DIST, SUM_NORM, SUM_GYRO, SUM_REST, SUM_GAIN]] = (
+    1.0 / np.pi,
+    1.0,
+    1.0,
+    1.0 / GYRO_SCALE,
+    1.0,
+    1.0,
+)
+
+LAGS = (4, 16)  # decisions: the memory of the extended observation
+_CURRENT = (*FEATURES.features, *EXTRA.features)
+EXTENDED = lagged.extended_table(_CURRENT, LAGS)
+_LAGS = np.array(LAGS, np.int64)
+
+# the VQF scalars window_features reads (indices of its ``vq`` vector; radians, rad/s, the field's unit)
 V_DIST, V_REF_NORM, V_REF_DIP, V_NORM, V_DIP, V_REST, V_BIAS, V_SIGMA, V_DELTA, V_DELTA0, V_DIS = range(11)
+N_VQ = 11
 
 
-def tau_of_trust(u: float, tau_mag: float, ts: float) -> float:
-    """τ (s) that gives VQF the gain k(u) = u·k₁ (module docstring): τ_mag at u = 1, −1 s (k = 0) at u = 0."""
-    if u >= 1.0:
-        return tau_mag
-    if u <= 0.0:
-        return TAU_DISABLED
-    k1 = 1.0 if tau_mag == 0.0 else -math.expm1(-ts / tau_mag)
-    return -ts / math.log1p(-u * k1)
+class Site(NamedTuple):
+    """The trial's undisturbed field, the reference of the field features (``Trial.field_norm``/``field_dip``)."""
+
+    m0: float  # field norm, µT
+    dip0: float  # dip, degrees down
+
+
+class Outputs(NamedTuple):
+    """What :func:`advance` writes: per-sample histories (rows = samples; a vector env's windows hold a step's
+    samples and one on each side), the step's error sums and sums for the EMAs, the VQF scalars and the
+    observation."""
+
+    est: np.ndarray  # (N, 4) 9D estimate after each sample, sensor → ENU (NaN where not fused yet)
+    trust: np.ndarray  # (N,) u applied to each sample
+    gain: np.ndarray  # (N,) u where the gain applied: 0 where rejection="on" and VQF flagged a disturbance
+    flags: np.ndarray  # (N,) VQF's disturbance flag after each sample
+    sums: np.ndarray  # (N_SUMS,) per-sample sums over the step (SUM_*)
+    err: np.ndarray  # (N_ERR,) error sums of the step (magenv.metrics.E_*)
+    vq: np.ndarray  # (N_VQ,) the VQF scalars after the step (V_*)
+    feat: np.ndarray  # (len(FEATURES),) observation of the next sample j
+
+    @classmethod
+    def empty(cls, n: int) -> Outputs:
+        return cls(np.full((n, 4), np.nan), np.full(n, np.nan), np.full(n, np.nan), np.zeros(n), np.zeros(N_SUMS),
+                   np.zeros(N_ERR), np.zeros(N_VQ), np.zeros(len(FEATURES)))  # fmt: skip
 
 
 @njit(cache=True, inline="always")
@@ -207,112 +278,230 @@ def window_features(m0, dip0, dt, gyr, acc, mag, est, flags, start, stop, q_now,
     feat[F.trust_prev] = u_prev
 
 
-def make_vqf(ts: float, tau_acc: float, tau_mag: float, rejection: str, rest_bias: bool, motion_bias: bool):
-    """A fresh ``vqf.VQF`` at sample interval ``ts`` (s) with the env's options (module docstring)."""
-    import vqf
+@njit(cache=True)
+def state_scalars(p, s, delta0, vq):
+    """``vq`` (N_VQ,) from the kernel state ``s`` (``magenv.filters.vqf.STATE``); ``delta0``: δ before the step."""
+    b = S.bias
+    vq[V_DIST] = s[S.mag_dist]
+    vq[V_REF_NORM] = s[S.ref_norm]
+    vq[V_REF_DIP] = s[S.ref_dip]
+    vq[V_NORM] = s[S.norm_dip]
+    vq[V_DIP] = s[S.norm_dip + 1]
+    vq[V_REST] = s[S.rest]
+    vq[V_BIAS] = np.sqrt(s[b] * s[b] + s[b + 1] * s[b + 1] + s[b + 2] * s[b + 2])
+    vq[V_SIGMA] = vqf.bias_sigma(p, s)
+    vq[V_DELTA] = s[S.delta]
+    vq[V_DELTA0] = delta0
+    vq[V_DIS] = s[S.dis_angle]
 
-    extra = NEUTRAL_REJECTION if rejection == "off" else {}
-    return vqf.VQF(
-        ts,
-        ts,
-        ts,
-        tauAcc=tau_acc,
-        tauMag=tau_mag,
-        restBiasEstEnabled=rest_bias,
-        motionBiasEstEnabled=motion_bias,
-        **extra,
-    )
+
+@njit(cache=True)
+def advance(p, s, w, reject, site, sensors, truth, out, u, start, stop):
+    """Fuse samples ``start:stop`` with trust ``u``, then the observation of sample ``stop``.
+
+    Args:
+        p, s, w: ``magenv.filters.vqf`` parameters, state (updated in place) and scratch vectors.
+        reject: VQF's rejection acts (``rejection="on"``): the ``gain`` history is 0 where it flagged.
+        site: :class:`Site`. sensors: ``Sensors`` (rows of the trial, or of a window holding start−1 … stop).
+        truth: ``magenv.envs.common.Truth`` (same rows), for the error sums only.
+        out: :class:`Outputs`; rows start:stop of the histories, the sums, ``err``, ``vq`` and ``feat`` written.
+    """
+    gyr, acc, mag = sensors
+    k, tau = vqf.trust_gain(p, u)
+    delta0 = s[S.delta]
+    sums = out.sums
+    for m in range(N_SUMS):
+        sums[m] = 0.0
+    for i in range(start, stop):
+        vqf.step(p, s, w, gyr[i], acc[i], mag[i], k, tau)
+        out.est[i, 0], out.est[i, 1], out.est[i, 2], out.est[i, 3] = vqf.quat9d(s)
+        flag = s[S.mag_dist]
+        out.flags[i] = flag
+        out.trust[i] = u
+        gain = 0.0 if (reject and flag) else u
+        out.gain[i] = gain
+        sums[SUM_GAIN] += gain
+        sums[SUM_E] += s[S.dis_angle]
+        sums[SUM_DIST] += flag
+        ref = s[S.ref_norm]
+        sums[SUM_NORM] += abs(s[S.norm_dip] - ref) / ref if ref > 0.0 else 0.0
+        sums[SUM_GYRO] += _norm3(gyr[i])
+        sums[SUM_REST] += s[S.rest]
+    error_sums(out.est, truth.q_true, truth.dist, start, stop, out.err)
+    state_scalars(p, s, delta0, out.vq)
+    q_now = w[vqf.W_E : vqf.W_E + 4]  # the scratch's last rows, free after the samples
+    q_now[0], q_now[1], q_now[2], q_now[3] = vqf.quat9d(s)
+    u_prev = u if stop > start else 1.0
+    window_features(site.m0, site.dip0, p[P.ts], gyr, acc, mag, out.est, out.flags, start, stop, q_now, out.vq,
+                    u_prev, out.feat)  # fmt: skip
+
+
+N_MEMORY = len(_EMA) + 3  # the EMAs, then the dis-rate EMA, the last step's mean e and its step length
+
+
+@njit(cache=True)
+def update_memory(p, s, sums, cnt, memory, count, extra):
+    """The extra features ``extra`` (len(EXTRA),) after a step of ``cnt`` samples with per-sample ``sums``: VQF's
+    bookkeeping from the state ``s`` and the EMAs in ``memory`` (N_MEMORY,: started at the first step's means);
+    ``count`` (1,): decisions so far, before this one."""
+    ts = p[P.ts]
+    lim = p[P.mag_max_rejection_time]
+    extra[X.reject_frac] = min(_XHIGH[X.reject_frac], max(0.0, s[S.reject_t] / lim)) if lim > 0.0 else 0.0
+    extra[X.undisturbed_s] = min(60.0, s[S.undisturbed_t]) / 10.0
+    extra[X.cand_frac] = min(_XHIGH[X.cand_frac], s[S.cand_t] / max(p[P.mag_new_time], ts))
+    extra[X.converging] = 1.0 if s[S.k_mag_init] != 0.0 else 0.0
+    n_ema = _EMA_FEATURE.shape[0]
+    if cnt > 0:
+        first = count[0] == 0
+        for m in range(n_ema):
+            mean = sums[_EMA_SUM[m]] / cnt * _SUM_SCALE[_EMA_SUM[m]]
+            a = 1.0 if first else -np.expm1(-cnt * ts / _EMA_TAU[m])
+            memory[m] += a * (mean - memory[m])
+        e = sums[SUM_E] / cnt
+        if not first:
+            de = e - memory[n_ema + 1]
+            if de > np.pi:
+                de -= 2.0 * np.pi
+            elif de < -np.pi:
+                de += 2.0 * np.pi
+            rate = np.rad2deg(abs(de)) / (0.5 * (cnt + memory[n_ema + 2]) * ts) / DIS_RATE_SCALE_DPS
+            a = 1.0 if count[0] == 1 else -np.expm1(-cnt * ts / 2.0)
+            memory[n_ema] += a * (rate - memory[n_ema])
+        memory[n_ema + 1], memory[n_ema + 2] = e, cnt
+    for m in range(n_ema):
+        f = _EMA_FEATURE[m]
+        extra[f] = min(_XHIGH[f], max(_XLOW[f], memory[m]))
+    extra[X.dis_rate_2] = min(_XHIGH[X.dis_rate_2], memory[n_ema])
+
+
+@njit(cache=True)
+def advance_extended(p, s, w, reject, site, sensors, truth, out, u, start, stop, memory, extra, rows, count, feat):
+    """:func:`advance`, then the extended observation ``feat`` (len(EXTENDED)) of sample ``stop``: the extra
+    features (:func:`update_memory`; ``memory`` its EMAs, ``extra`` its values) and the memory ``rows`` (ring of
+    the current blocks by decision), ``count`` (1,) decisions so far."""
+    advance(p, s, w, reject, site, sensors, truth, out, u, start, stop)
+    update_memory(p, s, out.sums, stop - start, memory, count, extra)
+    lagged.compose(out.feat, extra, rows, count, _LAGS, stop > start, feat)
+
+
+def filter_options(rejection: str, tau_acc: float, tau_mag: float, rest_bias: bool, motion_bias: bool):
+    """The ``magenv.filters.vqf.Options`` of the env's arguments (module docstring: ``rejection``)."""
+    neutral = {"mag_max_rejection_time": -1.0, "mag_rejection_factor": 1.0} if rejection == "off" else {}
+    return vqf.Options(tau_acc=tau_acc, tau_mag=tau_mag, rest_bias=rest_bias, motion_bias=motion_bias, **neutral)
 
 
 class VQFRunner(TrialRunner):
-    """One ``vqf.VQF`` on one trial, k samples per step at one trust u.
+    """One trial under VQF, k samples per step at one trust u (``advance(k, u)``), through :func:`advance`.
 
-    Histories (N rows, NaN / 0 where not fused yet): ``est`` (9D estimate, sensor → ENU), ``est6d``,
-    ``trust`` (u per sample), ``gain`` (u where the policy's gain applied: 0 where ``rejection="on"`` and VQF
-    flagged a disturbance), ``dist_flag``, ``rest_flag``, ``delta`` (rad).
+    Histories (N rows, NaN / 0 where not fused yet): ``est`` (9D estimate, sensor → ENU), ``trust`` (u per
+    sample), ``gain`` (u where the policy's gain applied: 0 where ``rejection="on"`` and VQF flagged a
+    disturbance), ``dist_flag``. ``state`` is the filter's state vector (``magenv.filters.vqf.STATE``; a
+    copy is a fork of the filter), ``params`` its parameters; ``vq`` the VQF scalars after the last step.
     """
 
     def __init__(
         self,
         trial: Trial,
-        tau_acc: float = TAU_ACC_DEFAULT,
-        tau_mag: float = TAU_MAG_DEFAULT,
-        rejection: str = "off",
-        rest_bias: bool = True,
-        motion_bias: bool = True,
+        options: vqf.Options | None = None,
+        extended: bool = False,
     ):
         super().__init__(trial)
+        self.options = options or vqf.Options()
+        self.reject = bool(self.options.mag_rejection and self.options.mag_max_rejection_time >= 0.0)
+        self.params = vqf.make_params(trial.dt, self.options)
+        self.state = vqf.init_state(self.params)
+        self.work = vqf.work()
+        self.site = Site(float(trial.field_norm), float(trial.field_dip))
+        self.out = Outputs.empty(trial.n)
+        self.est, self.trust, self.gain, self.dist_flag = self.out.est, self.out.trust, self.out.gain, self.out.flags
+        self.err, self.vq, self.feat = self.out.err, self.out.vq, self.out.feat
+        self._args = (self.params, self.state, self.work, self.reject, self.site, self.sensors, self.truth, self.out)
+        self.extended = bool(extended)
+        if self.extended:
+            self.memory, self.extra = np.zeros(N_MEMORY), np.zeros(len(EXTRA))
+            rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
+            self.feat = np.zeros(len(EXTENDED))
+            self._more: tuple = (self.memory, self.extra, rows, np.zeros(1, np.int64), self.feat)
+            self._advance = self.compiled(advance_extended, *self._args, 1.0, 0, 0, *self._more)
+        else:
+            self._more = ()
+            self._advance = self.compiled(advance, *self._args, 1.0, 0, 0)
+        self._fuse(0, 0, 1.0)  # the observation of sample 0, nothing fused
+
+    @property
+    def mag_dist(self) -> bool:
+        """VQF's disturbance flag after the last fused sample."""
+        return bool(self.vq[V_DIST])
+
+    def _fuse(self, start: int, stop: int, u: float) -> None:
+        self._advance(*self._args, u, start, stop, *self._more)
+
+
+class VQFCppRunner(TrialRunner):
+    """:class:`VQFRunner` on the ``vqf`` package's C++ filter (``backend="cpp"``: the reference; base features
+    only). ``filter`` is the ``vqf.VQF`` object."""
+
+    def __init__(self, trial: Trial, options: vqf.Options | None = None):
+        import vqf as vqf_cpp
+
+        super().__init__(trial)
+        self.options = options or vqf.Options()
+        self.reject = bool(self.options.mag_rejection and self.options.mag_max_rejection_time >= 0.0)
         self.ts = float(trial.dt)
-        self.tau_mag = tau_mag
-        self.rejection = rejection
-        self.filter = make_vqf(self.ts, tau_acc, tau_mag, rejection, rest_bias, motion_bias)
-        n = trial.n
-        self.site = (float(trial.field_norm), float(trial.field_dip))
+        self.filter = vqf_cpp.VQF(self.ts, self.ts, self.ts, **self.options.cpp_kwargs())
+        self.site = Site(float(trial.field_norm), float(trial.field_dip))
         self.gyr, self.acc, self.mag = self.sensors
-        self.est = np.full((n, 4), np.nan)
-        self.est6d = np.full((n, 4), np.nan)
-        self.trust = np.full(n, np.nan)
-        self.gain = np.full(n, np.nan)
-        self.dist_flag = np.zeros(n)
-        self.rest_flag = np.zeros(n)
-        self.delta = np.zeros(n)
-        self.err = np.zeros(N_ERR)
-        self.feat = np.zeros(len(FEATURES))
-        self.vq = np.zeros(11)
+        self.out = Outputs.empty(trial.n)
+        self.est, self.trust, self.gain, self.dist_flag = self.out.est, self.out.trust, self.out.gain, self.out.flags
+        self.err, self.vq, self.feat = self.out.err, self.out.vq, self.out.feat
         self.u_prev = 1.0
         self._observe(0, 0, self.filter.getDelta())
+
+    @property
+    def mag_dist(self) -> bool:
+        return bool(self.vq[V_DIST])
 
     def _observe(self, start: int, stop: int, delta_before: float) -> None:
         f, vq = self.filter, self.vq
         s = f.state
         bias, sigma = f.getBiasEstimate()
-        vq[:] = (
-            float(s["magDistDetected"]),
-            s["magRefNorm"],
-            s["magRefDip"],
-            s["magNormDip"][0],
-            s["magNormDip"][1],
-            float(s["restDetected"]),
-            math.sqrt(float(bias @ bias)),
-            sigma,
-            s["delta"],
-            delta_before,
-            s["lastMagDisAngle"],
-        )
-        q_now = f.getQuat9D()
-        m0, dip0 = self.site
-        window_features(
-            m0, dip0, self.ts, self.gyr, self.acc, self.mag, self.est, self.dist_flag, start, stop, q_now, vq,
-            self.u_prev, self.feat,
-        )  # fmt: skip
+        vq[:] = (float(s["magDistDetected"]), s["magRefNorm"], s["magRefDip"], s["magNormDip"][0],
+                 s["magNormDip"][1], float(s["restDetected"]), math.sqrt(float(bias @ bias)), sigma, s["delta"],
+                 delta_before, s["lastMagDisAngle"])  # fmt: skip
+        window_features(*self.site, self.ts, self.gyr, self.acc, self.mag, self.est, self.dist_flag, start, stop,
+                        f.getQuat9D(), vq, self.u_prev, self.feat)  # fmt: skip
 
     def _fuse(self, start: int, stop: int, u: float) -> None:
         f = self.filter
         delta_before = f.getDelta()
-        f.setTauMag(tau_of_trust(u, self.tau_mag, self.ts))
+        f.setTauMag(tau_of_trust(u, self.options.tau_mag, self.ts))
         out = f.updateBatch(self.gyr[start:stop], self.acc[start:stop], self.mag[start:stop])
         self.est[start:stop] = out["quat9D"]
-        self.est6d[start:stop] = out["quat6D"]
         flags = out["magDistDetected"]
         self.dist_flag[start:stop] = flags
-        self.rest_flag[start:stop] = out["restDetected"]
-        self.delta[start:stop] = out["delta"]
         self.trust[start:stop] = u
-        self.gain[start:stop] = np.where(flags, 0.0, u) if self.rejection == "on" else u
+        self.gain[start:stop] = np.where(flags, 0.0, u) if self.reject else u
         error_sums(self.est, self.truth.q_true, self.truth.dist, start, stop, self.err)
         self.u_prev = u
         self._observe(start, stop, delta_before)
 
 
-def check_rejection(value) -> str:
-    """The ``rejection`` option: "off" or "on" (ValueError / TypeError naming it)."""
+def check_choice(name: str, value, choices: tuple[str, ...]) -> str:
+    """``value`` if it is one of ``choices`` (ValueError / TypeError naming ``name`` otherwise)."""
     if not isinstance(value, str):
-        raise TypeError(f"rejection must be one of {REJECTION}, got {value!r}")
-    if value not in REJECTION:
-        raise ValueError(f"rejection must be one of {REJECTION}, got {value!r}")
+        raise TypeError(f"{name} must be one of {choices}, got {value!r}")
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
     return value
 
 
+def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
+    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
+    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
+    return lagged.observation_table(features, FEATURES, EXTENDED)
+
+
+@document(EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagVQFEnv(TrustEnv):
     """
@@ -320,17 +509,17 @@ class MagVQFEnv(TrustEnv):
 
     A magnetic/inertial sensor moves while a magnet — or anything
     ferromagnetic — disturbs the field it measures. The orientation filter is
-    VQF (Laidig & Seel 2023, the ``vqf`` package's C++ implementation, run as
-    shipped): a 6D gyro/accelerometer estimate with rest detection and
-    gyro-bias estimation, and a 9D estimate that corrects the 6D heading by δ
-    with the magnetometer (δ ← δ + k·e each sample, e the disagreement angle).
-    The agent sets the trust u of that correction once every
-    ``decision_every`` samples: k(u) = u·k₁ with k₁ = 1 − exp(−T_s/τ_mag)
-    (``tau_of_trust``: u = 0 ignores the magnetometer exactly, u = 1 is VQF's
-    own gain). With ``rejection="off"`` (default) the policy replaces VQF's
-    magnetic disturbance rejection; with ``"on"`` it acts on top of it. The
-    sensor stream and the true orientation are fixed at ``reset()``, so a
-    trial can be replayed for any policy.
+    VQF (Laidig & Seel 2023; ``magenv.filters.vqf``, bit for bit the ``vqf``
+    package's C++ filter): a 6D gyro/accelerometer estimate with rest
+    detection and gyro-bias estimation, and a 9D estimate that corrects the 6D
+    heading by δ with the magnetometer (δ ← δ + k·e each sample, e the
+    disagreement angle). The agent sets the trust u of that correction once
+    every ``decision_every`` samples: k(u) = u·k₁ with k₁ = 1 − exp(−T_s/τ_mag)
+    (u = 0 ignores the magnetometer exactly, u = 1 is VQF's own gain). With
+    ``rejection="off"`` (default) the policy replaces VQF's magnetic
+    disturbance rejection; with ``"on"`` it acts on top of it (u = 1 is then
+    VQF as published). The sensor stream and the true orientation are fixed at
+    ``reset()``, so a trial can be replayed for any policy.
 
     ## Action Space
 
@@ -343,16 +532,24 @@ class MagVQFEnv(TrustEnv):
 
     `Box(float32)`, one entry per selected feature (default: all, in this
     order). Truth never enters it. The VQF features are read from the filter
-    after the last fused sample (its state, ``getBiasEstimate``, ``getDelta``);
-    "sample j" is the next sample to be fused, read from the sensor before
-    fusing, with the current 9D estimate q_{j−1}; m0 and θ0 are the trial's
-    undisturbed field norm and dip (``Trial.field_norm``/``field_dip``), as in
-    ``magenv/MagBlend-v0`` (same names, same scales: ‖m_j‖ = m0·(1 + obs
-    ``norm_dev``), dip deviation in degrees = 90·obs ``dip_dev``). Window
-    statistics cover the samples fused in the last step plus sample j. Every
-    value is clipped to its range.
+    after the last fused sample; "sample j" is the next sample to be fused,
+    read from the sensor before fusing, with the current 9D estimate q_{j−1};
+    m0 and θ0 are the trial's undisturbed field norm and dip
+    (``Trial.field_norm``/``field_dip``), as in ``magenv/MagBlend-v0`` (same
+    names, same scales: ‖m_j‖ = m0·(1 + obs ``norm_dev``), dip deviation in
+    degrees = 90·obs ``dip_dev``). Window statistics cover the samples fused
+    in the last step plus sample j. Every value is clipped to its range.
 
     {observation_table}
+
+    With ``features="extended"`` (``EXTENDED``) the observation is the 21
+    above, then these extra causal features (VQF's bookkeeping, and EMAs of
+    time constant τ: a step of T seconds moves one by 1 − exp(−T/τ) towards
+    the step's mean), then both groups 4 decisions earlier (``NAME_lag4``)
+    and 16 decisions earlier (``NAME_lag16``; before the start, the first
+    observation):
+
+    {extended_table}
 
     ## Rewards
 
@@ -384,7 +581,10 @@ class MagVQFEnv(TrustEnv):
     - `tau_acc`, `tau_mag` (defaults 3 s, 9 s, VQF's): accelerometer and magnetometer time constants,
       finite in (0, 1000] s; u = 1 is VQF at `tau_mag`.
     - `rest_bias`, `motion_bias` (default True): VQF's gyro-bias estimation at rest and in motion.
-    - `features` (default None = all): names of the observation features to keep, in order.
+    - `features` (default None = the 21 base features): names of the observation features to keep, in order,
+      or `"extended"` for the extended observation.
+    - `backend` (default `"numba"`): `"cpp"` runs the ``vqf`` package's C++ filter (base features only; the
+      reference the kernels are tested against).
     - `scenario_kwargs`, `prefetch`, `trial_pool`, `render_mode`: as for ``magenv/MagBlend-v0``.
 
     A bad argument raises ValueError / TypeError naming it at construction.
@@ -398,11 +598,12 @@ class MagVQFEnv(TrustEnv):
     ## Vectorised use
 
     ``gymnasium.make_vec("magenv/MagVQF-v0", num_envs=n, vectorization_mode="vector_entry_point")``
-    gives ``MagVQFVectorEnv`` (n VQF filters stepped one window each per step, next-step autoreset).
+    gives ``MagVQFVectorEnv`` (n VQF filters advanced in one compiled call per step, next-step autoreset;
+    extended features too).
 
     ## Version History
 
-    - v0: initial version.
+    - v0: initial version (VQF as numba kernels, bit for bit the C++ filter; the extended observation).
     """
 
     env_name = VQF_ID.split("/")[1]
@@ -413,16 +614,18 @@ class MagVQFEnv(TrustEnv):
         decision_every: int = 8,
         episode_seconds: float | None = None,
         rejection: str = "off",
-        tau_acc: float = TAU_ACC_DEFAULT,
-        tau_mag: float = TAU_MAG_DEFAULT,
+        tau_acc: float = vqf.Options.tau_acc,
+        tau_mag: float = vqf.Options.tau_mag,
         rest_bias: bool = True,
         motion_bias: bool = True,
         features: Sequence[str] | None = None,
+        backend: str = "numba",
         scenario_kwargs: dict | None = None,
         prefetch: bool = False,
         trial_pool=None,
         render_mode: str | None = None,
     ):
+        features, table = observation_table(features)
         self._setup(
             scenario,
             decision_every,
@@ -430,30 +633,35 @@ class MagVQFEnv(TrustEnv):
             render_mode,
             scenario_kwargs,
             features,
-            FEATURES.names,
-            FEATURES.low,
-            FEATURES.high,
+            table.names,
+            table.low,
+            table.high,
             prefetch=prefetch,
             trial_pool=trial_pool,
         )
-        self.filter_kwargs: dict[str, Any] = dict(
-            tau_acc=check_number("tau_acc", tau_acc, 0.0, 1000.0, lo_open=True),
-            tau_mag=check_number("tau_mag", tau_mag, 0.0, 1000.0, lo_open=True),
-            rejection=check_rejection(rejection),
-            rest_bias=check_bool("rest_bias", rest_bias),
-            motion_bias=check_bool("motion_bias", motion_bias),
+        self.rejection = check_choice("rejection", rejection, REJECTION)
+        self.backend = check_choice("backend", backend, BACKENDS)
+        self.extended = table is EXTENDED
+        if self.extended and self.backend == "cpp":
+            raise ValueError('features="extended" needs backend="numba"')
+        self.options = filter_options(
+            self.rejection,
+            check_number("tau_acc", tau_acc, 0.0, 1000.0, lo_open=True),
+            check_number("tau_mag", tau_mag, 0.0, 1000.0, lo_open=True),
+            check_bool("rest_bias", rest_bias),
+            check_bool("motion_bias", motion_bias),
         )
-        self.rejection = self.filter_kwargs["rejection"]
 
-    def _make_runner(self, trial: Trial) -> VQFRunner:
-        return VQFRunner(trial, **self.filter_kwargs)
+    def _make_runner(self, trial: Trial) -> VQFRunner | VQFCppRunner:
+        if self.backend == "cpp":
+            return VQFCppRunner(trial, self.options)
+        return VQFRunner(trial, self.options, self.extended)
 
     def step(self, action):
         runner = self._step_runner()
         u, clipped = scalar_action(action, "u")
         runner.advance(self.k_steps, u)
-        extra = {"mag_dist": bool(runner.vq[V_DIST])}
-        return self._step_result(runner, {"trust": u, "action_clipped": clipped}, extra)
+        return self._step_result(runner, {"trust": u, "action_clipped": clipped}, {"mag_dist": runner.mag_dist})
 
     @property
     def trust(self) -> np.ndarray:
@@ -471,49 +679,151 @@ class MagVQFEnv(TrustEnv):
         return self._need_reset().dist_flag
 
 
+class Batch(NamedTuple):
+    """The arrays of :class:`MagVQFVectorEnv`'s kernel: N envs (leading axis N) on the store's rows."""
+
+    reject: bool  # VQF's rejection acts (the same for every env)
+    extended: bool  # the extended observation
+    p: np.ndarray  # (N, len(PARAMS)) each env's filter parameters (its trial's rate)
+    s: np.ndarray  # (N, len(STATE)) filter states
+    w: np.ndarray  # (N, W_SIZE) scratch
+    m0: np.ndarray  # (N,) undisturbed field norm, µT (Site)
+    dip0: np.ndarray  # (N,) undisturbed dip, degrees (Site)
+    gyr: np.ndarray  # (M, 3) the store's rows: sensors …
+    acc: np.ndarray
+    mag: np.ndarray
+    q_true: np.ndarray  # (M, 4) … and truth (Truth)
+    dist: np.ndarray  # (M,)
+    off: np.ndarray  # (N,) each env's first row in the store
+    n: np.ndarray  # (N,) samples of each env's episode
+    pos: np.ndarray  # (N,) next sample to fuse
+    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
+    u: np.ndarray  # (N,) trust of the step
+    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window (a step's samples, one before, one after)
+    trust: np.ndarray  # (N, k + 2)
+    gain: np.ndarray  # (N, k + 2)
+    flags: np.ndarray  # (N, k + 2)
+    sums: np.ndarray  # (N, N_SUMS)
+    err: np.ndarray  # (N, N_ERR) error sums of the step
+    vq: np.ndarray  # (N, N_VQ)
+    feat: np.ndarray  # (N, len(FEATURES)) base observations
+    memory: np.ndarray  # (N, N_MEMORY) extended only (else (0, …) …)
+    extra: np.ndarray  # (N, len(EXTRA))
+    rows: np.ndarray  # (N, max(LAGS) + 1, len(_CURRENT))
+    count: np.ndarray  # (N, 1)
+    feat_ext: np.ndarray  # (N, len(EXTENDED))
+
+
+@njit(cache=True)
+def _advance_env(b, i):
+    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` (or :func:`advance_extended`) on the window of
+    its step (rows ``base:end`` of its episode: the sample before the step, the step's, the one after), so that
+    the kernel reads and writes exactly what it does for the single env."""
+    o, start = b.off[i], b.pos[i]
+    stop = min(start + b.todo[i], b.n[i])
+    base, end = max(start - 1, 0), min(stop + 1, b.n[i])
+    sensors = Sensors(b.gyr[o + base : o + end], b.acc[o + base : o + end], b.mag[o + base : o + end])
+    truth = Truth(b.q_true[o + base : o + end], b.dist[o + base : o + end])
+    out = Outputs(b.est[i], b.trust[i], b.gain[i], b.flags[i], b.sums[i], b.err[i], b.vq[i], b.feat[i])
+    if start > 0:  # the window's first row: the estimate after sample start − 1, the current one
+        q = out.est[0]
+        q[0], q[1], q[2], q[3] = vqf.quat9d(b.s[i])
+    site = Site(b.m0[i], b.dip0[i])
+    if b.extended:
+        advance_extended(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], start - base,
+                         stop - base, b.memory[i], b.extra[i], b.rows[i], b.count[i], b.feat_ext[i])  # fmt: skip
+    else:
+        advance(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], start - base, stop - base)
+    b.pos[i] = stop
+
+
+@njit(cache=True)
+def advance_batch(b):
+    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
+    for i in range(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            _advance_env(b, i)
+
+
+@njit(cache=True, parallel=True)
+def advance_batch_threads(b):
+    """:func:`advance_batch` with the envs spread over numba's threads."""
+    for i in prange(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            _advance_env(b, i)
+
+
 class MagVQFVectorEnv(BatchVectorEnv):
-    """``num_envs`` MagVQF envs: each step advances every sub-env's ``vqf.VQF`` by one window.
+    """``num_envs`` MagVQF envs advanced together: one numba call per ``step`` fuses every env's k samples.
 
     Registered as the ``vector_entry_point`` of ``magenv/MagVQF-v0``. Seeding, trial draws, next-step
-    autoreset, action checks and ``infos`` (with ``trust``) are ``magenv.envs.batch.BatchVectorEnv``'s; the
-    filter is C++, so instead of one numba kernel over arrays, :meth:`_run` steps the N sub-envs'
-    :class:`VQFRunner` objects (each ``updateBatch`` over its window), and sub-env i is the single env seeded
-    s + i bit for bit. The runners keep their per-sample histories (a few MB per long recording).
+    autoreset, action checks and ``infos`` (with ``trust``, ``mag_dist``) are
+    ``magenv.envs.batch.BatchVectorEnv``'s; sub-env i is the single env seeded s + i bit for bit. The N filter
+    states are the rows of one array (``magenv.filters.vqf.STATE``), and :func:`advance_batch` hands env i's
+    rows to :func:`advance`.
     """
 
     env_class = MagVQFEnv
     features = FEATURES
-    channels = {"n": ((), np.int64)}  # the store only shares trials by key; the runners hold the samples
-    kernels = ()
+    channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
+                "dist": ((), float)}  # fmt: skip
+    kernels = (advance_batch, advance_batch_threads)
 
     def _alloc(self, n: int) -> None:
-        self.runners: list[VQFRunner | None] = [None] * n
+        env = self.template
+        if env.backend == "cpp":
+            raise ValueError('backend="cpp" is not batched: use single envs')
+        self.extended = env.extended
+        rows = self.k_steps + 2
+        self.p = np.tile(vqf.make_params(1.0, env.options), (n, 1))
+        self.s = np.tile(vqf.init_state(self.p[0]), (n, 1))
+        self.w = np.zeros((n, vqf.W_SIZE))
+        self.m0, self.dip0 = np.ones(n), np.zeros(n)
         self.u = np.ones(n)
+        self.scratch = Outputs(np.zeros((n, rows, 4)), np.zeros((n, rows)), np.zeros((n, rows)), np.zeros((n, rows)),
+                               np.zeros((n, N_SUMS)), self.err, np.zeros((n, N_VQ)), self.feat)  # fmt: skip
+        e = n if self.extended else 0
+        self.memory, self.extra = np.zeros((e, N_MEMORY)), np.zeros((e, len(EXTRA)))
+        self.rows, self.count = np.zeros((e, max(LAGS) + 1, len(_CURRENT))), np.zeros((e, 1), np.int64)
+        self.feat_ext = np.zeros((e, len(EXTENDED)))
 
     def _prepare(self, trial: Trial):
-        return {"n": np.zeros(trial.n, np.int64)}, trial
+        truth = Truth.of(trial)
+        rows = {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist}
+        p = vqf.make_params(trial.dt, self.template.options)
+        return rows, (p, float(trial.field_norm), float(trial.field_dip))
 
     def _start(self, i: int, description) -> None:
-        self.runners[i] = VQFRunner(description, **self.template.filter_kwargs)
+        p, self.m0[i], self.dip0[i] = description
+        self.p[i] = p
+        self.s[i] = vqf.init_state(p)
+        self.u[i] = 1.0
+        if self.extended:
+            self.memory[i] = 0.0
+            self.rows[i] = 0.0
+            self.count[i] = 0
 
     def _set_actions(self, values, stepping) -> dict:
         if values is None:
+            self.u[:] = 1.0
             return {}
         np.copyto(self.u, np.where(stepping, values[:, 0], 1.0))
         return {"trust": self.u.copy()}
 
-    def _run(self) -> None:
-        for i, runner in enumerate(self.runners):
-            assert runner is not None
-            todo = int(self.todo[i])
-            if todo > 0:
-                runner.advance(todo, float(self.u[i]))
-                self.err[i] = runner.err
-            elif todo == 0:
-                self.err[i] = 0.0  # a reset: no samples fused, reward 0
-            if todo >= 0:
-                self.feat[i] = runner.feat
-                self.pos[i] = runner.pos
+    def _obs(self) -> np.ndarray:
+        env = self.template
+        feat = self.feat_ext if self.extended else self.feat
+        return (feat if env._all else feat[:, env._idx]).astype(np.float32)
 
     def _step_info(self) -> dict:
-        return {"mag_dist": np.array([bool(r.vq[V_DIST]) for r in self.runners if r is not None])}
+        return {"mag_dist": self.scratch.vq[:, V_DIST] > 0}
+
+    def _batch(self) -> Batch:
+        o = self.scratch
+        a = self.store.arrays
+        return Batch(
+            self.template.options.mag_rejection and self.template.options.mag_max_rejection_time >= 0.0,
+            self.extended, self.p, self.s, self.w, self.m0, self.dip0, a["gyr"], a["acc"], a["mag"], a["q_true"],
+            a["dist"], self.off, self.n, self.pos, self.todo, self.u, o.est, o.trust, o.gain, o.flags, o.sums,
+            self.err, o.vq, self.feat, self.memory, self.extra, self.rows, self.count, self.feat_ext,
+        )  # fmt: skip

@@ -19,6 +19,13 @@ The worlds, one module each (configs, planning, simulation; physics in ``magenv.
 * ``handheld`` — Combettes & Renaudin 2016: a walker's hand-held MIMU in a
   static indoor field (``handheld_texting/swinging/free/corridor``,
   ``handheld_random``);
+* ``board`` — a sensor board moved by hand in a room, as in the BROAD
+  recordings, randomised wide (``board_clean``, ``board_attached``,
+  ``board_stationary``, ``board_office``, ``board_shocks``, ``board_random``):
+  the training worlds of trust that must hold on real sensors;
+* ``rtwin:PATH`` — a randomised twin (``magenv.scenarios.board.random_twin``): the recording's true motion
+  in a drawn room with a drawn disturbance and sensor, as ``board_random`` draws them (``rtwins:DIR`` in a
+  mixture: one for each recording in DIR); overrides are ``BoardConfig`` fields;
 * ``twin:PATH`` — the twin of a real recording: its own true motion through a
   sensor and disturbance model fitted to it (``magenv.scenarios.twin``;
   overrides are ``TwinConfig`` fields). Not listed by ``scenario_names``. In
@@ -36,12 +43,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from magenv.scenarios import gimbal, handheld, twin, twolink
+from magenv.scenarios import board, gimbal, handheld, twin, twolink
 from magenv.scenarios.world import World
 from magenv.trial import Trial
 
 #: The worlds by name, in the order their scenarios are listed.
-WORLDS: dict[str, World] = {w.name: w for w in (gimbal.WORLD, twolink.WORLD, handheld.WORLD)}
+WORLDS: dict[str, World] = {w.name: w for w in (gimbal.WORLD, twolink.WORLD, handheld.WORLD, board.WORLD)}
 
 _WORLD_OF: dict[str, World] = {name: w for w in WORLDS.values() for name in w.scenarios}
 
@@ -57,6 +64,7 @@ TRAINING_MIX = "dynamic_magnet,dynamic_clean,stationary_magnet"
 #: A mixture entry ``twins:DIR`` stands for the twins (``twin:PATH``) of every recording in DIR; ``twins:``
 #: alone, of the shared BROAD recordings (``magenv.recordings.broad_dir()``). See :func:`expand_mixture`.
 TWINS_PREFIX = "twins:"
+RANDOM_TWINS_PREFIX = "rtwins:"  # the same for randomised twins, rtwin:PATH
 
 
 def expand_mixture(names: str | Sequence[str]) -> list[str]:
@@ -68,17 +76,19 @@ def expand_mixture(names: str | Sequence[str]) -> list[str]:
     items = names.split(",") if isinstance(names, str) else list(names)
     out: list[str] = []
     for name in (str(n).strip() for n in items):
-        if not name.startswith(TWINS_PREFIX):
+        prefix = next((p for p in (TWINS_PREFIX, RANDOM_TWINS_PREFIX) if name.startswith(p)), None)
+        if prefix is None:
             out.append(name)
             continue
-        folder = name[len(TWINS_PREFIX) :] or None
+        folder = name[len(prefix) :] or None
         try:
             paths = list_recordings(folder)
         except Exception as exc:
             raise ValueError(f"mixture entry {name!r}: {exc}") from None
         if not paths:
             raise ValueError(f"mixture entry {name!r}: no *.hdf5 recording in {folder or 'the BROAD folder'}")
-        out.extend(f"{twin.PREFIX}{p.resolve()}" for p in paths)
+        single = twin.PREFIX if prefix == TWINS_PREFIX else board.RANDOM_TWIN
+        out.extend(f"{single}{p.resolve()}" for p in paths)
     return out
 
 
@@ -100,8 +110,15 @@ def _world(name: str) -> World:
 
 
 def world_of(name: str) -> str:
-    """The name of the world scenario ``name`` belongs to (a key of ``WORLDS``; ``"twin"`` for ``twin:PATH``)."""
+    """The name of the world scenario ``name`` belongs to (a key of ``WORLDS``; ``"twin"`` for ``twin:PATH``,
+    ``"board"`` for ``rtwin:PATH``)."""
+    if _random_twin(name):
+        return "board"
     return "twin" if twin.is_twin(name) else _world(name).name
+
+
+def _random_twin(name) -> bool:
+    return isinstance(name, str) and name.startswith(board.RANDOM_TWIN)
 
 
 def get_scenario(name: str):
@@ -116,6 +133,8 @@ def configure(name: str, **overrides):
 
 def make_trial(name: str, seed: int, **overrides) -> Trial:
     """Simulate scenario ``name`` with ``seed`` (int ≥ 0): the same Trial bit for bit every time."""
+    if _random_twin(name):
+        return board.random_twin(name, seed, **overrides)
     if twin.is_twin(name):
         return twin.make_trial(name, seed, **overrides)
     return _world(name).make_trial(name, seed, **overrides)
