@@ -13,7 +13,7 @@ statistics of simulated data beside them: trials of ``magenv.scenarios``
 (``magenv.sim.sensors`` with its default ``SensorConfig`` on ideal readings
 of a rest-then-rotate motion). ``--out FILE.png`` writes a figure.
 
-    .venv/bin/python benchmarks/realism.py --out results/realism.png
+    python -m studies.realism --out results/realism.png
 
 The magnetometer lag is taken from the undisturbed trials only (02, 05, 07,
 10, 24): the method assumes a field constant in the earth frame.
