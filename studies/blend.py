@@ -6,12 +6,15 @@ Fan's three protocols (``stationary_magnet``, ``dynamic_clean``, ``dynamic_magne
 the reference is ``fan_lambda_tuned`` on all three, ``mimu`` (the magnetometer always trusted) a column.
 """
 
+from magenv.train.sweep_config import DEFAULT_REFERENCE
 from studies.study import Study, main
 
+ENV_ID = "magenv/MagBlend-v0"
+
 STUDY = Study(
-    env_id="magenv/MagBlend-v0",
+    env_id=ENV_ID,
     tests=("dynamic_magnet", "stationary_magnet", "dynamic_clean"),
-    reference="fan_lambda_tuned",
+    reference=DEFAULT_REFERENCE[ENV_ID],
     others=("mimu",),
     oracle="oracle",
     recordings=True,

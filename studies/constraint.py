@@ -8,14 +8,17 @@ student's own constraint error estimate. ``oracle_constraint`` is the headroom. 
 recordings have one sensor.
 """
 
+from magenv.train.sweep_config import DEFAULT_REFERENCE
 from studies.study import Study, main
+
+ENV_ID = "magenv/MagConstraint-v0"
 
 TESTS = ("constraint_test1", "constraint_test2", "constraint_test3")
 
 STUDY = Study(
-    env_id="magenv/MagConstraint-v0",
+    env_id=ENV_ID,
     tests=TESTS,
-    reference="cf_constraint_tuned",
+    reference=DEFAULT_REFERENCE[ENV_ID],
     same_information=dict.fromkeys(TESTS, "cf_cerr_tuned"),
     others=("cf_constraint",),
     oracle="oracle_constraint",

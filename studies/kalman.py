@@ -8,12 +8,15 @@ hand rule on the student's own information is ``kf_perp_tuned`` (reads ``d_perp`
 its gain is learning rather than information. ``oracle_kalman`` is the headroom.
 """
 
+from magenv.train.sweep_config import DEFAULT_REFERENCE
 from studies.study import Study, main
 
+ENV_ID = "magenv/MagKalman-v0"
+
 STUDY = Study(
-    env_id="magenv/MagKalman-v0",
+    env_id=ENV_ID,
     tests=("dynamic_magnet", "stationary_magnet"),
-    reference="kf_model_tuned",
+    reference=DEFAULT_REFERENCE[ENV_ID],
     by_test={"stationary_magnet": "kf_adaptive_tuned"},
     same_information={"dynamic_magnet": "kf_perp_tuned", "stationary_magnet": "kf_still_tuned"},
     oracle="oracle_kalman",

@@ -8,12 +8,15 @@ estimator) and ``qsf_hold`` (one QSF period from the first sample, kept) as colu
 headroom. The whole table takes about half an hour on one core (``handheld_free`` walks are 13 minutes long).
 """
 
+from magenv.train.sweep_config import DEFAULT_REFERENCE
 from studies.study import Study, main
 
+ENV_ID = "magenv/MagQSF-v0"
+
 STUDY = Study(
-    env_id="magenv/MagQSF-v0",
+    env_id=ENV_ID,
     tests=("handheld_texting", "handheld_swinging", "handheld_corridor", "handheld_free"),
-    reference="qsf_detector_tuned",
+    reference=DEFAULT_REFERENCE[ENV_ID],
     others=("delay_magyq_tuned", "qsf_hold"),
     oracle="oracle_qsf",
     recordings=True,

@@ -164,8 +164,9 @@ def main(study: Study, argv: list[str] | None = None) -> int:
     per_trial = measure(study, args)
     kind = "validation" if args.validation else "held-out"
     cut = "" if args.duration is None else f", trials cut to {args.duration:g} s"
-    span = f"{args.seeds[0]}:{args.seeds[-1] + 1} ({len(args.seeds)} per test)"
-    print(f"{study.env_id}, {kind} seeds {span}{cut}; total RMSE °, mean over the trials")
+    span = f"{kind} seeds {args.seeds[0]}:{args.seeds[-1] + 1} ({len(args.seeds)} per test){cut}"
+    where = [span] * any(g != RECORDINGS for g in per_trial) + ["the recordings"] * (RECORDINGS in per_trial)
+    print(f"{study.env_id}, {' and '.join(where)}; total RMSE °, mean over the trials")
     print("\n".join(table(study, per_trial, args.agent)))
     print(f"({time.time() - t0:.0f} s)")
     return 0

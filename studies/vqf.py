@@ -9,12 +9,15 @@ trained on all nine recordings, on them: not a held-out figure (docs/results.md 
 one).
 """
 
+from magenv.train.sweep_config import DEFAULT_REFERENCE
 from studies.study import Study, main
 
+ENV_ID = "magenv/MagVQF-v0"
+
 STUDY = Study(
-    env_id="magenv/MagVQF-v0",
+    env_id=ENV_ID,
     tests=("dynamic_magnet", "stationary_magnet"),
-    reference="vqf_fan_lambda_tuned",
+    reference=DEFAULT_REFERENCE[ENV_ID],
     others=("vqf", "vqf_no_rejection", "vqf_threshold_tuned"),
     oracle="oracle_vqf",
     recordings=True,
