@@ -23,6 +23,8 @@ from tests.conftest import (
     check_kernel_layout,
     check_scalar_action,
     check_seeded_replay,
+    check_step_errors,
+    check_step_order,
     check_with_checkers,
     kinematic_trial,
     run_episode,
@@ -144,16 +146,7 @@ def test_same_seed_same_episode_on_a_simulated_scenario():
 
 
 def test_step_before_reset_and_after_end(short_trials):
-    env = MagBlendEnv(scenario=short_trials)
-    with pytest.raises(RuntimeError, match="before reset"):
-        env.step(np.array([0.5], np.float32))
-    env.reset(seed=0)
-    trunc = False
-    while not trunc:
-        _, _, term, trunc, _ = env.step(np.array([0.5], np.float32))
-        assert not term
-    with pytest.raises(RuntimeError, match="truncated"):
-        env.step(np.array([0.5], np.float32))
+    check_step_order(MagBlendEnv(scenario=short_trials))
 
 
 def test_bad_actions(short_trials):
@@ -164,18 +157,7 @@ def test_bad_actions(short_trials):
 
 
 def test_reward_and_info_match_the_metrics_module(disturbed):
-    env = MagBlendEnv(scenario=[disturbed], decision_every=16)
-    env.reset(seed=0)
-    for step in range(40):
-        _, reward, _, _, info = env.step(np.array([0.0], np.float32))
-        sl = slice(16 * step, 16 * (step + 1))
-        q_err = metrics.error_quaternion(env.estimate[sl], disturbed.q_true[sl])
-        assert reward == pytest.approx(-np.mean(metrics.total_error(q_err)), abs=1e-9)
-        assert info["error_heading"] == pytest.approx(np.mean(metrics.heading_error(q_err)), abs=1e-9)
-        assert info["error_inclination"] == pytest.approx(np.mean(metrics.inclination_error(q_err)), abs=1e-9)
-        dist = np.linalg.norm(disturbed.truth["mag_disturbance"][sl], axis=1).mean()
-        assert info["disturbance_norm"] == pytest.approx(dist)
-        np.testing.assert_array_equal(info["q_true"], disturbed.q_true[16 * step + 15])
+    check_step_errors(MagBlendEnv(scenario=[disturbed], decision_every=16), disturbed, 0.0, first=0, every=16)
 
 
 def test_observation_features_are_physical(disturbed):
