@@ -22,8 +22,6 @@ import pytest
 from magenv import quaternion as quat
 from magenv.trial import Trial
 
-BROAD_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "broad"
-
 
 @pytest.fixture(autouse=True, scope="session")
 def _own_user_data_dir(tmp_path_factory):
@@ -119,10 +117,15 @@ def short_trials():
 
 @pytest.fixture(scope="session")
 def broad_dir() -> Path:
-    """Folder of the real BROAD recordings (../shared/data/broad)."""
-    if not BROAD_DIR.is_dir():
-        pytest.fail(f"BROAD recordings not found at {BROAD_DIR}; they live in ../shared/data/broad")
-    return BROAD_DIR
+    """Folder of the real BROAD recordings (``magenv.recordings.broad_dir``: ../shared/data/broad, or
+    ``MAGENV_BROAD_DIR``)."""
+    from magenv import recordings
+    from magenv.trial import TrialError
+
+    try:
+        return recordings.broad_dir()
+    except TrialError as exc:
+        pytest.fail(f"BROAD recordings not found: {exc}; they live in ../shared/data/broad")
 
 
 def run_episode(env, seed, actions):
