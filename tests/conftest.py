@@ -191,6 +191,17 @@ def check_step_errors(env, trial, action: float, first: int, every: int, steps: 
     return out
 
 
+def check_feature_subset(env_class, trials, table, names: list[str], seed: int) -> None:
+    """``features=names`` gives those columns of the full observation, in that order; an unknown name is refused."""
+    env, full = env_class(scenario=trials, features=names), env_class(scenario=trials)
+    picked, _ = env.reset(seed=seed)
+    whole, _ = full.reset(seed=seed)
+    assert env.observation_space.shape == (len(names),)
+    np.testing.assert_array_equal(picked, whole[[table.index(n) for n in names]])
+    with pytest.raises(ValueError, match="unknown observation feature"):
+        env_class(scenario=trials, features=[names[0], "truth"])
+
+
 def check_scalar_action(env, key: str) -> None:
     """After ``reset``: NaN/inf and wrong shapes raise; out-of-range values are clipped (``info[key]``); scalars work.
 

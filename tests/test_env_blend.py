@@ -19,6 +19,7 @@ from magenv.envs.blend import FEATURES, BlendRunner, MagBlendEnv
 from magenv.filters import madgwick as mg
 from magenv.filters.blend import BlendEstimator
 from tests.conftest import (
+    check_feature_subset,
     check_feature_table,
     check_kernel_layout,
     check_scalar_action,
@@ -181,14 +182,7 @@ def test_observation_features_are_physical(disturbed):
 
 
 def test_feature_subset_and_errors(short_trials):
-    env = MagBlendEnv(scenario=short_trials, features=["dip_dev", "norm_dev"])
-    full = MagBlendEnv(scenario=short_trials)
-    o, _ = env.reset(seed=3)
-    f, _ = full.reset(seed=3)
-    assert env.observation_space.shape == (2,)
-    np.testing.assert_array_equal(o, f[[1, 0]])
-    with pytest.raises(ValueError, match="unknown observation feature"):
-        MagBlendEnv(scenario=short_trials, features=["norm_dev", "truth"])
+    check_feature_subset(MagBlendEnv, short_trials, FEATURES, ["dip_dev", "norm_dev"], seed=3)
     with pytest.raises(ValueError, match="decision_every"):
         MagBlendEnv(scenario=short_trials, decision_every=0)
     with pytest.raises(ValueError, match="known scenarios"):

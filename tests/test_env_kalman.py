@@ -15,6 +15,7 @@ from magenv.envs.kalman import FEATURES, MagKalmanEnv
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import ModelKF
 from tests.conftest import (
+    check_feature_subset,
     check_feature_table,
     check_kernel_layout,
     check_scalar_action,
@@ -124,14 +125,7 @@ def test_observation_is_the_a_priori_view_of_the_next_sample(disturbed):
 
 
 def test_feature_subset_and_order(short_trials):
-    env = MagKalmanEnv(scenario=short_trials, features=["log_nis", "norm_dev"])
-    full = MagKalmanEnv(scenario=short_trials)
-    a, _ = env.reset(seed=4)
-    b, _ = full.reset(seed=4)
-    assert env.observation_space.shape == (2,)
-    np.testing.assert_array_equal(a, b[[IX["log_nis"], IX["norm_dev"]]])
-    with pytest.raises(ValueError, match="unknown observation feature"):
-        MagKalmanEnv(scenario=short_trials, features=["norm_dev", "truth"])
+    check_feature_subset(MagKalmanEnv, short_trials, FEATURES, ["log_nis", "norm_dev"], seed=4)
 
 
 # ------------------------------------------------------------------ reward and info
