@@ -116,7 +116,7 @@ def _kalman_skip_oracle(params: dict, **extra) -> oracle_kalman.KalmanOracle:
     searched 1 s ahead continuing with the cheaper of kf_model_tuned and kf_adaptive_tuned; the DAgger teacher of
     the shipped MagKalman-v0 student. Per decision on ``dynamic_magnet`` the advantage of skipping over
     kf_model_tuned's γ is partly predictable from the student's causal inputs, that of a full update (γ = 1) is
-    not (``benchmarks/probe_advantage.py --env kalman``); and there kf_still_tuned's γ often looks cheapest
+    not (``studies/probe_advantage.py --env kalman``); and there kf_still_tuned's γ often looks cheapest
     over 1 s, yet students that take it follow that rule, which loses to kf_model_tuned over whole trials.
     Needs tuned kf_adaptive and kf_still files (else TunedParamsError). ``extra``: further options of the
     oracle (``perp``, ``perp_scenarios``)."""

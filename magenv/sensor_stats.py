@@ -1,6 +1,6 @@
 """Statistics of a sensor stream that a simulator's sensor model should match.
 
-Used by ``benchmarks/realism.py`` on the real recordings (BROAD) and on
+Used by ``studies/realism.py`` on the real recordings (BROAD) and on
 simulated trials alike; every function takes a ``Trial`` (or plain arrays);
 only ``truth_lag`` uses the true orientation.
 

@@ -22,8 +22,6 @@ import pytest
 from magenv import quaternion as quat
 from magenv.trial import Trial
 
-BROAD_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "broad"
-
 
 @pytest.fixture(autouse=True, scope="session")
 def _own_user_data_dir(tmp_path_factory):
@@ -119,10 +117,15 @@ def short_trials():
 
 @pytest.fixture(scope="session")
 def broad_dir() -> Path:
-    """Folder of the real BROAD recordings (../shared/data/broad)."""
-    if not BROAD_DIR.is_dir():
-        pytest.fail(f"BROAD recordings not found at {BROAD_DIR}; they live in ../shared/data/broad")
-    return BROAD_DIR
+    """Folder of the real BROAD recordings (``magenv.recordings.broad_dir``: ../shared/data/broad, or
+    ``MAGENV_BROAD_DIR``)."""
+    from magenv import recordings
+    from magenv.trial import TrialError
+
+    try:
+        return recordings.broad_dir()
+    except TrialError as exc:
+        pytest.fail(f"BROAD recordings not found: {exc}; they live in ../shared/data/broad")
 
 
 def run_episode(env, seed, actions):
@@ -149,6 +152,54 @@ def check_seeded_replay(env_id: str, kwargs: dict, seed: int, actions, n_steps: 
     np.testing.assert_array_equal(a[1], b[1])
     assert len(a[1]) == n_steps
     assert not np.array_equal(a[0], c[0])
+
+
+def check_step_order(env, action: float = 0.5) -> None:
+    """``step`` before ``reset`` raises; an episode runs to truncation (never terminated); a step after it raises."""
+    step = np.array([action], np.float32)
+    with pytest.raises(RuntimeError, match="before reset"):
+        env.step(step)
+    env.reset(seed=0)
+    trunc = False
+    while not trunc:
+        _, _, term, trunc, _ = env.step(step)
+        assert not term
+    with pytest.raises(RuntimeError, match="truncated"):
+        env.step(step)
+
+
+def check_step_errors(env, trial, action: float, first: int, every: int, steps: int = 40) -> list:
+    """Over ``steps`` steps of ``every`` samples from sample ``first`` on: each reward is minus the mean total error
+    (``magenv.metrics``) of the step's samples, and ``info``'s error parts, disturbance norm, ``q_true`` and
+    ``q_est`` are those of the step's samples (the last sample's quaternions). Returns (samples, info) per step."""
+    from magenv import metrics
+
+    env.reset(seed=0)
+    out = []
+    for step in range(steps):
+        _, reward, _, _, info = env.step(np.array([action], np.float32))
+        sl = slice(first + every * step, first + every * (step + 1))
+        q_err = metrics.error_quaternion(env.estimate[sl], trial.q_true[sl])
+        assert reward == pytest.approx(-np.mean(metrics.total_error(q_err)), abs=1e-9)
+        assert info["error_heading"] == pytest.approx(np.mean(metrics.heading_error(q_err)), abs=1e-9)
+        assert info["error_inclination"] == pytest.approx(np.mean(metrics.inclination_error(q_err)), abs=1e-9)
+        dist = np.linalg.norm(trial.truth["mag_disturbance"][sl], axis=1).mean()
+        assert info["disturbance_norm"] == pytest.approx(dist)
+        np.testing.assert_array_equal(info["q_true"], trial.q_true[sl.stop - 1])
+        np.testing.assert_array_equal(info["q_est"], env.estimate[sl.stop - 1])
+        out.append((sl, info))
+    return out
+
+
+def check_feature_subset(env_class, trials, table, names: list[str], seed: int) -> None:
+    """``features=names`` gives those columns of the full observation, in that order; an unknown name is refused."""
+    env, full = env_class(scenario=trials, features=names), env_class(scenario=trials)
+    picked, _ = env.reset(seed=seed)
+    whole, _ = full.reset(seed=seed)
+    assert env.observation_space.shape == (len(names),)
+    np.testing.assert_array_equal(picked, whole[[table.index(n) for n in names]])
+    with pytest.raises(ValueError, match="unknown observation feature"):
+        env_class(scenario=trials, features=[names[0], "truth"])
 
 
 def check_scalar_action(env, key: str) -> None:

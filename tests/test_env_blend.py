@@ -19,10 +19,13 @@ from magenv.envs.blend import FEATURES, BlendRunner, MagBlendEnv
 from magenv.filters import madgwick as mg
 from magenv.filters.blend import BlendEstimator
 from tests.conftest import (
+    check_feature_subset,
     check_feature_table,
     check_kernel_layout,
     check_scalar_action,
     check_seeded_replay,
+    check_step_errors,
+    check_step_order,
     check_with_checkers,
     kinematic_trial,
     run_episode,
@@ -144,16 +147,7 @@ def test_same_seed_same_episode_on_a_simulated_scenario():
 
 
 def test_step_before_reset_and_after_end(short_trials):
-    env = MagBlendEnv(scenario=short_trials)
-    with pytest.raises(RuntimeError, match="before reset"):
-        env.step(np.array([0.5], np.float32))
-    env.reset(seed=0)
-    trunc = False
-    while not trunc:
-        _, _, term, trunc, _ = env.step(np.array([0.5], np.float32))
-        assert not term
-    with pytest.raises(RuntimeError, match="truncated"):
-        env.step(np.array([0.5], np.float32))
+    check_step_order(MagBlendEnv(scenario=short_trials))
 
 
 def test_bad_actions(short_trials):
@@ -164,18 +158,7 @@ def test_bad_actions(short_trials):
 
 
 def test_reward_and_info_match_the_metrics_module(disturbed):
-    env = MagBlendEnv(scenario=[disturbed], decision_every=16)
-    env.reset(seed=0)
-    for step in range(40):
-        _, reward, _, _, info = env.step(np.array([0.0], np.float32))
-        sl = slice(16 * step, 16 * (step + 1))
-        q_err = metrics.error_quaternion(env.estimate[sl], disturbed.q_true[sl])
-        assert reward == pytest.approx(-np.mean(metrics.total_error(q_err)), abs=1e-9)
-        assert info["error_heading"] == pytest.approx(np.mean(metrics.heading_error(q_err)), abs=1e-9)
-        assert info["error_inclination"] == pytest.approx(np.mean(metrics.inclination_error(q_err)), abs=1e-9)
-        dist = np.linalg.norm(disturbed.truth["mag_disturbance"][sl], axis=1).mean()
-        assert info["disturbance_norm"] == pytest.approx(dist)
-        np.testing.assert_array_equal(info["q_true"], disturbed.q_true[16 * step + 15])
+    check_step_errors(MagBlendEnv(scenario=[disturbed], decision_every=16), disturbed, 0.0, first=0, every=16)
 
 
 def test_observation_features_are_physical(disturbed):
@@ -199,14 +182,7 @@ def test_observation_features_are_physical(disturbed):
 
 
 def test_feature_subset_and_errors(short_trials):
-    env = MagBlendEnv(scenario=short_trials, features=["dip_dev", "norm_dev"])
-    full = MagBlendEnv(scenario=short_trials)
-    o, _ = env.reset(seed=3)
-    f, _ = full.reset(seed=3)
-    assert env.observation_space.shape == (2,)
-    np.testing.assert_array_equal(o, f[[1, 0]])
-    with pytest.raises(ValueError, match="unknown observation feature"):
-        MagBlendEnv(scenario=short_trials, features=["norm_dev", "truth"])
+    check_feature_subset(MagBlendEnv, short_trials, FEATURES, ["dip_dev", "norm_dev"], seed=3)
     with pytest.raises(ValueError, match="decision_every"):
         MagBlendEnv(scenario=short_trials, decision_every=0)
     with pytest.raises(ValueError, match="known scenarios"):
@@ -334,11 +310,10 @@ def test_prefetch_gives_the_same_episodes_bit_for_bit():
 # ------------------------------------------------------------------ one feature table
 
 
-def test_feature_table_is_the_space_the_docstring_the_env_docs_and_the_kernel_layout(short_trials):
+def test_feature_table_is_the_space_the_docstring_and_the_kernel_layout(short_trials):
     env = MagBlendEnv(scenario=short_trials)
     check_feature_table(env, FEATURES)
     check_kernel_layout(env, FEATURES, blend_env.F)
-    assert FEATURES.markdown() in (Path(__file__).resolve().parents[1] / "docs" / "environments.md").read_text()
 
 
 @pytest.mark.slow

@@ -5,16 +5,34 @@ from __future__ import annotations
 
 import dataclasses
 
+import gymnasium as gym
 import numpy as np
 import pytest
 from conftest import kinematic_trial
 
-from magenv.envs import blend, blend_memory, kalman, kalman_memory
+import magenv  # noqa: F401  (registers the envs)
+from magenv.envs import BLEND_ID, KALMAN_ID, blend, blend_memory, kalman, kalman_memory
 
 ENVS = {
     "blend": (blend.BlendRunner, blend.FEATURES, blend_memory.EXTRA, blend.EXTENDED, blend.LAGS),
     "kalman": (kalman.KalmanRunner, kalman.FEATURES, kalman_memory.EXTRA, kalman.EXTENDED, kalman.LAGS),
 }
+
+
+@pytest.mark.parametrize(
+    "env_id, name, lagged", [(BLEND_ID, "blend", "d_imu_lag8"), (KALMAN_ID, "kalman", "d_anchor_lag8")]
+)
+def test_env_option_documented_and_default_kept(env_id, name, lagged):
+    _, features, extra, extended, _ = ENVS[name]
+    env = gym.make(env_id, features="extended").unwrapped
+    assert env.observation_space.shape == (len(extended),) and env.features == extended.names
+    assert gym.make(env_id).unwrapped.observation_space.shape == (len(features),)
+    assert gym.make(env_id, features=["norm_dev", lagged]).unwrapped.observation_space.shape == (2,)
+    assert [row for row in extra.markdown().splitlines() if row not in type(env).__doc__] == []
+    with pytest.raises(ValueError, match="extended"):
+        gym.make(env_id, features="extnded")
+    obs, _ = env.reset(seed=0)
+    assert np.all(obs >= extended.low) and np.all(obs <= extended.high)
 
 
 @pytest.fixture(scope="module")

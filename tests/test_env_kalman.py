@@ -15,9 +15,12 @@ from magenv.envs.kalman import FEATURES, MagKalmanEnv
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import ModelKF
 from tests.conftest import (
+    check_feature_subset,
     check_feature_table,
     check_kernel_layout,
     check_scalar_action,
+    check_step_errors,
+    check_step_order,
     check_with_checkers,
     kinematic_trial,
 )
@@ -122,14 +125,7 @@ def test_observation_is_the_a_priori_view_of_the_next_sample(disturbed):
 
 
 def test_feature_subset_and_order(short_trials):
-    env = MagKalmanEnv(scenario=short_trials, features=["log_nis", "norm_dev"])
-    full = MagKalmanEnv(scenario=short_trials)
-    a, _ = env.reset(seed=4)
-    b, _ = full.reset(seed=4)
-    assert env.observation_space.shape == (2,)
-    np.testing.assert_array_equal(a, b[[IX["log_nis"], IX["norm_dev"]]])
-    with pytest.raises(ValueError, match="unknown observation feature"):
-        MagKalmanEnv(scenario=short_trials, features=["norm_dev", "truth"])
+    check_feature_subset(MagKalmanEnv, short_trials, FEATURES, ["log_nis", "norm_dev"], seed=4)
 
 
 # ------------------------------------------------------------------ reward and info
@@ -137,19 +133,8 @@ def test_feature_subset_and_order(short_trials):
 
 def test_reward_and_info_match_the_metrics_module(disturbed):
     env = MagKalmanEnv(scenario=[disturbed], decision_every=16)
-    env.reset(seed=0)
-    for step in range(40):
-        _, reward, _, _, info = env.step(np.array([0.5], np.float32))
-        sl = slice(1 + 16 * step, 1 + 16 * (step + 1))
-        q_err = metrics.error_quaternion(env.estimate[sl], disturbed.q_true[sl])
-        assert reward == pytest.approx(-np.mean(metrics.total_error(q_err)), abs=1e-9)
-        assert info["error_heading"] == pytest.approx(np.mean(metrics.heading_error(q_err)), abs=1e-9)
-        assert info["error_inclination"] == pytest.approx(np.mean(metrics.inclination_error(q_err)), abs=1e-9)
-        dist = np.linalg.norm(disturbed.truth["mag_disturbance"][sl], axis=1).mean()
-        assert info["disturbance_norm"] == pytest.approx(dist)
-        np.testing.assert_array_equal(info["q_true"], disturbed.q_true[sl.stop - 1])
-        np.testing.assert_array_equal(info["q_est"], env.estimate[sl.stop - 1])
-        assert info["trust"] == 0.5 and info["sample"] == sl.stop
+    steps = check_step_errors(env, disturbed, 0.5, first=1, every=16)  # sample 0 initialises the filter
+    assert all(info["trust"] == 0.5 and info["sample"] == sl.stop for sl, info in steps)
 
 
 # ------------------------------------------------------------------ env API
@@ -192,13 +177,9 @@ def test_episode_length_and_decision_every(short_trials):
 
 def test_step_before_reset_and_after_end(short_trials):
     env = MagKalmanEnv(scenario=short_trials)
-    with pytest.raises(RuntimeError, match="before reset"):
-        env.step(np.array([0.5], np.float32))
     with pytest.raises(RuntimeError, match="reset"):
         env.estimate
-    _run(env, [0.5])
-    with pytest.raises(RuntimeError, match="truncated"):
-        env.step(np.array([0.5], np.float32))
+    check_step_order(env)
 
 
 def test_bad_actions_and_arguments(short_trials):

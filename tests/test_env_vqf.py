@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -159,8 +158,6 @@ def test_feature_table_is_the_space_the_docstring_and_the_kernel_layout(short_tr
     env = MagVQFEnv(scenario=short_trials)
     check_feature_table(env, FEATURES)
     check_kernel_layout(env, FEATURES, vqf_env.F)
-    docs = Path(__file__).resolve().parents[1] / "docs" / "environments.md"
-    assert FEATURES.markdown() in docs.read_text()
 
 
 def test_sb3_vec_env_adapter_runs(short_trials):

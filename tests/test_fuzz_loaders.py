@@ -26,7 +26,7 @@ from magenv.agents.loading import RunError, load_agent
 from magenv.recordings import load_recording
 from magenv.trial import Trial, TrialError
 from tests.conftest import kinematic_trial
-from tests.test_hardening import ENV, fake_run, write_config
+from tests.test_bad_input import ENV, fake_run, write_config
 from tests.test_recordings import write_recording
 
 N_BYTE = 25  # byte-level corruptions per file

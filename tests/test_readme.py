@@ -33,3 +33,68 @@ def test_cli_page_lists_every_dagger_config_key():
     section = text[text.index("### Teacher–student training (DAgger)") :].split("\n### ", 1)[0]
     rows = [line for line in section.splitlines() if line.startswith("| `")]
     assert [key for key in DEFAULTS if not any(f"`{key}`" in row.split(" | ")[0] for row in rows)] == []
+
+
+README = (ROOT / "README.md").read_text()
+
+
+def _table(text: str, header: str) -> list[list[str]]:
+    """The rows (cells) of the Markdown table whose header line starts with ``header``."""
+    lines = text[text.index(header) :].splitlines()
+    rows = []
+    for line in lines[2:]:
+        if not line.startswith("|"):
+            break
+        rows.append([c.strip() for c in line.strip("|").split("|")])
+    return rows
+
+
+def test_readme_is_short():
+    assert len(README.splitlines()) <= 150
+
+
+def test_readme_env_table_is_the_registered_envs_with_their_default_scenarios():
+    import inspect
+
+    from magenv.envs import ENVS
+
+    rows = _table(README, "| id | the policy chooses |")
+    assert [r[0].strip("`") for r in rows] == list(ENVS)
+    for env_id, *_, scenario in rows:
+        module, name = ENVS[env_id.strip("`")][0].split(":")
+        cls = getattr(__import__(module, fromlist=[name]), name)
+        assert scenario.strip("`") == inspect.signature(cls.__init__).parameters["scenario"].default
+
+
+def test_readme_results_table_names_real_rules_scenarios_and_every_shipped_agent():
+    from magenv import registry
+    from magenv.agents.loading import pretrained_agents
+    from magenv.scenarios import scenario_names
+    from magenv.train.sweep_config import DEFAULT_REFERENCE
+
+    rows = _table(README, "| env | reference rule |")
+    envs = {f"magenv/{r[0]}": r[1].strip("`") for r in rows if r[0]}
+    assert sorted(envs) == sorted(pretrained_agents())
+    assert envs == {e: DEFAULT_REFERENCE[e] for e in envs}  # each env's first row names its reference
+    rules = {r[1].strip("`") for r in rows if r[1]}
+    assert rules <= set(registry.names())
+    tests = {r[2].split("`")[1] for r in rows}
+    assert tests <= set(scenario_names())
+
+
+def test_commands_and_scripts_that_the_docs_name_exist():
+    """Every `python -m studies.X`, `benchmarks/X.py`, `magenv COMMAND` and `make TARGET` in the README, the docs
+    pages and the shipped agents' cards names a real script, command or target."""
+    from magenv.train.cli import COMMANDS
+
+    texts = [p.read_text() for p in [*PAGES, *ROOT.glob("agents/pretrained/*/card.md")]]
+    text = "\n".join(texts)
+    studies = set(re.findall(r"python -m studies\.([a-z_]+)", text))
+    assert [s for s in studies if not (ROOT / "studies" / f"{s}.py").is_file()] == []
+    scripts = set(re.findall(r"\b(benchmarks|studies)/(\w+)\.py", text))
+    assert [f"{d}/{s}.py" for d, s in scripts if not (ROOT / d / f"{s}.py").is_file()] == []
+    commands = set(re.findall(r"`magenv ([a-z]+)", text))
+    assert commands - set(COMMANDS) == set()
+    targets = set(re.findall(r"`make ([\w-]+)`", text))
+    makefile = (ROOT / "Makefile").read_text()
+    assert [t for t in targets if not re.search(rf"^{re.escape(t)}:", makefile, flags=re.M)] == []

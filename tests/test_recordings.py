@@ -263,7 +263,7 @@ def test_rest_noise_on_synthetic_rest():
 
 
 def test_sensor_stats_of_a_recording(trial02):
-    """Regression on measured facts of trial 02 (see benchmarks/realism.py)."""
+    """Regression on measured facts of trial 02 (see studies/realism.py)."""
     from magenv.sensor_stats import sensor_stats
 
     s = sensor_stats(trial02)
@@ -287,11 +287,11 @@ def test_hold_runs_counts_runs_of_repeats():
 
 
 def test_realism_benchmark_runs(tmp_path, capsys):
-    """benchmarks/realism.py on the recordings alone: table, recommendations, figure."""
+    """studies/realism.py on the recordings alone: table, recommendations, figure."""
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "realism.py"
+    path = Path(__file__).resolve().parents[1] / "studies" / "realism.py"
     spec = importlib.util.spec_from_file_location("realism", path)
     realism = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(realism)

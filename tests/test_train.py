@@ -37,15 +37,20 @@ def small_config(tmp_path, algo):
     return path
 
 
-def test_train_then_resume_keeps_progress_and_best_model(tmp_path):
-    out = tmp_path / "run"
-    kw = dict(
-        config=small_config(tmp_path, "ppo"),
-        eval_every=128,
+def train_kwargs(tmp_path, algo: str = "ppo", eval_every: int = 128) -> dict:
+    """``train``'s options for a small run: the small config, held-out evaluation on one dynamic_clean trial."""
+    return dict(
+        config=small_config(tmp_path, algo),
+        eval_every=eval_every,
         eval_scenarios=("dynamic_clean",),
         eval_seeds=(0,),
         progress_bar=False,
     )
+
+
+def test_train_then_resume_keeps_progress_and_best_model(tmp_path):
+    out = tmp_path / "run"
+    kw = train_kwargs(tmp_path)
     train(ENV, "ppo", 256, out, **kw)
     state = json.loads((out / "state.json").read_text())
     assert state["timesteps"] >= 256 and (out / "best_model.zip").is_file() and (out / "last_model.zip").is_file()
@@ -67,13 +72,7 @@ def test_train_then_resume_keeps_progress_and_best_model(tmp_path):
 @pytest.mark.parametrize("algo", ["sac", "recurrent_ppo"])
 def test_other_algorithms_train_resume_and_load(tmp_path, algo):
     out = tmp_path / algo
-    kw = dict(
-        config=small_config(tmp_path, algo),
-        eval_every=10_000,
-        eval_scenarios=("dynamic_clean",),
-        eval_seeds=(0,),
-        progress_bar=False,
-    )
+    kw = train_kwargs(tmp_path, algo, eval_every=10_000)
     train(ENV, algo, 128, out, **kw)
     train(ENV, algo, 256, out, **kw)  # resumes: weights, optimizers, reward statistics (and SAC's buffer)
     assert json.loads((out / "state.json").read_text())["timesteps"] == 256
@@ -177,13 +176,7 @@ def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path, monkeypatch):
         return evaluate(self)
 
     out = tmp_path / "run"
-    kw = dict(
-        config=small_config(tmp_path, "ppo"),
-        eval_every=128,
-        eval_scenarios=("dynamic_clean",),
-        eval_seeds=(0,),
-        progress_bar=False,
-    )
+    kw = train_kwargs(tmp_path)
     monkeypatch.setattr(training.HeldOutEvaluation, "evaluate_and_checkpoint", interrupt_at_the_second)
     with pytest.raises(KeyboardInterrupt):
         train(ENV, "ppo", 512, out, **kw)

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow  # builds the wheel and a fresh virtualenv: `make test-slow`
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,7 @@ Gyroscope: constant bias (drawn per trial) + slow random-walk drift + white
 noise, one sample behind the true motion. Accelerometer: constant bias + white
 noise. Magnetometer: residual hard/soft iron after calibration, low-pass
 noise, saturation, and the timing artefacts seen in the real BROAD recordings
-(``shared/data/broad/README.md``, measured by ``benchmarks/realism.py``): a lag
+(``shared/data/broad/README.md``, measured by ``studies/realism.py``): a lag
 of ~3 samples behind the gyroscope, and sample-and-hold in runs of two (~29 %
 of the samples repeat the previous one, i.e. the magnetometer updates at ~71 %
 of the output rate). Frames: sensor frame throughout; units rad/s, m/s², µT.
@@ -28,7 +28,7 @@ class SensorConfig:
     """MIMU error model. Noise values are white-noise std per sample.
 
     The defaults are those of a real sensor of this class, measured on the
-    nine BROAD recordings (``benchmarks/realism.py``, medians at rest): gyro
+    nine BROAD recordings (``studies/realism.py``, medians at rest): gyro
     noise 0.094 °/s, gyro bias spread 0.18 °/s, accelerometer noise
     0.052 m/s², magnetometer noise 0.70 µT with lag-1/lag-2 autocorrelations
     0.67/0.16 over its conversions, magnetometer 3.2 samples behind the gyro

@@ -1,6 +1,6 @@
 """Probe: how much of a method's error on the two-link tests comes from each of the world's error sources?
 
-    .venv/bin/python benchmarks/error_sources.py [--scenario constraint_test1] [--methods cf_constraint_tuned,…]
+    python -m studies.error_sources [--scenario constraint_test1] [--methods cf_constraint_tuned,…]
         [--seeds 10000:10016]
 
 It simulates the same seeds of a two-link test (``magenv.scenarios.twolink``) as they are and with the

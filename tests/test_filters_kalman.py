@@ -358,7 +358,7 @@ def test_trust_kf_heading_only_keeps_magnetometer_out_of_tilt():
 def test_survey_findings_over_seeds():
     """RMSE table of the four combinations (print with ``-s``) and the survey's qualitative findings.
 
-    ``.venv/bin/python -m pytest tests/test_kalman.py -m slow -s``
+    ``.venv/bin/python -m pytest tests/test_filters_kalman.py -m slow -s``
     """
     cases = {
         "clean": lambda s: trial(s, "clean"),

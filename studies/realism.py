@@ -13,7 +13,7 @@ statistics of simulated data beside them: trials of ``magenv.scenarios``
 (``magenv.sim.sensors`` with its default ``SensorConfig`` on ideal readings
 of a rest-then-rotate motion). ``--out FILE.png`` writes a figure.
 
-    .venv/bin/python benchmarks/realism.py --out results/realism.png
+    python -m studies.realism --out results/realism.png
 
 The magnetometer lag is taken from the undisturbed trials only (02, 05, 07,
 10, 24): the method assumes a field constant in the earth frame.
@@ -211,27 +211,17 @@ def plot(real_trials, real, sim_trials, sim, rec, out: Path) -> None:
         ax.set_title(unit)
         ax.set_ylim(0, 1.45 * max(np.nanmax(vals), SIM_DEFAULTS[key], rec[key]))
         ax.legend(fontsize=7, loc="upper center", ncol=3)
-    ax = axes[1, 0]
-    bins = np.linspace(20, 70, 101)
-    for t in real_trials:
-        norm, _ = field_norm_dip(t)
-        ax.hist(norm, bins, histtype="step", density=True, label=t.name[:2], lw=0.8)
-    for n, t in sim_trials:
-        norm, _ = field_norm_dip(t)
-        ax.hist(norm, bins, histtype="step", density=True, label=f"sim:{n}", lw=2)
-    ax.set_yscale("log")
-    ax.set_xlabel("field magnitude |m|, µT (samples with |a| ≈ g)")
-    ax.legend(fontsize=6, ncol=2)
-    ax = axes[1, 1]
-    bins = np.linspace(-30, 90, 121)
-    for t in real_trials:
-        _, dip = field_norm_dip(t)
-        ax.hist(dip, bins, histtype="step", density=True, label=t.name[:2], lw=0.8)
-    for n, t in sim_trials:
-        _, dip = field_norm_dip(t)
-        ax.hist(dip, bins, histtype="step", density=True, label=f"sim:{n}", lw=2)
-    ax.set_yscale("log")
-    ax.set_xlabel("dip angle, ° (samples with |a| ≈ g)")
+    histograms = (  # (panel, which of field_norm_dip's two, bins, label)
+        (axes[1, 0], 0, np.linspace(20, 70, 101), "field magnitude |m|, µT (samples with |a| ≈ g)"),
+        (axes[1, 1], 1, np.linspace(-30, 90, 121), "dip angle, ° (samples with |a| ≈ g)"),
+    )
+    for ax, which, bins, xlabel in histograms:
+        curves = [(t.name[:2], t, 0.8) for t in real_trials] + [(f"sim:{n}", t, 2) for n, t in sim_trials]
+        for label, t, lw in curves:
+            ax.hist(field_norm_dip(t)[which], bins, histtype="step", density=True, label=label, lw=lw)
+        ax.set_yscale("log")
+        ax.set_xlabel(xlabel)
+    axes[1, 0].legend(fontsize=6, ncol=2)
     ax = axes[1, 2]
     ax.plot(x, [s.mag_lag_samples for s in stats], "o", label="mag behind gyro")
     ax.plot(x, [s.mag_truth_lag_samples for s in stats], "s", label="mag behind truth")

@@ -43,11 +43,7 @@ def test_quest_weights_are_relative_and_exact():
 
 
 def test_quest_matches_eigensolver_on_noisy_vectors():
-    rng = np.random.default_rng(2)
-    q = random_orientations(200, seed=2)
-    acc, mag = ideal_vectors(q)
-    acc = acc + rng.normal(0, 1.0, acc.shape)
-    mag = mag + rng.normal(0, 5.0, mag.shape)
+    _, acc, mag = _noisy(200, 1.0, 5.0, seed=2)
     est = solvers.quest(acc, mag, H_REF, weights=(0.3, 0.7))
     for i in range(200):
         n = solvers.davenport_matrix1(acc[i], mag[i], G_REF, H_REF, 0.3, 0.7)
@@ -59,11 +55,7 @@ def test_quest_matches_eigensolver_on_noisy_vectors():
 
 
 def test_quest_tends_to_triad_when_gravity_dominates():
-    rng = np.random.default_rng(3)
-    q = random_orientations(200, seed=3)
-    acc, mag = ideal_vectors(q)
-    acc = acc + rng.normal(0, 0.1, acc.shape)
-    mag = mag + rng.normal(0, 2.0, mag.shape)
+    _, acc, mag = _noisy(200, 0.1, 2.0, seed=3)
     err = metrics.total_error(
         metrics.error_quaternion(solvers.quest(acc, mag, H_REF, weights=(1.0, 1e-7)), solvers.triad(acc, mag, H_REF))
     )

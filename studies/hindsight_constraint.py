@@ -1,6 +1,6 @@
 """Probe: how much would choosing the tuned constraint rule's parameters per trial, with hindsight, gain?
 
-    .venv/bin/python benchmarks/hindsight_constraint.py [--tests constraint_test1,…] [--seeds 5000:5020]
+    python -m studies.hindsight_constraint [--tests constraint_test1,…] [--seeds 5000:5020]
 
 For each trial it runs ``cf_constraint_tuned`` (eqs. 16 and 18 with the parameters of
 ``baselines/tuned/cf_constraint.json``) with th1 (eq. 16's weight threshold), k_max (eq. 18's largest gain), or

@@ -1,6 +1,6 @@
 """Behaviour-cloning diagnostic on MagKalman-v0: which inputs carry ``oracle_kalman``'s decisions?
 
-    .venv/bin/python benchmarks/bc_kalman_diagnostic.py [--train 4] [--val 2] [--label-every 2] [--fit-steps 3000]
+    python -m studies.bc_kalman_diagnostic [--train 4] [--val 2] [--label-every 2] [--fit-steps 3000]
         [--json FILE]
 
 It rolls ``kf_model_tuned`` (the oracle's continuation rule) on ``--train``

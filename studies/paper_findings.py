@@ -1,8 +1,8 @@
 """The three paper findings the simulation did not reproduce, measured (issue 17, item 4).
 
-    .venv/bin/python benchmarks/paper_findings.py handheld [--seeds 4]
-    .venv/bin/python benchmarks/paper_findings.py manual [--seeds 5]
-    .venv/bin/python benchmarks/paper_findings.py constraint [--seeds 5]
+    python -m studies.paper_findings handheld [--seeds 4]
+    python -m studies.paper_findings manual [--seeds 5]
+    python -m studies.paper_findings constraint [--seeds 5]
 
 * ``handheld`` — AEKF, MAGYQ and Delay MAGYQ (started from truth, as ``magenv paper qsf``) on the texting and
   swinging walks, mean |yaw| (°) per scenario and pooled, with the paper's σ_a = 0.1 g or σ_a = 3 m/s², and

@@ -1,8 +1,8 @@
 """Probe: can any MagQSF-v0 decision steer a known heading error back toward zero?
 
-    .venv/bin/python benchmarks/probe_qsf_steering.py [--scenario handheld_texting] [--trials 6] [--every 20]
+    python -m studies.probe_qsf_steering [--scenario handheld_texting] [--trials 6] [--every 20]
         [--hold 10] [--horizon 5] [--json FILE]
-    .venv/bin/python benchmarks/probe_qsf_steering.py --levers [--scenario …] [--trials 6] [--validation]
+    python -m studies.probe_qsf_steering --levers [--scenario …] [--trials 6] [--validation]
 
 It rolls the tuned QSF detector (``qsf_detector_tuned``'s thresholds; the
 continuation rule of ``oracle_qsf``, ``baselines/oracle_qsf.py``) through the

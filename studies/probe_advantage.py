@@ -1,6 +1,6 @@
 """Probe: do a DAgger student's causal inputs say when departing from the rule pays, on trials it was not fitted on?
 
-    .venv/bin/python benchmarks/probe_advantage.py [--env qsf|constraint|kalman] [--trials 24] [--folds 8] [--history]
+    python -m studies.probe_advantage [--env qsf|constraint|kalman] [--trials 24] [--folds 8] [--history]
         [--horizon S] [--label-every N] [--truth] [--json FILE]
 
 It rolls the teacher's continuation rule on ``--trials`` training trials

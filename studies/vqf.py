@@ -1,0 +1,27 @@
+"""MagVQF-v0 (docs/results.md), in simulation: the shipped student against the tuned Fan rule on VQF's gain.
+
+    python -m studies.vqf [--seeds 0:20] [--recordings] [--agent RUN]   (options: studies/study.py)
+
+Fan's magnet protocols; the reference is ``vqf_fan_lambda_tuned`` (the λ rule mapped to VQF's magnetometer
+gain, its rejection off), with VQF as shipped (``vqf``, rejection on), without its rejection and the tuned
+threshold rule as columns; ``oracle_vqf`` is the headroom. ``--recordings`` scores the shipped agent, which
+trained on all nine recordings, on them: not a held-out figure (docs/results.md gives the leave-recordings-out
+one).
+"""
+
+from magenv.train.sweep_config import DEFAULT_REFERENCE
+from studies.study import Study, main
+
+ENV_ID = "magenv/MagVQF-v0"
+
+STUDY = Study(
+    env_id=ENV_ID,
+    tests=("dynamic_magnet", "stationary_magnet"),
+    reference=DEFAULT_REFERENCE[ENV_ID],
+    others=("vqf", "vqf_no_rejection", "vqf_threshold_tuned"),
+    oracle="oracle_vqf",
+    recordings=True,
+)
+
+if __name__ == "__main__":
+    raise SystemExit(main(STUDY))

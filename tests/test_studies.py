@@ -1,0 +1,53 @@
+"""studies/: the per-env tables of docs/results.md come from one engine (studies/study.py)."""
+
+from __future__ import annotations
+
+import pytest
+
+from studies import blend, constraint, kalman, qsf, vqf
+from studies.study import RECORDINGS, main, parse, table
+
+STUDIES = [blend.STUDY, kalman.STUDY, constraint.STUDY, qsf.STUDY, vqf.STUDY]
+
+
+@pytest.mark.parametrize("study", STUDIES, ids=lambda s: s.env_id)
+def test_every_study_names_registered_methods_and_its_shipped_agent(study):
+    from magenv import registry
+    from magenv.agents.loading import pretrained_agents
+
+    names = set(registry.names())
+    assert [m for m in [*study.rules(), study.oracle] if m not in names] == []
+    assert study.env_id in pretrained_agents()
+    assert parse(study, []).agent == [f"pretrained:{study.env_id}"]
+
+
+def test_reported_figures_refuse_validation_seeds_and_recordings_where_they_cannot_run():
+    with pytest.raises(SystemExit, match="held-out seeds below 5000"):
+        parse(blend.STUDY, ["--seeds", "5000:5002"])
+    with pytest.raises(SystemExit):
+        parse(constraint.STUDY, ["--recordings"])
+    assert parse(kalman.STUDY, ["--agent", "none"]).agent == []
+
+
+def test_table_pairs_each_agent_with_the_reference_of_its_test_and_the_same_information_rule():
+    per_trial = {
+        "stationary_magnet": {
+            "kf_model_tuned": [4.0, 6.0],
+            "kf_adaptive_tuned": [2.0, 3.0],
+            "kf_perp_tuned": [4.0, 6.0],
+            "kf_still_tuned": [1.0, 1.5],
+            "agent": [1.0, 1.5],
+            "oracle_kalman": [0.5, 0.75],
+        }
+    }
+    head, rule, row = table(kalman.STUDY, per_trial, ["pretrained:magenv/MagKalman-v0"])[1:]
+    assert "agent / reference" in head and "agent / kf_still_tuned" in head and rule.startswith("|---")
+    cells = row.split(" | ")
+    assert cells[1] == "kf_adaptive_tuned" and cells[-1] == "0.67 |"  # (2.5 - 1.25) / (2.5 - 0.625)
+    assert cells[8].startswith("0.500 [0.500, 0.500]") and cells[10].startswith("1.000")  # agent / rule, / still
+
+
+def test_a_short_study_runs_end_to_end(capsys):
+    assert main(blend.STUDY, ["--seeds", "0", "--duration", "2", "--no-oracle", "--scenarios", "dynamic_magnet"]) == 0
+    out = capsys.readouterr().out
+    assert "| dynamic_magnet | fan_lambda_tuned |" in out and "trials cut to 2 s" in out and RECORDINGS == "recordings"
