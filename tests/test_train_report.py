@@ -27,11 +27,11 @@ def test_the_paired_columns_carry_the_ratio_win_rate_and_interquartile_mean(tmp_
     trials = [make_trial("dynamic_clean", s, duration=6.0) for s in (0, 1, 2, 3)]
     runs = evaluation.evaluate({n: registry.make(n) for n in ["mimu", "imu"]}, trials)
     text = write_report(runs, tmp_path / "report", reference="mimu").read_text()
-    assert "÷ reference [95 % CI] | win | IQM ÷ reference |" in text
+    assert "÷ reference [95 % CI] | win | worst | IQM ÷ reference |" in text
     table = [line for line in text.splitlines() if line.startswith("|")]
     assert len({line.count("|") for line in table}) == 1  # header, separator and rows: the same columns
     total = {n: [r.scored.total for r in runs if r.method == n] for n in ("mimu", "imu")}
     p = paired_ratio(total["imu"], total["mimu"])
     row = next(line for line in text.splitlines() if line.startswith("| dynamic_clean | imu |"))
     iqm = f"{p.iqm:.2f} [{p.iqm_low:.2f}, {p.iqm_high:.2f}]"
-    assert row.endswith(f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}] | {p.win_rate:.2f} | {iqm} |")
+    assert row.endswith(f"{p.ratio:.2f} [{p.low:.2f}, {p.high:.2f}] | {p.win_rate:.2f} | {p.worst:.2f} | {iqm} |")

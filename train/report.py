@@ -93,8 +93,8 @@ def markdown_table(rows: list[dict]) -> str:
     paired = any("paired" in r for r in rows)
     lines = [
         "| scenario | method | n | total RMSE (°) | ± std | heading | inclination |"
-        + (" ÷ reference [95 % CI] | win | IQM ÷ reference |" if paired else ""),
-        "|---|---|---|---|---|---|---|" + ("---|---|---|" if paired else ""),
+        + (" ÷ reference [95 % CI] | win | worst | IQM ÷ reference |" if paired else ""),
+        "|---|---|---|---|---|---|---|" + ("---|---|---|---|" if paired else ""),
     ]
     for r in table_order(rows):
         cells = (
@@ -136,7 +136,8 @@ def write_report(
         + (
             f" ÷ reference: the paired ratio to `{reference}` over the same trials (geometric mean of the per-trial "
             "ratios, bootstrap 95 % interval; below 1 throughout = better), win: the share of trials it is better on, "
-            "IQM ÷ reference: the same over the middle half of the per-trial log ratios (extreme trials dropped)."
+            "worst: the largest per-trial ratio, IQM ÷ reference: the same over the middle half of the per-trial log "
+            "ratios (extreme trials dropped)."
             if reference is not None
             else ""
         )

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -139,7 +139,7 @@ EXTRA = FeatureTable(
     Feature("gain_ema_10", 0.0, 1.0, "–", "EMA (τ 10 s) of the trust that reached VQF's gain (0 where rejected)"),
     Feature("gain_ema_60", 0.0, 1.0, "–", "EMA (τ 60 s) of that trust: how long the heading has gone uncorrected"),
 )
-X = EXTRA.ix
+X: Any = EXTRA.ix
 _XLOW, _XHIGH = EXTRA.low64, EXTRA.high64
 #: per-sample sums the kernel keeps over a step for the EMAs (indices of ``Outputs.sums``)
 SUM_E, SUM_DIST, SUM_NORM, SUM_GYRO, SUM_REST, SUM_GAIN = range(6)
@@ -386,7 +386,9 @@ def advance_extended(p, s, w, reject, site, sensors, truth, out, u, start, stop,
 
 def filter_options(rejection: str, tau_acc: float, tau_mag: float, rest_bias: bool, motion_bias: bool):
     """The ``magenv.filters.vqf.Options`` of the env's arguments (module docstring: ``rejection``)."""
-    neutral = {"mag_max_rejection_time": -1.0, "mag_rejection_factor": 1.0} if rejection == "off" else {}
+    neutral: dict[str, Any] = (
+        {"mag_max_rejection_time": -1.0, "mag_rejection_factor": 1.0} if rejection == "off" else {}
+    )
     return vqf.Options(tau_acc=tau_acc, tau_mag=tau_mag, rest_bias=rest_bias, motion_bias=motion_bias, **neutral)
 
 
@@ -710,7 +712,7 @@ class Batch(NamedTuple):
     memory: np.ndarray  # (N, N_MEMORY) extended only (else (0, …) …)
     extra: np.ndarray  # (N, len(EXTRA))
     rows: np.ndarray  # (N, max(LAGS) + 1, len(_CURRENT))
-    count: np.ndarray  # (N, 1)
+    decisions: np.ndarray  # (N, 1) decisions so far (``lagged.compose``'s count)
     feat_ext: np.ndarray  # (N, len(EXTENDED))
 
 
@@ -731,7 +733,7 @@ def _advance_env(b, i):
     site = Site(b.m0[i], b.dip0[i])
     if b.extended:
         advance_extended(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], start - base,
-                         stop - base, b.memory[i], b.extra[i], b.rows[i], b.count[i], b.feat_ext[i])  # fmt: skip
+                         stop - base, b.memory[i], b.extra[i], b.rows[i], b.decisions[i], b.feat_ext[i])  # fmt: skip
     else:
         advance(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], start - base, stop - base)
     b.pos[i] = stop

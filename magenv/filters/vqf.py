@@ -66,6 +66,7 @@ from __future__ import annotations
 import math
 from collections import namedtuple
 from dataclasses import asdict, dataclass, fields
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -80,22 +81,20 @@ TAU_DISABLED = -1.0  # s: a negative τ gives the gain 0 (the magnetometer ignor
 class Layout:
     """Named fields of one float64 vector: ``ix`` (a namedtuple of offsets numba reads as constants), sizes."""
 
-    def __init__(self, name: str, *spec: tuple[str, int, str]):
+    def __init__(self, *spec: tuple[str, int, str]):
         self.names = tuple(n for n, _, _ in spec)
         self.sizes = {n: int(k) for n, k, _ in spec}
         self.meaning = {n: m for n, _, m in spec}
-        offsets, at = [], 0
-        for _, k, _ in spec:
-            offsets.append(at)
-            at += int(k)
-        self.size = at
-        self.ix = namedtuple(name, self.names)(*offsets)
+        sizes = [int(k) for _, k, _ in spec]
+        self.size = sum(sizes)
+        index: Any = namedtuple("LayoutIndex", self.names)
+        self.ix = index(*(sum(sizes[:i]) for i in range(len(sizes))))
 
     def view(self, vec: np.ndarray) -> dict[str, np.ndarray | float]:
         """The fields of ``vec`` by name (scalars as floats, longer fields as copies)."""
         out: dict[str, np.ndarray | float] = {}
-        for name, off in zip(self.names, self.ix):
-            k = self.sizes[name]
+        for name in self.names:
+            off, k = int(getattr(self.ix, name)), self.sizes[name]
             out[name] = float(vec[off]) if k == 1 else vec[off : off + k].copy()
         return out
 
@@ -103,7 +102,6 @@ class Layout:
 # A low-pass's state (``lp_*``: 2 entries per channel, VQF's layout): during its first τ seconds entry 0 is NaN,
 # entry 1 counts the samples and entries 2… hold the running sums; then the filter's two delay values per channel.
 STATE = Layout(
-    "StateIndex",
     ("gyr_q", 4, "q(S → I): strapdown integration of the de-biased gyro (eq. 4)"),
     ("acc_q", 4, "q(I → E_i): inclination correction (eqs. 6–9)"),
     ("delta", 1, "δ, rad: heading of E (9D) relative to E_i (6D) (eq. 30)"),
@@ -135,11 +133,10 @@ STATE = Layout(
     ("norm_dip", 2, "low-passed norm and dip (rad) of the field in E_i"),
     ("lp_norm_dip", 4, "their low-pass state"),
 )
-S = STATE.ix
+S: Any = STATE.ix
 
 # The Butterworth coefficients of a low-pass (``*_lp``: b0, b1, b2, a1, a2) and every derived constant.
 PARAMS = Layout(
-    "ParamIndex",
     ("ts", 1, "T_s, s: sample interval"),
     ("tau_acc", 1, "τ_acc, s"),
     ("tau_mag", 1, "τ_mag, s (the gain at trust 1)"),
@@ -171,7 +168,7 @@ PARAMS = Layout(
     ("mag_max_rejection_time", 1, "s"),
     ("mag_rejection_factor", 1, "–"),
 )
-P = PARAMS.ix
+P: Any = PARAMS.ix
 
 
 @dataclass(frozen=True)
@@ -601,8 +598,7 @@ def field_step(p, s, m0, m1, m2):
             s[S.cand_norm] += k_ref * (s[nd] - s[S.cand_norm])
             s[S.cand_dip] += k_ref * (s[nd + 1] - s[S.cand_dip])
             if s[S.mag_dist] and (
-                s[S.cand_t] >= p[P.mag_new_time]
-                or (s[S.ref_norm] == 0.0 and s[S.cand_t] >= p[P.mag_new_first_time])
+                s[S.cand_t] >= p[P.mag_new_time] or (s[S.ref_norm] == 0.0 and s[S.cand_t] >= p[P.mag_new_first_time])
             ):
                 s[S.ref_norm], s[S.ref_dip] = s[S.cand_norm], s[S.cand_dip]
                 s[S.mag_dist] = 0.0
