@@ -87,8 +87,9 @@ class Layout:
         self.meaning = {n: m for n, _, m in spec}
         sizes = [int(k) for _, k, _ in spec]
         self.size = sum(sizes)
-        index: Any = namedtuple("LayoutIndex", self.names)
-        self.ix = index(*(sum(sizes[:i]) for i in range(len(sizes))))
+        names = [n for n, _, _ in spec]
+        offsets = np.cumsum([0, *sizes[:-1]]).tolist()
+        self.ix: Any = namedtuple("LayoutIndex", names)(*offsets)
 
     def view(self, vec: np.ndarray) -> dict[str, np.ndarray | float]:
         """The fields of ``vec`` by name (scalars as floats, longer fields as copies)."""
