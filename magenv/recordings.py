@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from magenv.trial import Trial, TrialError, as_text, check_rate, open_hdf5, read_datasets, unit_truth
+from magenv.userdata import user_data_dir
 
 BERLIN_FIELD_NORM = 44.5  # µT, documented local field (README of the data)
 BERLIN_FIELD_DIP = 69.0  # degrees, positive down
@@ -57,20 +58,35 @@ MAX_FIELD_DEVIATION = (8.0, 8.0)  # (µT, degrees) from the Berlin values, beyon
 SENSOR_KEYS = ("imu_gyr", "imu_acc", "imu_mag")
 REQUIRED = (*SENSOR_KEYS, "opt_quat", "opt_pos", "movement")
 
-_DEFAULT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "broad"
+BROAD_DIR_ENV = "MAGENV_BROAD_DIR"  # a folder of BROAD recordings, read instead of the default places
+BROAD_SUBDIR = "broad"  # where ``magenv data broad`` stores them in the user data folder
+FETCH_COMMAND = "magenv data broad"  # the command that fetches them
+_CHECKOUT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "broad"  # beside a development checkout
+
+
+def default_broad_dirs() -> list[Path]:
+    """Where the BROAD recordings are looked for, in order: ``$MAGENV_BROAD_DIR`` alone if set; else the user
+    data folder's ``broad/`` (``magenv.userdata.user_data_dir``, where ``magenv data broad`` stores them), then
+    ``<checkout>/../shared/data/broad``."""
+    import os
+
+    if os.environ.get(BROAD_DIR_ENV):
+        return [Path(os.environ[BROAD_DIR_ENV])]
+    return [user_data_dir() / BROAD_SUBDIR, _CHECKOUT_DIR]
 
 
 def broad_dir() -> Path:
-    """Folder of the shipped BROAD recordings (``<checkout>/../shared/data/broad``).
-
-    The environment variable ``MAGENV_BROAD_DIR`` overrides it.
-    """
-    import os
-
-    folder = Path(os.environ.get("MAGENV_BROAD_DIR", _DEFAULT_DIR))
-    if not folder.is_dir():
-        raise TrialError(f"{folder}: BROAD recordings folder not found (set MAGENV_BROAD_DIR)")
-    return folder
+    """The folder of the BROAD recordings: the first of :func:`default_broad_dirs` that holds ``*.hdf5`` files
+    (``$MAGENV_BROAD_DIR``, when set, only has to exist). TrialError naming the places looked in and
+    ``magenv data broad`` if none does."""
+    places = default_broad_dirs()
+    for folder in places:
+        if folder.is_dir() and (len(places) == 1 or any(folder.glob("*.hdf5"))):
+            return folder
+    raise TrialError(
+        f"BROAD recordings folder not found (looked in {', '.join(map(str, places))}); "
+        f"fetch them with `{FETCH_COMMAND}` or set {BROAD_DIR_ENV}"
+    )
 
 
 def list_recordings(folder: str | Path | None = None) -> list[Path]:

@@ -35,7 +35,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-import os
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
@@ -56,10 +55,11 @@ from magenv.baselines import (
 )
 from magenv.envs.kalman import EXTENDED as KALMAN_EXTENDED
 from magenv.protocols import Tunable
+from magenv.userdata import DATA_DIR_ENV as DATA_DIR_ENV  # the one definition (tests, magenv.scale read it here)
+from magenv.userdata import user_data_dir
 
 AGENT_PREFIX = "agent:"
 TUNED_SUFFIX = "_tuned"
-DATA_DIR_ENV = "MAGENV_DATA_DIR"
 METHOD_MODULES = (rules, kalman, kalman_policies, constraint, qsf, reference, vqf_rules)
 
 
@@ -172,15 +172,6 @@ _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}
 
 class TunedParamsError(ValueError):
     """A tuned-parameter file is missing, corrupt, or does not fit its rule."""
-
-
-def user_data_dir() -> Path:
-    """Where magenv writes user data: ``$MAGENV_DATA_DIR``, else ``$XDG_DATA_HOME/magenv``
-    (default ``~/.local/share/magenv``)."""
-    if os.environ.get(DATA_DIR_ENV):
-        return Path(os.environ[DATA_DIR_ENV])
-    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
-    return Path(base) / "magenv"
 
 
 def user_tuned_dir() -> Path:

@@ -23,6 +23,7 @@ COMMANDS = {
     "pictures": ("magenv.train.pictures", "draw the README's pictures: a rendered frame and trust over time"),
     "report": ("magenv.train.report", "write a Markdown report with tables and plots"),
     "paper": ("magenv.train.paper", "print a paper check: the papers' tables reproduced in simulation"),
+    "data": ("magenv.train.data", "fetch the real recordings (BROAD) from their public repository, checked by SHA-256"),
     "demo": ("magenv.train.demo", "the main job: train briefly, then compare learned against hand-tuned weighting"),
 }
 
