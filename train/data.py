@@ -194,11 +194,11 @@ def fetch(dest: Path, manifest: dict, base_url: str | None = None, force: bool =
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", choices=DATASETS, help="which recordings (broad: the BROAD trials magenv uses)")
-    p.add_argument("--dest", default=None, metavar="DIR",
-                   help="where to store them (default: the user data folder's broad/, where the loader looks)")  # fmt: skip
+    p.add_argument(
+        "--dest", default=None, metavar="DIR", help="where to store them (default: the user data folder's broad/)"
+    )
     p.add_argument("--url", default=None, metavar="BASE", help="fetch from this base URL instead (a mirror)")
-    p.add_argument("--manifest", default=None, metavar="FILE",
-                   help="a manifest of your own (default: the one shipped with magenv)")  # fmt: skip
+    p.add_argument("--manifest", default=None, metavar="FILE", help="a manifest of your own (default: magenv's)")
     p.add_argument("--force", action="store_true", help="fetch files again even where present and verified")
     p.add_argument("--no-progress", action="store_true")
 
