@@ -27,7 +27,8 @@ a fresh one. ``names()`` lists them all:
   ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``; ``oracle_qsf_hold`` with ``qsf_hold``) and
   ``oracle_vqf`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``);
 * ``register(name, factory)`` at run time (one line anywhere);
-* ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
+* ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``; ``pretrained:ENV_ID`` (or
+  ``agent:pretrained:ENV_ID``) — the agent shipped for that env.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ from magenv.userdata import DATA_DIR_ENV as DATA_DIR_ENV  # the one definition (
 from magenv.userdata import user_data_dir
 
 AGENT_PREFIX = "agent:"
+PRETRAINED_PREFIX = "pretrained:"  # pretrained:ENV_ID, the agent shipped for that env (magenv.agents.loading)
 TUNED_SUFFIX = "_tuned"
 METHOD_MODULES = (rules, kalman, kalman_policies, constraint, qsf, reference, vqf_rules)
 
@@ -320,14 +322,15 @@ def describe() -> dict[str, str]:
 def make(name: str, trust_pickle: bool = False):
     """A fresh Policy or Estimator for a method name. Unknown names raise ValueError listing the known ones.
     ``trust_pickle`` is for ``agent:RUN_DIR`` only: see ``magenv.agents.load_agent``."""
-    if name.startswith(AGENT_PREFIX):
+    if name.startswith((AGENT_PREFIX, PRETRAINED_PREFIX)):
         from magenv.agents.loading import load_agent
 
-        return load_agent(name[len(AGENT_PREFIX) :], trust_pickle=trust_pickle)
+        return load_agent(name.removeprefix(AGENT_PREFIX), trust_pickle=trust_pickle)
     table = _all()
     if name not in table:
         raise ValueError(
-            f"unknown method {name!r}; known methods: {', '.join(table)} (or {AGENT_PREFIX}RUN_DIR for a trained agent)"
+            f"unknown method {name!r}; known methods: {', '.join(table)} (or {AGENT_PREFIX}RUN_DIR for a trained "
+            f"agent, {PRETRAINED_PREFIX}ENV_ID for a shipped one)"
         )
     method = table[name][0]()
     if not hasattr(method, "name"):

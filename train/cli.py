@@ -18,6 +18,10 @@ COMMANDS = {
     "train": ("magenv.train.train", "train a learning agent on an environment"),
     "sweep": ("magenv.train.sweep", "train many runs (envs × algorithms × seeds × hyperparameters) on Ray Tune"),
     "agents": ("magenv.train.agents", "list the trained agents shipped with magenv (--agent pretrained:ENV_ID)"),
+    "estimate": (
+        "magenv.train.estimate",
+        "the orientation of your own IMU log (CSV or HDF5) with a method's magnetometer trust",
+    ),
     "evaluate": ("magenv.train.evaluate", "score a trained agent on scenarios or recordings"),
     "tune": ("magenv.train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
     "pictures": ("magenv.train.pictures", "draw the README's pictures: a rendered frame and trust over time"),
