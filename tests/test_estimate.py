@@ -67,7 +67,8 @@ def test_units_and_columns_are_declared(log, tmp_path, capsys):
     out = tmp_path / "o.csv"
     argv = ["estimate", str(path), "--method", "vqf_rejection", "--out", str(out), "--rate", "100",
             "--gyr", "wx,wy,wz", "--acc", "fx,fy,fz", "--mag", "bx,by,bz",
-            "--gyr-unit", "deg/s", "--acc-unit", "g", "--mag-unit", "gauss", "--plot", str(tmp_path / "p.png")]  # fmt: skip
+            "--gyr-unit", "deg/s", "--acc-unit", "g", "--mag-unit", "gauss",
+            "--plot", str(tmp_path / "p.png")]  # fmt: skip
     assert main(argv) == 0
     assert (tmp_path / "p.png").stat().st_size > 1000
     got = np.genfromtxt(out, delimiter=",", names=True)
@@ -105,8 +106,8 @@ def test_bad_input_is_named_before_any_work(log, tmp_path, capsys):
     uneven = log.slice(0, 500)
     uneven_t = uneven.t.copy()
     uneven_t[200:] += 0.05
-    (tmp_path / "uneven.csv").write_text("t,gx,gy,gz,ax,ay,az,mx,my,mz\n" + "\n".join(
-        ",".join(map(str, [t, *g, *a, *m])) for t, g, a, m in zip(uneven_t, uneven.gyr, uneven.acc, uneven.mag)))  # fmt: skip
+    rows = np.column_stack([uneven_t, uneven.gyr, uneven.acc, uneven.mag])
+    np.savetxt(tmp_path / "uneven.csv", rows, delimiter=",", header="t,gx,gy,gz,ax,ay,az,mx,my,mz", comments="")
     nt = write_csv(tmp_path / "nt.csv", log, scale=(1, 1, 1000))  # nT, declared as µT
     cases = [
         (["estimate", str(tmp_path / "none.csv"), "--method", "vqf", "--out", "o.csv"], "no such file"),

@@ -20,7 +20,7 @@ COMMANDS = {
     "agents": ("magenv.train.agents", "list the trained agents shipped with magenv (--agent pretrained:ENV_ID)"),
     "estimate": (
         "magenv.train.estimate",
-        "the orientation of your own IMU log (CSV or HDF5) with a method's magnetometer trust",
+        "orientation of your own IMU log (CSV or HDF5) with a method's magnetometer trust",
     ),
     "evaluate": ("magenv.train.evaluate", "score a trained agent on scenarios or recordings"),
     "tune": ("magenv.train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
