@@ -23,6 +23,7 @@ COMMANDS = {
         "orientation of your own IMU log (CSV or HDF5) with a method's magnetometer trust",
     ),
     "evaluate": ("magenv.train.evaluate", "score a trained agent on scenarios or recordings"),
+    "export": ("magenv.train.export", "a DAgger student as an ONNX model with a JSON sidecar (features, lags, action)"),
     "tune": ("magenv.train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
     "pictures": ("magenv.train.pictures", "draw the README's pictures: a rendered frame and trust over time"),
     "report": ("magenv.train.report", "write a Markdown report with tables and plots"),
