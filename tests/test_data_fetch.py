@@ -157,3 +157,22 @@ def test_shipped_manifest_matches_the_recordings(broad_dir):
     assert {e["name"] for e in manifest["files"]} == {p.name for p in broad_dir.glob("*.hdf5")}
     for entry in manifest["files"]:
         assert data._verified(broad_dir / entry["name"], entry), entry["name"]
+
+
+@pytest.mark.parametrize("ci, outcome", [(None, "1 skipped"), ("true", "1 error")])
+def test_tests_without_recordings_skip_naming_the_command_or_fail_under_ci(ci, outcome, tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items() if k != "CI"}
+    env[BROAD_DIR_ENV] = str(tmp_path / "none")  # no recordings anywhere
+    if ci is not None:
+        env["CI"] = ci
+    test = "tests/test_data_fetch.py::test_shipped_manifest_matches_the_recordings"
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:xdist", "-p", "no:cacheprovider",
+                           test], cwd=root, env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert outcome in done.stdout, done.stdout[-2000:]
+    assert "magenv data broad" in done.stdout
