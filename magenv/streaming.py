@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -147,10 +148,11 @@ class TrustFilter:
         self._n = 0
         self._buf = [np.zeros((0, 3)) for _ in range(3)]  # gyr, acc, mag: the env's trial reads these arrays
         self._actions: list[np.ndarray] = []
-        self._env = None
-        self._obs = None
+        self._env: Any = None  # the env the policy streams in, once the first sample is in
+        self._obs: Any = None
         self._out = 0  # samples returned so far
         self._finished = False
+        self._result: Estimation | None = None  # the last run()
 
     def run(self, gyr, acc, mag) -> np.ndarray:
         """(N, 4) the estimate of whole arrays (:func:`estimate`); ``trust`` holds the trust it applied."""
@@ -180,7 +182,7 @@ class TrustFilter:
         for new, old in zip(bufs, self._buf):
             new[: self._n] = old[: self._n]
         self._buf = bufs
-        trial = own_trial(*bufs, self.rate, self.field_norm, self.field_dip, name=self.name)
+        trial = own_trial(bufs[0], bufs[1], bufs[2], self.rate, self.field_norm, self.field_dip, name=self.name)
         self._env = evaluation.PolicyRunner().env(self.method, trial)
         self._obs, _ = self._env.reset(seed=0, options={"trial": trial})
         for action in self._actions:
@@ -239,14 +241,14 @@ class TrustFilter:
     def estimate(self) -> np.ndarray:
         """(n, 4) the quaternions final so far (streaming), or of the last ``run``."""
         if self._env is None:
-            return self._result.q if hasattr(self, "_result") else np.zeros((0, 4))
+            return self._result.q if self._result is not None else np.zeros((0, 4))
         return self._env.estimate[: self._out].copy()
 
     @property
     def trust(self) -> np.ndarray | None:
         """(n,) the magnetometer trust applied to those quaternions (None if the method reports none)."""
         if self._env is None:
-            return self._result.trust if hasattr(self, "_result") else None
+            return self._result.trust if self._result is not None else None
         from magenv.envs.render import magnetometer_trust
 
         trust = magnetometer_trust(self._env)

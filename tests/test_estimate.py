@@ -6,7 +6,6 @@ import h5py
 import numpy as np
 import pytest
 
-import magenv
 from magenv import evaluation, registry
 from magenv.streaming import START_CAPACITY, TrustFilter, estimate, own_trial
 from magenv.train.cli import main
@@ -37,7 +36,7 @@ def read_h5(path):
 @pytest.mark.parametrize("method", [VQF_AGENT, BLEND_AGENT])
 def test_streaming_is_the_env_and_estimate(log, method, tmp_path):
     assert log.n > START_CAPACITY  # the buffer grows once: the decisions are re-stepped into the larger one
-    f = magenv.TrustFilter(method, rate=log.rate, field_norm=log.field_norm, field_dip=log.field_dip)
+    f = TrustFilter(method, rate=log.rate, field_norm=log.field_norm, field_dip=log.field_dip)
     parts = [f.update(g, a, m) for g, a, m in zip(log.gyr, log.acc, log.mag)]
     k = registry.make(method).env_kwargs["decision_every"]
     assert {len(p) for p in parts} == {0, k} and sum(len(p) for p in parts) < log.n

@@ -50,7 +50,7 @@ def _triple(text: str) -> tuple[str, str, str]:
     names = tuple(s.strip() for s in text.split(","))
     if len(names) != 3 or not all(names):
         raise argparse.ArgumentTypeError(f"must name three columns X,Y,Z, got {text!r}")
-    return names  # type: ignore[return-value]
+    return names[0], names[1], names[2]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -21,6 +21,7 @@ import os
 import re
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -136,8 +137,8 @@ def export(agent: str, onnx_path: Path) -> tuple[Path, Path]:
     from magenv.train.onnx_graph import student_graph
 
     policy = load_student(agent)
-    env = gym.make(policy.env_id, disable_env_checker=True, **policy.env_kwargs).unwrapped
-    n_obs = int(env.observation_space.shape[0])
+    env: Any = gym.make(policy.env_id, disable_env_checker=True, **policy.env_kwargs).unwrapped
+    n_obs = len(env.features)
     try:
         model = student_graph(policy.env_id, policy.student, n_obs)
     except ValueError as exc:
