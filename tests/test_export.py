@@ -9,6 +9,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from magenv.agents import dagger
 from magenv.agents.loading import pretrained_agents
 from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID
 from magenv.train.cli import main
@@ -18,7 +19,8 @@ ort = pytest.importorskip("onnxruntime", reason="the ONNX export is the extra ma
 pytest.importorskip("onnx", reason="the ONNX export is the extra magenv[onnx]: pip install 'magenv[onnx]'")
 
 N_OBS = 10_000
-ENVS = (BLEND_ID, KALMAN_ID, CONSTRAINT_ID, QSF_ID)
+#: every env whose shipped agent is a student of magenv.agents.dagger (MagVQF-v0's too, once it is one)
+ENVS = tuple(e for e, folder in pretrained_agents().items() if dagger.is_run(folder))
 TOL = 1e-5
 
 
@@ -36,6 +38,10 @@ def recorded_observations(policy, n: int) -> np.ndarray:
             obs, _ = env.reset(seed=seed)
     env.close()
     return np.asarray(out, np.float32)
+
+
+def test_the_four_students_are_exported():
+    assert set(ENVS) >= {BLEND_ID, KALMAN_ID, CONSTRAINT_ID, QSF_ID}
 
 
 @pytest.mark.parametrize("env_id", ENVS)
@@ -88,3 +94,33 @@ def test_unknown_student_constants_are_refused():
         check_meta(BLEND_ID, {"rule": [1, 1], "block": 42, "new": 1})
     with pytest.raises(ValueError, match="no ONNX form"):
         check_meta("magenv/Other-v0", {})
+
+
+def test_a_student_of_the_plain_observation(monkeypatch):
+    """A student that sees the observation as it is (the base StudentInputs, e.g. an env without derived inputs)
+    exports without a builder of its own, acting as the numpy student with the mean and the argmax rule."""
+    from magenv.agents import student_inputs
+    from magenv.agents.dagger import Ensemble, Student
+    from magenv.train.onnx_graph import student_graph
+
+    monkeypatch.setitem(student_inputs.INPUTS, "magenv/Plain-v0", student_inputs.StudentInputs())
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(500, 12)).astype(np.float32)
+    for act in ("mean", "argmax"):
+        members = [
+            Student(
+                [(rng.normal(size=(16, 12)), rng.normal(size=16)), (rng.normal(size=(3, 16)), rng.normal(size=3))],
+                rng.normal(size=12),
+                rng.uniform(0.5, 2, 12),
+                [[0.0], [0.5], [1.0]],
+                student_inputs.StudentInputs(),
+                {},
+                act,
+            )
+            for _ in range(2)
+        ]
+        student = Ensemble(members)
+        model = student_graph("magenv/Plain-v0", student, 12)
+        action, _ = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})
+        expected = np.array([student.action(o) for o in obs])
+        assert np.abs(action - expected).max() <= TOL

@@ -108,7 +108,7 @@ def sidecar(policy, env, onnx_name: str) -> dict:
             "high": space.high.tolist(),
             "candidates": cands.tolist(),
             "state_candidates": n_state,
-            "state_candidates_meaning": DERIVED[policy.env_id] if n_state else "",
+            "state_candidates_meaning": DERIVED.get(policy.env_id, "") if n_state else "",
             "act": student.act,
             "rule": "the most probable candidate (the first on ties)"
             if student.act == "argmax"
@@ -116,7 +116,7 @@ def sidecar(policy, env, onnx_name: str) -> dict:
         },
         "outputs": {"action": "(batch, dim) float32: the env's action", "probabilities": "(batch, candidates)"},
         "network_inputs": {
-            "derived": DERIVED[policy.env_id] if derived else "",
+            "derived": DERIVED.get(policy.env_id, "") if derived else "",
             "standardisation": "inside the model: (x − mean) / std per ensemble member",
             "columns": inputs,
         },

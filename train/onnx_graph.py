@@ -44,11 +44,20 @@ KNOWN_META = {
 }
 
 
+def plain(env_id: str) -> bool:
+    """The student of ``env_id`` sees the observation as it is (``magenv.agents.student_inputs``' base class)."""
+    from magenv.agents.student_inputs import INPUTS, StudentInputs
+
+    return env_id in INPUTS and type(INPUTS[env_id]) is StudentInputs
+
+
 def check_meta(env_id: str, meta: dict) -> None:
-    """ValueError unless the builder knows ``env_id``'s student inputs and every constant in ``meta``."""
-    if env_id not in KNOWN_META:
+    """ValueError unless the builder knows ``env_id``'s student inputs (:data:`KNOWN_META`, or the observation
+    as it is: :func:`plain`) and every constant in ``meta``."""
+    known = KNOWN_META.get(env_id, {"block"} if plain(env_id) else None)
+    if known is None:
         raise ValueError(f"no ONNX form of the student inputs of {env_id}; exportable: {', '.join(KNOWN_META)}")
-    unknown = sorted(set(meta) - KNOWN_META[env_id])
+    unknown = sorted(set(meta) - known)
     if unknown:
         raise ValueError(f"the student's input constants {unknown} are unknown to the ONNX exporter of {env_id}")
 
@@ -196,16 +205,15 @@ def derived_names(env_id: str, meta: dict) -> list[str]:
     if env_id == KALMAN_ID:
         names = ["gamma_rule", *(f"gamma_proposal_{i}" for i in range(len(meta.get("proposals", []))))]
         return names + ["gamma_still"] * ("still" in meta) + ["gamma_perp"] * ("perp" in meta)
-    if env_id == QSF_ID and "rule_max_age" not in meta:
+    if env_id not in DERIVED or (env_id == QSF_ID and "rule_max_age" not in meta):
         return []
     return [DERIVED[env_id].split(":")[0]]
 
 
 def _state_candidates(g: Graph, env_id: str, obs: str, meta: dict) -> list[str]:
     """float64 (N, 1) each: the state-dependent candidate actions of the current block."""
-    block = int(meta["block"])
     if env_id == KALMAN_ID and meta.get("rule_candidates"):
-        return _kalman_gammas(g, g.cols(obs, 0, block), meta, all64=True)
+        return _kalman_gammas(g, g.cols(obs, 0, int(meta["block"])), meta, all64=True)
     if env_id == CONSTRAINT_ID and meta.get("rule_candidates"):
         return [g.binary("Min", g.binary("Div", g.col(obs, 0, np.float64), float(meta["th1"]), np.float64), 1.0,
                          np.float64)]  # fmt: skip
@@ -222,7 +230,7 @@ def student_graph(env_id: str, student, n_obs: int):
     g = Graph()
     obs = "obs"
     block = int(meta.get("block", n_obs))
-    derived = BUILDERS[env_id] if derived_names(env_id, meta) else None
+    derived = BUILDERS[env_id] if derived_names(env_id, meta) else None  # (a plain student's: none)
     parts = []
     for start in range(0, n_obs, block):
         blk = g.cols(obs, start, start + block)
