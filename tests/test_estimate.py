@@ -116,6 +116,7 @@ def test_bad_input_is_named_before_any_work(log, tmp_path, capsys):
         (["estimate", str(tmp_path / "uneven.csv"), "--method", "vqf", "--out", "o.csv"], "uneven sampling"),
         (["estimate", str(nt), "--method", "vqf", "--out", "o.csv"], "not an Earth field"),
         (["estimate", str(good), "--agent", str(tmp_path), "--out", "o.csv"], "not a magenv run folder"),
+        (["estimate", str(good), "--method", "cf_constraint", "--out", "o.csv"], "no second-sensor channel"),
     ]
     for argv, message in cases:
         assert main(argv) == 2, argv

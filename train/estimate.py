@@ -229,6 +229,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = estimate(method, trial, progress)
         result.method = name
+    except ValueError as exc:  # the method's own refusal of this input (e.g. a two-link filter on one IMU)
+        raise CommandError(f"{name} cannot run on {args.input}: {exc}") from None
     finally:
         if bar is not None:
             bar.close()
