@@ -108,15 +108,16 @@ def test_bad_input_is_named_before_any_work(log, tmp_path, capsys):
     rows = np.column_stack([uneven_t, uneven.gyr, uneven.acc, uneven.mag])
     np.savetxt(tmp_path / "uneven.csv", rows, delimiter=",", header="t,gx,gy,gz,ax,ay,az,mx,my,mz", comments="")
     nt = write_csv(tmp_path / "nt.csv", log, scale=(1, 1, 1000))  # nT, declared as µT
+    out = str(tmp_path / "o.csv")
     cases = [
-        (["estimate", str(tmp_path / "none.csv"), "--method", "vqf", "--out", "o.csv"], "no such file"),
-        (["estimate", str(good), "--method", "nope", "--out", "o.csv"], "unknown method 'nope'"),
-        (["estimate", str(good), "--method", "vqf", "--out", "o.txt"], "must end in .csv"),
-        (["estimate", str(good), "--method", "vqf", "--out", "o.csv", "--mag", "a,b,c"], "no column(s) a, b, c"),
-        (["estimate", str(tmp_path / "uneven.csv"), "--method", "vqf", "--out", "o.csv"], "uneven sampling"),
-        (["estimate", str(nt), "--method", "vqf", "--out", "o.csv"], "not an Earth field"),
-        (["estimate", str(good), "--agent", str(tmp_path), "--out", "o.csv"], "not a magenv run folder"),
-        (["estimate", str(good), "--method", "cf_constraint", "--out", "o.csv"], "no second-sensor channel"),
+        (["estimate", str(tmp_path / "none.csv"), "--method", "vqf", "--out", out], "no such file"),
+        (["estimate", str(good), "--method", "nope", "--out", out], "unknown method 'nope'"),
+        (["estimate", str(good), "--method", "vqf", "--out", str(tmp_path / "o.txt")], "must end in .csv"),
+        (["estimate", str(good), "--method", "vqf", "--out", out, "--mag", "a,b,c"], "no column(s) a, b, c"),
+        (["estimate", str(tmp_path / "uneven.csv"), "--method", "vqf", "--out", out], "uneven sampling"),
+        (["estimate", str(nt), "--method", "vqf", "--out", out], "not an Earth field"),
+        (["estimate", str(good), "--agent", str(tmp_path), "--out", out], "not a magenv run folder"),
+        (["estimate", str(good), "--method", "cf_constraint", "--out", out], "no second-sensor channel"),
     ]
     for argv, message in cases:
         assert main(argv) == 2, argv
