@@ -57,18 +57,20 @@ def observation_table(env) -> list:
 
 def sidecar(policy, env, onnx_name: str) -> dict:
     """The JSON sidecar of ``policy`` exported to ``onnx_name`` (see the module docstring)."""
-    from magenv.train.onnx_graph import DERIVED, derived_names
+    from magenv.train.onnx_graph import DERIVED, derived_names, kept_columns
 
     student, features = policy.student, observation_table(env)
     names = [f.name for f in features]
     block = int(student.meta.get("block", len(names)))
     lags = sorted({int(m.group(2)) for n in names if (m := LAG.match(n))})
     derived = derived_names(policy.env_id, student.meta)
+    kept = set(kept_columns(names, student.meta))
     inputs = []
     for start in range(0, len(names), block):
         lag = LAG.match(names[start])
         suffix = f"_lag{lag.group(2)}" if lag else ""
-        inputs += [{"name": n} for n in names[start : start + block]] + [{"name": d + suffix} for d in derived]
+        inputs += [{"name": names[i]} for i in range(start, start + block) if i in kept]
+        inputs += [{"name": d + suffix} for d in derived]
     members = getattr(student, "members", [student])
     for i, item in enumerate(inputs):
         item["mean"] = [float(m.mu[i]) for m in members]
@@ -117,6 +119,7 @@ def sidecar(policy, env, onnx_name: str) -> dict:
         "outputs": {"action": "(batch, dim) float32: the env's action", "probabilities": "(batch, candidates)"},
         "network_inputs": {
             "derived": DERIVED.get(policy.env_id, "") if derived else "",
+            "dropped": list(student.meta.get("drop", [])),
             "standardisation": "inside the model: (x − mean) / std per ensemble member",
             "columns": inputs,
         },
@@ -138,9 +141,8 @@ def export(agent: str, onnx_path: Path) -> tuple[Path, Path]:
 
     policy = load_student(agent)
     env: Any = gym.make(policy.env_id, disable_env_checker=True, **policy.env_kwargs).unwrapped
-    n_obs = len(env.features)
     try:
-        model = student_graph(policy.env_id, policy.student, n_obs)
+        model = student_graph(policy.env_id, policy.student, env.features)
     except ValueError as exc:
         raise CommandError(f"{agent}: {exc}") from None
     side = sidecar(policy, env, onnx_path.name)

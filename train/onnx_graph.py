@@ -4,7 +4,8 @@ The graph computes, for a batch of the env's observations ``obs`` (N, n_obs) flo
 
 1. the student's inputs — each block of the observation (the current features, then their copies ``LAGS``
    decisions earlier) followed by the columns its env's ``magenv.agents.student_inputs`` entry derives from
-   that block (:data:`DERIVED`: a rule's own trust recomputed from the block), in the same dtypes;
+   that block (:data:`DERIVED`: a rule's own trust recomputed from the block), in the same dtypes, or without
+   the columns run.yaml's student ``drop`` names (MagVQF-v0: :func:`kept_columns`);
 2. per member of the student (an ensemble has several) the standardisation (x − μ)/σ, the tanh MLP and the
    softmax over its candidates; the members' probabilities averaged;
 3. the action: the probability-weighted mean of the candidate actions (``act: mean``) or the most probable
@@ -12,7 +13,7 @@ The graph computes, for a batch of the env's observations ``obs`` (N, n_obs) flo
    state-dependent ones of the current block (MagKalman-v0's rules' own γ, in float64).
 
 Outputs ``action`` (N, action_dim) and ``probabilities`` (N, C + S). Each env's derived columns are written here
-a second time, as graph nodes (the names in :data:`DERIVED`); ``tests/test_export.py`` holds them to the numpy
+a second time, as graph nodes (the names in :data:`DERIVED`); ``tests/test_train_export.py`` holds them to the numpy
 student on 10 000 recorded observations of every env, and a student constant the builder does not know is
 refused (:func:`check_meta`).
 """
@@ -23,7 +24,7 @@ import math
 
 import numpy as np
 
-from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID
+from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID, VQF_ID
 from magenv.envs.features import DIP_SCALE_DEG
 
 OPSET = 17
@@ -41,6 +42,7 @@ KNOWN_META = {
     KALMAN_ID: {"scales", "block", "proposals", "rule_candidates", "still", "perp"},
     CONSTRAINT_ID: {"th1", "block", "base_features", "rule_candidates"},
     QSF_ID: {"rule_max_age", "block"},
+    VQF_ID: {"block", "drop"},  # no derived columns; the ``drop`` columns of each block left out
 }
 
 
@@ -220,22 +222,34 @@ def _state_candidates(g: Graph, env_id: str, obs: str, meta: dict) -> list[str]:
     return []
 
 
-def student_graph(env_id: str, student, n_obs: int):
+def kept_columns(names, meta: dict) -> list[int]:
+    """The observation columns (``names``) a student reads: all but those whose block name is in run.yaml's
+    student ``drop``."""
+    block, drop = int(meta.get("block", len(names))), set(meta.get("drop", ()))
+    return [i for i in range(len(names)) if names[i % block] not in drop]
+
+
+def student_graph(env_id: str, student, names) -> object:
     """The ONNX ModelProto of ``student`` (a ``dagger.Student`` or ``Ensemble``) acting in ``env_id`` on
-    observations of ``n_obs`` features (the module docstring)."""
+    observations of the features ``names`` (the module docstring)."""
     from onnx import TensorProto, checker, helper
 
-    meta = student.meta
+    meta, n_obs = student.meta, len(names)
     check_meta(env_id, meta)
+    if getattr(student, "guard", None) is not None:
+        raise ValueError(f"the student's guard {student.guard} (a fallback action) has no ONNX form yet")
     g = Graph()
     obs = "obs"
     block = int(meta.get("block", n_obs))
     derived = BUILDERS[env_id] if derived_names(env_id, meta) else None  # (a plain student's: none)
-    parts = []
-    for start in range(0, n_obs, block):
-        blk = g.cols(obs, start, start + block)
-        parts += [blk, *(derived(g, blk, meta) if derived else [])]
-    x = g.op("Concat", *parts, axis=1) if len(parts) > 1 else parts[0]
+    if "drop" in meta:
+        x = g.op("Gather", obs, g.const(kept_columns(names, meta), np.int64), axis=1)
+    else:
+        parts = []
+        for start in range(0, n_obs, block):
+            blk = g.cols(obs, start, start + block)
+            parts += [blk, *(derived(g, blk, meta) if derived else [])]
+        x = g.op("Concat", *parts, axis=1) if len(parts) > 1 else parts[0]
     members = getattr(student, "members", [student])
     probs = []
     for m in members:

@@ -601,8 +601,7 @@ def field_step(p, s, m0, m1, m2):
             s[S.cand_norm] += k_ref * (s[nd] - s[S.cand_norm])
             s[S.cand_dip] += k_ref * (s[nd + 1] - s[S.cand_dip])
             if s[S.mag_dist] and (
-                s[S.cand_t] >= p[P.mag_new_time]
-                or (s[S.ref_norm] == 0.0 and s[S.cand_t] >= p[P.mag_new_first_time])
+                s[S.cand_t] >= p[P.mag_new_time] or (s[S.ref_norm] == 0.0 and s[S.cand_t] >= p[P.mag_new_first_time])
             ):
                 s[S.ref_norm], s[S.ref_dip] = s[S.cand_norm], s[S.cand_dip]
                 s[S.mag_dist] = 0.0

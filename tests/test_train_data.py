@@ -170,7 +170,7 @@ def test_tests_without_recordings_skip_naming_the_command_or_fail_under_ci(ci, o
     env[BROAD_DIR_ENV] = str(tmp_path / "none")  # no recordings anywhere
     if ci is not None:
         env["CI"] = ci
-    test = "tests/test_data_fetch.py::test_shipped_manifest_matches_the_recordings"
+    test = "tests/test_train_data.py::test_shipped_manifest_matches_the_recordings"
     root = Path(__file__).resolve().parents[1]
     done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:xdist", "-p", "no:cacheprovider",
                            test], cwd=root, env=env, capture_output=True, text=True, timeout=300)  # fmt: skip

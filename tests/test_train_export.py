@@ -11,7 +11,7 @@ import pytest
 
 from magenv.agents import dagger
 from magenv.agents.loading import pretrained_agents
-from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID
+from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID, VQF_ID
 from magenv.train.cli import main
 from magenv.train.export import export, load_student
 
@@ -40,8 +40,8 @@ def recorded_observations(policy, n: int) -> np.ndarray:
     return np.asarray(out, np.float32)
 
 
-def test_the_four_students_are_exported():
-    assert set(ENVS) >= {BLEND_ID, KALMAN_ID, CONSTRAINT_ID, QSF_ID}
+def test_every_shipped_student_is_exported():
+    assert set(ENVS) == {BLEND_ID, KALMAN_ID, CONSTRAINT_ID, QSF_ID, VQF_ID}
 
 
 @pytest.mark.parametrize("env_id", ENVS)
@@ -94,6 +94,12 @@ def test_unknown_student_constants_are_refused():
         check_meta(BLEND_ID, {"rule": [1, 1], "block": 42, "new": 1})
     with pytest.raises(ValueError, match="no ONNX form"):
         check_meta("magenv/Other-v0", {})
+    from magenv.train.onnx_graph import student_graph
+
+    student = load_student(f"pretrained:{BLEND_ID}").student
+    student.guard = {"fallback": [1.0], "margin": 0.1, "disagree": 0.5}
+    with pytest.raises(ValueError, match="guard"):
+        student_graph(BLEND_ID, student, [f"f{i}" for i in range(126)])
 
 
 def test_a_student_of_the_plain_observation(monkeypatch):
@@ -120,7 +126,7 @@ def test_a_student_of_the_plain_observation(monkeypatch):
             for _ in range(2)
         ]
         student = Ensemble(members)
-        model = student_graph("magenv/Plain-v0", student, 12)
+        model = student_graph("magenv/Plain-v0", student, [f"f{i}" for i in range(12)])
         action, _ = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})
         expected = np.array([student.action(o) for o in obs])
         assert np.abs(action - expected).max() <= TOL
