@@ -28,7 +28,8 @@ reset (MagKalman-v0's model disturbance, MagQSF-v0's detector) and run on whole 
 
 from __future__ import annotations
 
-import math
+import dataclasses
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -38,12 +39,12 @@ import numpy as np
 from magenv import evaluation, registry
 from magenv.envs import BLEND_ID, VQF_ID
 from magenv.protocols import is_policy
-from magenv.recordings import REST_MIN_SECONDS, dip_angle, initial_rest
+from magenv.recordings import REST_MIN_SECONDS, check_physical, dip_angle, initial_rest
 from magenv.trial import Trial
 
 #: envs whose runners read each sample only when they fuse it: a growing buffer streams them exactly
 STREAMING_ENVS = (BLEND_ID, VQF_ID)
-FIELD_NORM_RANGE = (15.0, 80.0)  # µT: Earth's field at the surface is 22–67 µT; beyond this the data are suspect
+PROBE_FIELD = (50.0, 60.0)  # (µT, °): the field of a trial checked before its own field is estimated from it
 START_CAPACITY = 1 << 12  # samples of the first streaming buffer
 
 
@@ -61,39 +62,36 @@ class Estimation:
 
 def site_field(gyr, acc, mag, rate: float) -> tuple[float, float, str]:
     """The local Earth field (norm µT, dip °, source) of data without a known site: the medians over the
-    initial rest (``magenv.recordings.initial_rest``) if it lasts at least 1 s, else over all samples.
-    ValueError if the norm is outside :data:`FIELD_NORM_RANGE` (a magnetometer not in µT, or no field)."""
+    initial rest (``magenv.recordings.initial_rest``) if it lasts at least 1 s, else over all samples."""
     rest = initial_rest(gyr, rate)
     rows = rest if rest.stop - rest.start >= REST_MIN_SECONDS * rate else slice(0, len(gyr))
     m, a = np.asarray(mag[rows], float), np.asarray(acc[rows], float)
     norm, dip = float(np.median(np.linalg.norm(m, axis=1))), float(np.median(dip_angle(a, m)))
-    lo, hi = FIELD_NORM_RANGE
-    if not lo <= norm <= hi:
-        raise ValueError(
-            f"the magnetometer's field norm is {norm:.3g} (median), not an Earth field of {lo:g}–{hi:g} µT: "
-            "is it in µT (declare Gauss, nT with the unit options) and calibrated?"
-        )
     return norm, dip, "initial_rest" if rows is rest else "all_samples"
 
 
 def own_trial(gyr, acc, mag, rate: float, field_norm: float | None = None, field_dip: float | None = None,
-              name: str = "own") -> Trial:  # fmt: skip
+              name: str = "own", check: bool = True) -> Trial:  # fmt: skip
     """Samples of your own as a Trial without truth (``q_true`` NaN, nothing scored): gyr rad/s, acc m/s²,
     mag µT, (N, 3) each, sensor frame, at ``rate`` Hz; the field given (norm µT, dip °) or :func:`site_field`
-    (``meta["field_source"]`` says which). TrialError / ValueError naming the problem."""
+    (``meta["field_source"]`` says which). With ``check``, the magnitudes are held to the declared units first
+    (``magenv.recordings.check_physical``: a ValueError naming the likely unit, or warnings). TrialError /
+    ValueError naming the problem."""
     gyr, acc, mag = (np.ascontiguousarray(x, float) for x in (gyr, acc, mag))
     if (field_norm is None) != (field_dip is None):
         raise ValueError("give both field_norm (µT) and field_dip (°), or neither (estimated from the data)")
-    source = "given"
-    if field_norm is None or field_dip is None:
-        field_norm, field_dip, source = site_field(gyr, acc, mag, rate)
-    for what, value, lo, hi in (("field_norm", field_norm, 0.0, math.inf), ("field_dip", field_dip, -90.0, 90.0)):
-        if not (math.isfinite(float(value)) and lo < float(value) <= hi):
-            raise ValueError(f"{what} must be a finite number in ({lo:g}, {hi:g}], got {value!r}")
     n = len(gyr)
-    return Trial(name=name, rate=rate, gyr=gyr, acc=acc, mag=mag, q_true=np.full((n, 4), np.nan),
-                 field_norm=field_norm, field_dip=field_dip, score_mask=np.zeros(n, bool),
-                 meta={"source": "own", "field_source": source})  # fmt: skip
+    trial = Trial(name=name, rate=rate, gyr=gyr, acc=acc, mag=mag, q_true=np.full((n, 4), np.nan),
+                  field_norm=PROBE_FIELD[0] if field_norm is None else field_norm,
+                  field_dip=PROBE_FIELD[1] if field_dip is None else field_dip, score_mask=np.zeros(n, bool),
+                  meta={"source": "own", "field_source": "given"})  # fmt: skip
+    if check:
+        for warning in check_physical(trial, name):
+            warnings.warn(warning, stacklevel=2)
+    if field_norm is None:
+        norm, dip, source = site_field(gyr, acc, mag, rate)
+        trial = dataclasses.replace(trial, field_norm=norm, field_dip=dip, meta={**trial.meta, "field_source": source})
+    return trial
 
 
 def method_of(method):
@@ -182,7 +180,7 @@ class TrustFilter:
         for new, old in zip(bufs, self._buf):
             new[: self._n] = old[: self._n]
         self._buf = bufs
-        trial = own_trial(bufs[0], bufs[1], bufs[2], self.rate, self.field_norm, self.field_dip, name=self.name)
+        trial = own_trial(bufs[0], bufs[1], bufs[2], self.rate, self.field_norm, self.field_dip, self.name, False)
         self._env = evaluation.PolicyRunner().env(self.method, trial)
         self._obs, _ = self._env.reset(seed=0, options={"trial": trial})
         for action in self._actions:

@@ -115,7 +115,7 @@ def test_bad_input_is_named_before_any_work(log, tmp_path, capsys):
         (["estimate", str(good), "--method", "vqf", "--out", str(tmp_path / "o.txt")], "must end in .csv"),
         (["estimate", str(good), "--method", "vqf", "--out", out, "--mag", "a,b,c"], "no column(s) a, b, c"),
         (["estimate", str(tmp_path / "uneven.csv"), "--method", "vqf", "--out", out], "uneven sampling"),
-        (["estimate", str(nt), "--method", "vqf", "--out", out], "not an Earth field"),
+        (["estimate", str(nt), "--method", "vqf", "--out", out], "looks like nT"),
         (["estimate", str(good), "--agent", str(tmp_path), "--out", out], "not a magenv run folder"),
         (["estimate", str(good), "--method", "cf_constraint", "--out", out], "no second-sensor channel"),
     ]

@@ -9,8 +9,10 @@ INPUT is a CSV file with a header row — by default the columns ``t,gx,gy,gz,ax
 m/s² and µT, sensor frame; ``--gyr/--acc/--mag`` name other columns, the ``--*-unit`` options declare other
 units, ``--time`` another time column (s; its median step gives the rate, which must be steady) and ``--rate``
 a rate for a file without one — or an HDF5 file: a BROAD recording or a magenv trial (``magenv simulate``),
-whose truth, if any, is not used. The local Earth field is taken from the initial rest (else the whole
-file) unless given (``magenv.streaming.site_field``; a BROAD file's own, ``magenv.recordings``).
+whose truth, if any, is not used. The magnitudes are held to the declared units as the loaders do
+(``magenv.recordings.check_physical``: refused naming the likely unit, or warned). The local Earth field is taken
+from the initial rest (else the whole file) unless given (``magenv.streaming.site_field``; a BROAD file's own,
+``magenv.recordings``).
 
 The method is any name of ``magenv compare`` (rules, ``vqf``, ``fusion``, the ``_tuned`` rules),
 ``pretrained:ENV_ID`` (a shipped agent) or, with ``--agent``, a trained agent's run folder (or
