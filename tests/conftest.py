@@ -41,6 +41,17 @@ if BROAD_DIR is not None:
     os.environ[BROAD_DIR_ENV] = str(BROAD_DIR)
 
 
+def _broad_names() -> list[str]:
+    from magenv.train.data import manifest_path, read_manifest
+
+    return [entry["name"] for entry in read_manifest(manifest_path())["files"]]
+
+
+#: the file names of the BROAD recordings magenv uses (the shipped manifest's), to parametrize tests over
+#: without reading the folder at collection (``broad_dir / name`` inside the test: skipped where there is none)
+BROAD_NAMES = _broad_names()
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _own_user_data_dir(tmp_path_factory):
     """Tests never read or write the user's magenv data (tuned rules) or cache (fitted twins): they get empty
