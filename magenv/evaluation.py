@@ -91,7 +91,8 @@ class PolicyRunner:
         self.env_id, self.env_kwargs = env_id, dict(env_kwargs or {})
         self._envs: dict[Any, Any] = {}
 
-    def _env(self, policy, trial: Trial, render_mode: str | None = None):
+    def env(self, policy, trial: Trial, render_mode: str | None = None):
+        """The env ``policy`` acts in for ``trial`` (made once per env id and options, kept)."""
         import gymnasium as gym
 
         import magenv  # noqa: F401  (registers the envs)
@@ -108,7 +109,7 @@ class PolicyRunner:
 
     def run(self, policy, trial: Trial) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """Run ``policy`` over the whole ``trial``; returns (estimate (N, 4), λ (N,) or None, trust (N,) or None)."""
-        env = self._env(policy, trial)
+        env = self.env(policy, trial)
         policy.reset()
         obs, _ = env.reset(seed=0, options={"trial": trial})
         truncated = terminated = False
@@ -122,7 +123,7 @@ class PolicyRunner:
     def record(self, policy, trial: Trial, path: str | Path) -> Path:
         """Run ``policy`` over ``trial`` with ``render_mode="rgb_array"`` and write one frame per step to the MP4
         file ``path`` (``magenv.envs.render.write_video``)."""
-        env = self._env(policy, trial, render_mode="rgb_array")
+        env = self.env(policy, trial, render_mode="rgb_array")
 
         def frames():
             policy.reset()
@@ -136,16 +137,23 @@ class PolicyRunner:
         return write_video(frames(), path)
 
 
-def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = None, label: str | None = None) -> Run:
-    """Run one Policy or Estimator on one trial and score it. A method with a ``prepare_trial(trial)``
-    attribute runs on what it returns (e.g. the gyro de-biased at rest), scored against ``trial``'s truth."""
+def estimate(
+    method, trial: Trial, runner: PolicyRunner | None = None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """One Policy or Estimator over the whole ``trial`` (no truth needed): (estimate (N, 4), λ (N,) or None,
+    trust (N,) or None). A method with a ``prepare_trial(trial)`` attribute runs on what it returns (e.g. the
+    gyro de-biased at rest)."""
     prepare = getattr(method, "prepare_trial", None)
     seen = trial if prepare is None else prepare(trial)
     if is_policy(method):
-        q, lam, trust = (runner or PolicyRunner()).run(method, seen)
-    else:
-        est = method.run(seen)
-        q, lam, trust = np.asarray(est.q, float), None, est.trust
+        return (runner or PolicyRunner()).run(method, seen)
+    est = method.run(seen)
+    return np.asarray(est.q, float), None, est.trust
+
+
+def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = None, label: str | None = None) -> Run:
+    """Run one Policy or Estimator on one trial (:func:`estimate`) and score it against ``trial``'s truth."""
+    q, lam, trust = estimate(method, trial, runner)
     if q.shape != (trial.n, 4):
         raise ValueError(
             f"method {name!r} returned an estimate of shape {q.shape} for trial {trial.name!r} ({trial.n} samples)"

@@ -34,15 +34,27 @@ instead. ``meta["field_source"]`` says which ("initial_rest" or "documented").
 On the nine shipped trials the estimate is always taken from the file
 (|m| ≈ 41.6–44.4 µT, dip ≈ 67.5–71.5°; trial 10 was recorded at a
 different spot of the room).
+
+Physical sense (:func:`check_physical`, run by :func:`load_recording`): the
+magnitudes must fit the units the layout declares — gravity ≈ 9.81 m/s² at
+rest, the Earth's field 20–70 µT at the initial rest, gyro rates a gyroscope
+can measure, and a sampling rate at which the gyro turns as far as the truth
+(or, without truth, as far as the accelerometer tilts). A value that another
+unit explains (nT, mG, G, T; g, mg; °/s; a sampling rate N× off) is refused
+naming that unit; one slightly off is loaded with a warning.
 """
 
 from __future__ import annotations
 
+import math
+import warnings
 from pathlib import Path
 
 import numpy as np
 
+from magenv import quaternion as quat
 from magenv.trial import Trial, TrialError, as_text, check_rate, open_hdf5, read_datasets, unit_truth
+from magenv.userdata import user_data_dir
 
 BERLIN_FIELD_NORM = 44.5  # µT, documented local field (README of the data)
 BERLIN_FIELD_DIP = 69.0  # degrees, positive down
@@ -54,23 +66,58 @@ REST_MAX_NORM_STD = 2.0  # µT, |m| spread beyond this: field not steady, fall b
 REST_MAX_DIP_STD = 3.0  # degrees
 MAX_FIELD_DEVIATION = (8.0, 8.0)  # (µT, degrees) from the Berlin values, beyond: fall back
 
+# Physical sense (check_physical). Each channel's magnitude against the band its declared unit gives it; outside
+# the band by at most ``WARN_FACTOR``: a warning; farther: refused, naming the unit that explains it, if one does.
+EARTH_FIELD_UT = (20.0, 70.0)  # µT, the undisturbed field anywhere on Earth (≈ 22–67 µT)
+GRAVITY_BAND = (0.9 * quat.GRAVITY, 1.1 * quat.GRAVITY)  # m/s², the specific force at rest
+WARN_FACTOR = 2.0
+#: A channel's value in units it may be in by mistake: unit → the size of magenv's unit in it.
+MAG_UNITS = {"nT": 1e3, "mG": 10.0, "G": 1e-2, "T": 1e-6}  # per µT
+ACC_UNITS = {"g": 1.0 / quat.GRAVITY, "mg": 1e3 / quat.GRAVITY}  # per m/s²
+DEG_PER_RAD = 180.0 / math.pi  # °/s per rad/s
+GYR_MAX = math.radians(4000.0)  # rad/s, the largest full scale of MEMS gyroscopes (4000 °/s)
+GYR_P99_MAX = math.radians(2000.0)  # rad/s, sustained rates beyond it (99th percentile of |ω|): no human motion
+# The sampling rate: the gyro integrated at it must turn as far as the truth over windows of WINDOW_S in which the
+# truth turns at least MIN_TURN_DEG (median ratio; in [0.9, 1.1] on the nine BROAD recordings: 0.993–0.999), or
+# without truth as far as the accelerometer tilts at rest-like windows (|a| within 5 % of g; a cruder 0.9–2.3).
+WINDOW_S, MIN_TURN_DEG, MIN_WINDOWS = 0.1, 5.0, 20
+TURN_OK = (0.9, 1.1)  # gyro turn ÷ truth turn: quiet inside, a warning up to ×/÷ 1.5, refused beyond
+TURN_WARN = (2.0 / 3.0, 1.5)
+TILT_OK = (0.3, 5.0)  # gyro tilt ÷ accelerometer tilt without truth: refused outside
+REST_ACC_STD = 0.2  # m/s², |a| steadier than this over 0.2 s (with the gyro quiet): at rest
+
 SENSOR_KEYS = ("imu_gyr", "imu_acc", "imu_mag")
 REQUIRED = (*SENSOR_KEYS, "opt_quat", "opt_pos", "movement")
 
-_DEFAULT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "broad"
+BROAD_DIR_ENV = "MAGENV_BROAD_DIR"  # a folder of BROAD recordings, read instead of the default places
+BROAD_SUBDIR = "broad"  # where ``magenv data broad`` stores them in the user data folder
+FETCH_COMMAND = "magenv data broad"  # the command that fetches them
+_CHECKOUT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "broad"  # beside a development checkout
+
+
+def default_broad_dirs() -> list[Path]:
+    """Where the BROAD recordings are looked for, in order: ``$MAGENV_BROAD_DIR`` alone if set; else the user
+    data folder's ``broad/`` (``magenv.userdata.user_data_dir``, where ``magenv data broad`` stores them), then
+    ``<checkout>/../shared/data/broad``."""
+    import os
+
+    if os.environ.get(BROAD_DIR_ENV):
+        return [Path(os.environ[BROAD_DIR_ENV])]
+    return [user_data_dir() / BROAD_SUBDIR, _CHECKOUT_DIR]
 
 
 def broad_dir() -> Path:
-    """Folder of the shipped BROAD recordings (``<checkout>/../shared/data/broad``).
-
-    The environment variable ``MAGENV_BROAD_DIR`` overrides it.
-    """
-    import os
-
-    folder = Path(os.environ.get("MAGENV_BROAD_DIR", _DEFAULT_DIR))
-    if not folder.is_dir():
-        raise TrialError(f"{folder}: BROAD recordings folder not found (set MAGENV_BROAD_DIR)")
-    return folder
+    """The folder of the BROAD recordings: the first of :func:`default_broad_dirs` that holds ``*.hdf5`` files
+    (``$MAGENV_BROAD_DIR``, when set, only has to exist). TrialError naming the places looked in and
+    ``magenv data broad`` if none does."""
+    places = default_broad_dirs()
+    for folder in places:
+        if folder.is_dir() and (len(places) == 1 or any(folder.glob("*.hdf5"))):
+            return folder
+    raise TrialError(
+        f"BROAD recordings folder not found (looked in {', '.join(map(str, places))}); "
+        f"fetch them with `{FETCH_COMMAND}` or set {BROAD_DIR_ENV}"
+    )
 
 
 def list_recordings(folder: str | Path | None = None) -> list[Path]:
@@ -159,6 +206,162 @@ def estimate_field(
     return float(documented[0]), float(documented[1]), "documented"
 
 
+def _magnitude_problem(
+    what: str, value: float, band: tuple[float, float], unit: str, others: dict, at_rest: bool
+) -> str | None:
+    """None if ``value`` (in ``unit``) is inside ``band`` — or, not measured ``at_rest``, within ``WARN_FACTOR``
+    of it; else the warning (prefixed "warn: ") or the refusal: all zero, another unit of ``others`` (name → the
+    size of ``unit`` in it) that puts it inside the band, or implausible in any unit."""
+    lo, hi = band
+    near = lo / WARN_FACTOR <= value <= hi * WARN_FACTOR
+    if lo <= value <= hi or (near and not at_rest):
+        return None
+    if value == 0.0:
+        return f"{what} is all zero: no data in this channel?"
+    if near:
+        return f"warn: {what} {value:.3g} {unit} is outside the expected {lo:.3g}–{hi:.3g} {unit}"
+    for other, size in others.items():
+        if lo * size / WARN_FACTOR <= value <= hi * size * WARN_FACTOR:
+            return f"{what} {value:.2g} looks like {other}, expected {unit} ({lo:.3g}–{hi:.3g} {unit})"
+    return f"{what} {value:.3g} {unit} is implausible in any unit (expected {lo:.3g}–{hi:.3g} {unit})"
+
+
+def _turn_windows(trial: Trial, angle) -> tuple[np.ndarray, np.ndarray]:
+    """(gyro angle, reference angle) of back-to-back windows, radians: ``angle(i, k)`` gives the reference's
+    angle (NaN: no reference) over samples i … i+k, the gyro's is that of its rotation vector ``Σ ω / rate``
+    (small-angle: windows are short), projected by ``angle``'s second output if it returns one. Windows start at
+    ``WINDOW_S`` seconds and double in length (a wrong rate makes them too short in real time) until
+    ``MIN_WINDOWS`` turn at least ``MIN_TURN_DEG``."""
+    summed = np.cumsum(np.vstack([np.zeros(3), trial.gyr]), axis=0)
+    k = max(1, int(round(WINDOW_S * trial.rate)))
+    while True:
+        i = np.arange(0, max(trial.n - k, 0), k)
+        reference, gyro = angle(i, k, (summed[i + k] - summed[i]) / trial.rate)
+        turned = np.isfinite(reference) & (np.maximum(reference, gyro) > math.radians(MIN_TURN_DEG))
+        if turned.sum() >= MIN_WINDOWS or 2 * k * MIN_WINDOWS > trial.n:
+            return gyro[turned], reference[turned]
+        k *= 2
+
+
+def gyro_turn_ratio(trial: Trial) -> tuple[float, int]:
+    """(median over windows of the angle the gyro turns ÷ the angle the truth turns, number of windows; NaN and 0
+    without enough truth): the sampling rate and the gyro's unit checked against the truth (``_turn_windows``)."""
+    q = trial.q_true
+
+    def angle(i, k, rotvec):
+        rel = quat.mul(quat.conj(q[i]), q[i + k])
+        return 2.0 * np.arccos(np.clip(np.abs(rel[:, 0]), 0.0, 1.0)), np.linalg.norm(rotvec, axis=1)
+
+    gyro, truth = _turn_windows(trial, angle)
+    return (float(np.median(gyro / truth)) if truth.size >= MIN_WINDOWS else math.nan), int(truth.size)
+
+
+def gyro_tilt_ratio(trial: Trial) -> tuple[float, int]:
+    """Without truth: (median over windows of the tilt the gyro predicts ÷ the tilt the accelerometer shows,
+    number of windows): windows with |a| within 5 % of g at both ends (little linear acceleration), the gyro's
+    rotation vector r tilting the measured gravity direction â by |r × â| (``_turn_windows``)."""
+    norm = np.linalg.norm(trial.acc, axis=1)
+    quiet = np.abs(norm - quat.GRAVITY) < 0.05 * quat.GRAVITY
+    unit = trial.acc / np.maximum(norm, 1e-12)[:, None]
+
+    def angle(i, k, rotvec):
+        shown = np.arccos(np.clip(np.sum(unit[i] * unit[i + k], axis=1), -1.0, 1.0))
+        shown[~(quiet[i] & quiet[i + k]) | (shown == 0.0)] = np.nan
+        return shown, np.linalg.norm(np.cross(rotvec, unit[i]), axis=1)
+
+    predicted, shown = _turn_windows(trial, angle)
+    return (float(np.median(predicted / shown)) if shown.size >= MIN_WINDOWS else math.nan), int(shown.size)
+
+
+def _rate_problem(trial: Trial) -> str | None:
+    """The sampling rate and the gyro's unit against the truth's turns (else the accelerometer's tilt); None if
+    they fit or cannot be told (too few windows that turn)."""
+    ratio, windows = gyro_turn_ratio(trial)
+    against, ok, warn = "the truth", TURN_OK, TURN_WARN
+    if windows < MIN_WINDOWS:
+        ratio, windows = gyro_tilt_ratio(trial)
+        against, ok, warn = "the accelerometer tilts", TILT_OK, TILT_OK
+    if windows < MIN_WINDOWS or ok[0] <= ratio <= ok[1]:
+        return None
+    turns = f"the gyro turns {ratio:.3g}× as far as {against} ({windows} windows)"
+    if ratio == 0.0:
+        return f"the gyroscope is all zero: {turns}"
+    if warn[0] <= ratio <= warn[1]:
+        return f"warn: {turns}: a gyro scale or sampling-rate error?"
+    if abs(math.log(ratio / DEG_PER_RAD)) < math.log(1.25):
+        return f"gyro rates look like °/s, expected rad/s: {turns}"
+    how = f"{1 / ratio:.3g}× too high" if ratio < 1 else f"{ratio:.3g}× too low"
+    return f"sampling rate {trial.rate:g} Hz looks {how}: {turns}; about {trial.rate * ratio:.3g} Hz fits"
+
+
+def rest_samples(trial: Trial) -> np.ndarray:
+    """(N,) bool: the samples at rest — |ω| below ``REST_GYR_THRESHOLD``·5 (0.17 rad/s) and |a| steady (its
+    std over 0.2 s below ``REST_ACC_STD``)."""
+    k = max(1, int(round(0.2 * trial.rate)))
+    norm = np.linalg.norm(trial.acc, axis=1)
+    box = np.ones(k) / k
+    mean, square = np.convolve(norm, box, "same"), np.convolve(norm * norm, box, "same")
+    steady = np.sqrt(np.maximum(square - mean * mean, 0.0)) < REST_ACC_STD
+    return steady & (np.linalg.norm(trial.gyr, axis=1) < 5 * REST_GYR_THRESHOLD)
+
+
+def check_physical(trial: Trial, source: str = "") -> list[str]:
+    """Whether ``trial``'s sensor magnitudes make physical sense in magenv's units (rad/s, m/s², µT, Hz; see
+    the module docstring); returns the warnings (text, empty if none), raises ValueError (a TrialError) naming
+    the problem and the likely unit, e.g. "magnetometer norm 4.6e+04 looks like nT, expected µT". ``source``
+    (a file name) starts each message.
+
+    * accelerometer: the median |a| at rest (:func:`rest_samples`) within ``GRAVITY_BAND``; with less than 1 s
+      at rest, the median over all samples, within ``WARN_FACTOR`` of it (motion biases it: no warning);
+    * magnetometer: the median |m| over the initial rest (:func:`initial_rest`) within ``EARTH_FIELD_UT``; with
+      less than 1 s of it, the median over all samples, within ``WARN_FACTOR`` of it (a magnet may be near);
+    * gyroscope: the 99th percentile of |ω| at most ``GYR_P99_MAX``, every sample at most ``GYR_MAX``;
+    * sampling rate (and gyro unit): :func:`gyro_turn_ratio` in ``TURN_OK`` (a warning within
+      ``TURN_WARN``), or without truth :func:`gyro_tilt_ratio` within ``TILT_OK``.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):  # a corrupt 1e300 is refused, not warned about twice
+        return _check_physical(trial, f"{source}: " if source else "")
+
+
+def _check_physical(trial: Trial, prefix: str) -> list[str]:
+    second = max(2, int(round(trial.rate)))
+    at_rest = rest_samples(trial)
+    acc_rest = int(at_rest.sum()) >= second
+    acc = np.linalg.norm(trial.acc[at_rest] if acc_rest else trial.acc, axis=1)
+    rest = initial_rest(trial.gyr, trial.rate)
+    mag_rest = rest.stop - rest.start >= second
+    mag = np.linalg.norm(trial.mag[rest] if mag_rest else trial.mag, axis=1)
+    problems = [
+        _magnitude_problem(
+            f"accelerometer norm{' at rest' if acc_rest else ''}",
+            float(np.median(acc)),
+            GRAVITY_BAND,
+            "m/s²",
+            ACC_UNITS,
+            acc_rest,
+        ),
+        _magnitude_problem("magnetometer norm", float(np.median(mag)), EARTH_FIELD_UT, "µT", MAG_UNITS, mag_rest),
+    ]
+    largest = np.abs(trial.gyr).max(axis=1)  # no overflow for a corrupt 1e300
+    speed = np.linalg.norm(np.minimum(np.abs(trial.gyr), 1e100), axis=1)
+    p99 = float(np.percentile(speed, 99))
+    if p99 > GYR_P99_MAX:
+        unit = "look like °/s, expected rad/s" if p99 / DEG_PER_RAD <= GYR_P99_MAX else "are implausible in any unit"
+        problems.append(f"gyro rates {unit} (99th percentile of |ω| {p99:.3g} rad/s; at most {GYR_P99_MAX:.3g})")
+    elif largest.max() > GYR_MAX:
+        row = int(np.argmax(largest))
+        problems.append(
+            f"gyro rate {largest[row]:.3g} rad/s at row {row} is beyond any gyroscope's range "
+            f"({GYR_MAX:.3g} rad/s = 4000 °/s): a corrupt sample"
+        )
+    else:
+        problems.append(_rate_problem(trial))
+    refusals = [p for p in problems if p is not None and not p.startswith("warn: ")]
+    if refusals:
+        raise TrialError(prefix + "; ".join(refusals))
+    return [prefix + p[len("warn: ") :] for p in problems if p is not None]
+
+
 def load_recording(path: str | Path) -> Trial:
     """Read one BROAD HDF5 file into a ``Trial`` (see the module docstring).
 
@@ -171,7 +374,8 @@ def load_recording(path: str | Path) -> Trial:
         TrialError: naming the file and the problem — missing file, not HDF5 or
             corrupt, a missing dataset or ``sampling_rate``, fewer than 2 rows,
             wrong shapes or lengths, NaN/inf in a sensor channel, a rate outside
-            ``magenv.trial.RATE_RANGE``, truth off unit norm, no sample to score.
+            ``magenv.trial.RATE_RANGE``, truth off unit norm, no sample to score, magnitudes that make no
+            physical sense in the declared units (:func:`check_physical`; a UserWarning for slightly off ones).
     """
     import h5py
 
@@ -224,30 +428,30 @@ def load_recording(path: str | Path) -> Trial:
             f"samples and opt_quat has truth in {int(truth_rows.sum())}, none in common"
         )
 
-    field_norm, field_dip, field_source = estimate_field(data["imu_gyr"], data["imu_acc"], data["imu_mag"], rate)
-    rest = initial_rest(data["imu_gyr"], rate)
     try:
-        return Trial(
+        trial = Trial(
             name=path.stem,
             rate=rate,
             gyr=data["imu_gyr"],
             acc=data["imu_acc"],
             mag=data["imu_mag"],
             q_true=q_true,
-            field_norm=field_norm,
-            field_dip=field_dip,
+            field_norm=BERLIN_FIELD_NORM,  # until estimated from data that make physical sense
+            field_dip=BERLIN_FIELD_DIP,
             score_mask=movement,
             truth={"opt_pos": data["opt_pos"]},
-            meta={
-                "source": "BROAD",
-                "file": str(path),
-                "info": info,
-                "field_source": field_source,
-                "initial_rest_s": (rest.stop - rest.start) / rate,
-            },
+            meta={"source": "BROAD", "file": str(path), "info": info},
         )
     except TrialError as exc:
         raise TrialError(f"{path}: {exc}") from None
+    for warning in check_physical(trial, str(path)):
+        warnings.warn(warning, stacklevel=2)
+    trial.field_norm, trial.field_dip, trial.meta["field_source"] = estimate_field(
+        trial.gyr, trial.acc, trial.mag, rate
+    )
+    rest = initial_rest(trial.gyr, rate)
+    trial.meta["initial_rest_s"] = (rest.stop - rest.start) / rate
+    return trial
 
 
 def load_trial_file(path: str | Path) -> Trial:

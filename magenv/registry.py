@@ -27,7 +27,8 @@ a fresh one. ``names()`` lists them all:
   ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``; ``oracle_qsf_hold`` with ``qsf_hold``) and
   ``oracle_vqf`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``);
 * ``register(name, factory)`` at run time (one line anywhere);
-* ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``.
+* ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``; ``pretrained:ENV_ID`` (or
+  ``agent:pretrained:ENV_ID``) — the agent shipped for that env.
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-import os
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
@@ -56,10 +56,12 @@ from magenv.baselines import (
 )
 from magenv.envs.kalman import EXTENDED as KALMAN_EXTENDED
 from magenv.protocols import Tunable
+from magenv.userdata import DATA_DIR_ENV as DATA_DIR_ENV  # the one definition (tests, magenv.scale read it here)
+from magenv.userdata import user_data_dir
 
 AGENT_PREFIX = "agent:"
+PRETRAINED_PREFIX = "pretrained:"  # pretrained:ENV_ID, the agent shipped for that env (magenv.agents.loading)
 TUNED_SUFFIX = "_tuned"
-DATA_DIR_ENV = "MAGENV_DATA_DIR"
 METHOD_MODULES = (rules, kalman, kalman_policies, constraint, qsf, reference, vqf_rules)
 
 
@@ -172,15 +174,6 @@ _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}
 
 class TunedParamsError(ValueError):
     """A tuned-parameter file is missing, corrupt, or does not fit its rule."""
-
-
-def user_data_dir() -> Path:
-    """Where magenv writes user data: ``$MAGENV_DATA_DIR``, else ``$XDG_DATA_HOME/magenv``
-    (default ``~/.local/share/magenv``)."""
-    if os.environ.get(DATA_DIR_ENV):
-        return Path(os.environ[DATA_DIR_ENV])
-    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
-    return Path(base) / "magenv"
 
 
 def user_tuned_dir() -> Path:
@@ -329,14 +322,15 @@ def describe() -> dict[str, str]:
 def make(name: str, trust_pickle: bool = False):
     """A fresh Policy or Estimator for a method name. Unknown names raise ValueError listing the known ones.
     ``trust_pickle`` is for ``agent:RUN_DIR`` only: see ``magenv.agents.load_agent``."""
-    if name.startswith(AGENT_PREFIX):
+    if name.startswith((AGENT_PREFIX, PRETRAINED_PREFIX)):
         from magenv.agents.loading import load_agent
 
-        return load_agent(name[len(AGENT_PREFIX) :], trust_pickle=trust_pickle)
+        return load_agent(name.removeprefix(AGENT_PREFIX), trust_pickle=trust_pickle)
     table = _all()
     if name not in table:
         raise ValueError(
-            f"unknown method {name!r}; known methods: {', '.join(table)} (or {AGENT_PREFIX}RUN_DIR for a trained agent)"
+            f"unknown method {name!r}; known methods: {', '.join(table)} (or {AGENT_PREFIX}RUN_DIR for a trained "
+            f"agent, {PRETRAINED_PREFIX}ENV_ID for a shipped one)"
         )
     method = table[name][0]()
     if not hasattr(method, "name"):

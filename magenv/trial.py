@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from magenv.checks import check_site
+
 FORMAT = "magenv-trial-1"
 RATE_RANGE = (1.0, 100_000.0)  # Hz: the sampling rates a trial may have
 UNIT_TOL = 1e-3  # truth quaternions this close to unit norm are normalised (with a warning); farther: refused
@@ -131,8 +133,8 @@ class Trial:
         mag: (N, 3) magnetic field, µT, sensor frame.
         q_true: (N, 4) true orientation sensor → ENU, ``[w, x, y, z]``;
             NaN rows where truth is missing.
-        field_norm: undisturbed local field magnitude m0, µT.
-        field_dip: undisturbed local dip angle θ0, degrees (positive down).
+        field_norm: undisturbed local field magnitude m0, µT, in (0, ``magenv.checks.FIELD_NORM_MAX_UT``].
+        field_dip: undisturbed local dip angle θ0, degrees (positive down), in [-90, 90].
         score_mask: (N,) bool, samples over which errors are scored.
         truth: truth-only channels, never shown to a policy, each with N rows
             (e.g. ``mag_disturbance`` (N, 3) µT sensor frame, ``stationary``
@@ -154,6 +156,17 @@ class Trial:
     truth: dict = dataclasses.field(default_factory=dict)
     extra: dict = dataclasses.field(default_factory=dict)
     meta: dict = dataclasses.field(default_factory=dict)
+
+    def __setattr__(self, name: str, value) -> None:
+        """``field_norm`` and ``field_dip`` are checked whenever they are set (at construction and after):
+        every env and filter reads them from the trial, so none is handed a field that cannot exist."""
+        if name in ("field_norm", "field_dip"):
+            norm, dip = (value, 45.0) if name == "field_norm" else (45.0, value)
+            try:
+                value = check_site(norm, dip)[name == "field_dip"]
+            except (TypeError, ValueError) as exc:
+                raise TrialError(f"trial {getattr(self, 'name', '?')!r}: {exc}") from None
+        super().__setattr__(name, value)
 
     def __post_init__(self) -> None:
         self.rate = check_rate(self.rate, f"trial {self.name!r}: rate")
@@ -184,8 +197,6 @@ class Trial:
                 if rows != n:
                     raise TrialError(f"trial {self.name!r}: {group} channel {key!r} has {rows} rows, expected {n}")
                 getattr(self, group)[key] = value
-        self.field_norm = float(self.field_norm)
-        self.field_dip = float(self.field_dip)
 
     @property
     def n(self) -> int:

@@ -286,7 +286,7 @@ def test_hold_runs_counts_runs_of_repeats():
     assert np.isnan(hold_runs(np.arange(5.0)[:, None])[0])
 
 
-def test_realism_benchmark_runs(tmp_path, capsys):
+def test_realism_benchmark_runs(broad_dir, tmp_path, capsys):
     """studies/realism.py on the recordings alone: table, recommendations, figure."""
     import importlib.util
     from pathlib import Path

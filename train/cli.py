@@ -18,11 +18,17 @@ COMMANDS = {
     "train": ("magenv.train.train", "train a learning agent on an environment"),
     "sweep": ("magenv.train.sweep", "train many runs (envs × algorithms × seeds × hyperparameters) on Ray Tune"),
     "agents": ("magenv.train.agents", "list the trained agents shipped with magenv (--agent pretrained:ENV_ID)"),
+    "estimate": (
+        "magenv.train.estimate",
+        "orientation of your own IMU log (CSV or HDF5) with a method's magnetometer trust",
+    ),
     "evaluate": ("magenv.train.evaluate", "score a trained agent on scenarios or recordings"),
+    "export": ("magenv.train.export", "a DAgger student as an ONNX model with a JSON sidecar (features, lags, action)"),
     "tune": ("magenv.train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
     "pictures": ("magenv.train.pictures", "draw the README's pictures: a rendered frame and trust over time"),
     "report": ("magenv.train.report", "write a Markdown report with tables and plots"),
     "paper": ("magenv.train.paper", "print a paper check: the papers' tables reproduced in simulation"),
+    "data": ("magenv.train.data", "fetch the real recordings (BROAD) from their public repository, checked by SHA-256"),
     "demo": ("magenv.train.demo", "the main job: train briefly, then compare learned against hand-tuned weighting"),
 }
 
