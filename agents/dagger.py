@@ -350,7 +350,7 @@ class Student:
         fallback where it holds (class docstring)."""
         x = self.inputs(obs)
         self.decisions += 1
-        if self.outside(x):
+        if self.guard is not None and self.outside(x):
             self.guarded += 1
             return np.asarray(self.guard["fallback"], np.float64)
         return self._choose(self.probabilities(x)[0], obs)

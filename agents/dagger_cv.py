@@ -69,10 +69,17 @@ def cross_validate(
         policy = dagger.load_policy(run)
         if episodes is None:
             episodes = dagger.Episodes(policy.env_id, policy.env_kwargs, teacher)
+
+        def student(o, runner, costs, pi=policy):
+            return pi(o)
+
+        def rule_act(o, runner, costs):
+            return teacher.continuation_action(runner)
+
         for path in held:
             trial = dagger.make_trial(f"{dagger.RECORDING}{path}", 0)
-            agent = episodes.run(trial, lambda o, runner, costs, pi=policy: pi(o), label_every=0).rmse
-            rule = episodes.run(trial, lambda o, runner, costs: teacher.continuation_action(runner), label_every=0)
+            agent = episodes.run(trial, student, label_every=0).rmse
+            rule = episodes.run(trial, rule_act, label_every=0)
             rows.append({"fold": f, "recording": path.stem, "agent_rmse": agent, "rule_rmse": rule.rmse})
             log(f"  {path.stem}: student {agent:.3f}°, rule {rule.rmse:.3f}° ({agent / rule.rmse:.3f}×)")
     out.mkdir(parents=True, exist_ok=True)

@@ -21,6 +21,7 @@ refused (:func:`check_meta`).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -229,7 +230,7 @@ def kept_columns(names, meta: dict) -> list[int]:
     return [i for i in range(len(names)) if names[i % block] not in drop]
 
 
-def student_graph(env_id: str, student, names) -> object:
+def student_graph(env_id: str, student, names) -> Any:
     """The ONNX ModelProto of ``student`` (a ``dagger.Student`` or ``Ensemble``) acting in ``env_id`` on
     observations of the features ``names`` (the module docstring)."""
     from onnx import TensorProto, checker, helper
