@@ -15,6 +15,10 @@ repeats. Holding u_c over the whole horizon (not one decision) matters for
 VQF: its heading correction has a time constant of τ_mag = 9 s, so one
 window of a different gain barely moves the estimate.
 
+The roll-outs cost little more than one filter pass per trial: only δ depends on the trust, so the rest of
+VQF (orientation, bias, rest and disturbance detection) is run once over the trial (:func:`field_rows`) and
+each candidate's look-ahead runs δ alone (:func:`heading_costs`).
+
 As a DAgger teacher (the oracle interface of ``magenv.agents.dagger``) its
 continuation rule is VQF's own decision, u = 1 on top of VQF's rejection
 (``rejection="on"``): the student learns where to lower VQF's gain, and
@@ -40,41 +44,42 @@ DECISION_EVERY = 32  # samples per decision (≈ 9 Hz at BROAD's 286 Hz)
 
 
 @njit(cache=True)
-def lookahead_costs(p, s, w, fork, gyr, acc, mag, q_true, start, stop, cands, costs, rows):
-    """``costs[c]`` = Σ (total error, °)² over samples start … stop−1 of trust ``cands[c]`` held, from the state
-    ``s`` (left unchanged; ``fork`` its working copy, ``w`` the kernels' scratch, ``rows`` (≥ stop − start, 4)).
+def field_rows(p, s, w, gyr, acc, mag, q_true, rows):
+    """Per sample of a trial, from VQF's state ``s`` before its first sample (a fork, left unchanged: ``s`` is
+    copied), what a heading step needs and the truth it is scored against: rows[i] = (ψ, the gain's divisor,
+    A = q6D·t, B = (q_z(π) ⊗ q6D)·t) with t the truth (NaN A and B where it has none).
 
-    Only δ depends on the trust (``magenv.filters.vqf.step``), so one roll-out of the rest serves every
-    candidate: it keeps per sample the field's heading ψ, the gain's divisor and, against the truth t, the two
-    dot products A = q6D·t and B = (q_z(π) ⊗ q6D)·t, so that q9D·t = cos(δ/2)·A + sin(δ/2)·B; each candidate
-    then runs δ alone (``magenv.filters.vqf.heading_update``)."""
-    fork[:] = s
-    n = stop - start
-    for j in range(n):
-        i = start + j
+    Only δ depends on the trust (``magenv.filters.vqf.step``), so these rows are the same whatever the trusts
+    chosen: one pass serves every decision of every candidate (:func:`heading_costs`)."""
+    fork = s.copy()
+    for i in range(gyr.shape[0]):
         vqf.six_d_step(p, fork, w, gyr[i], acc[i])
         psi, divisor = vqf.field_step(p, fork, mag[i, 0], mag[i, 1], mag[i, 2])
         q0, q1, q2, q3 = vqf.quat6d(fork)
         t = q_true[i]
-        rows[j, 0], rows[j, 1] = psi, divisor
-        rows[j, 2] = q0 * t[0] + q1 * t[1] + q2 * t[2] + q3 * t[3]
-        rows[j, 3] = -q3 * t[0] - q2 * t[1] + q1 * t[2] + q0 * t[3]
+        rows[i, 0], rows[i, 1] = psi, divisor
+        rows[i, 2] = q0 * t[0] + q1 * t[1] + q2 * t[2] + q3 * t[3]
+        rows[i, 3] = -q3 * t[0] - q2 * t[1] + q1 * t[2] + q0 * t[3]
+
+
+@njit(cache=True)
+def heading_costs(p, delta, init, rows, start, stop, cands, costs):
+    """``costs[c]`` = Σ (total error, °)² over samples start … stop−1 of trust ``cands[c]`` held, from the heading
+    offset δ = ``delta`` and the initial convergence's 1/N = ``init`` before sample ``start``; ``rows`` of
+    :func:`field_rows`. The 9D estimate's scalar product with the truth is cos(δ/2)·A + sin(δ/2)·B."""
     ts = p[P.ts]
     for c in range(cands.shape[0]):
         k, tau = vqf.trust_gain(p, cands[c])
-        delta, init = s[S.delta], s[S.k_mag_init]
+        d, n0 = delta, init
         cost = 0.0
-        for j in range(n):
-            if rows[j, 1] != 0.0:
-                delta, init, _, _ = vqf.heading_update(delta, init, rows[j, 0], rows[j, 1], k, tau, ts)
-            a = rows[j, 2]
-            if a == a or not np.isfinite(q_true[start + j, 0]):  # no truth: NaN A, adds nothing
-                wq = np.cos(delta / 2) * a + np.sin(delta / 2) * rows[j, 3]
-                if wq == wq:
-                    total = np.rad2deg(2.0 * np.arccos(min(1.0, abs(wq)))) if np.isfinite(wq) else WORST_DEG
-                    cost += total * total
-            else:  # the roll-out diverged (truth is there, the estimate is not finite)
-                cost += WORST_DEG * WORST_DEG
+        for i in range(start, stop):
+            if rows[i, 1] != 0.0:
+                d, n0, _, _ = vqf.heading_update(d, n0, rows[i, 0], rows[i, 1], k, tau, ts)
+            a = rows[i, 2]
+            if a == a:  # no truth: NaN, adds nothing
+                wq = np.cos(d / 2) * a + np.sin(d / 2) * rows[i, 3]
+                total = np.rad2deg(2.0 * np.arccos(min(1.0, abs(wq)))) if np.isfinite(wq) else WORST_DEG
+                cost += total * total
         costs[c] = cost
 
 
@@ -107,21 +112,26 @@ class VQFOracle:
         self.horizon_s, self.decision_every = float(horizon_s), int(decision_every)
         self.env_kwargs = {"rejection": rejection}
         self.options = filter_options(rejection, vqf.Options.tau_acc, vqf.Options.tau_mag, True, True)
-        self._fork = np.empty(vqf.STATE.size)
-        self._work = vqf.work()
-        self._rows = np.empty((0, 4))
+        self._rows: tuple = (None, None, None)  # (trial, parameters, their field_rows) of the last trial searched
 
     def candidate_costs(self, runner: VQFRunner) -> np.ndarray:
         """(C,) Σ (total error, °)² over the horizon of each candidate held, from ``runner``'s state."""
         start = runner.pos
         stop = min(runner.n, start + max(self.decision_every, int(round(self.horizon_s * runner.trial.rate))))
-        gyr, acc, mag = runner.sensors
-        if len(self._rows) < stop - start:
-            self._rows = np.empty((stop - start, 4))
         costs = np.empty(self.levels.size)
-        lookahead_costs(runner.params, runner.state, self._work, self._fork, gyr, acc, mag, runner.q_true, start,
-                        stop, self.levels, costs, self._rows)  # fmt: skip
+        heading_costs(runner.params, runner.state[S.delta], runner.state[S.k_mag_init], self.rows(runner), start,
+                      stop, self.levels, costs)  # fmt: skip
         return costs
+
+    def rows(self, runner: VQFRunner) -> np.ndarray:
+        """:func:`field_rows` of the runner's trial (made once per trial, from VQF's initial state)."""
+        trial, params, rows = self._rows
+        p = runner.params
+        if trial is not runner.trial or not np.array_equal(params, p):
+            rows = np.empty((runner.n, 4))
+            field_rows(p, vqf.init_state(p), vqf.work(), *runner.sensors, runner.q_true, rows)
+            self._rows = (runner.trial, p.copy(), rows)
+        return rows
 
     def continuation_action(self, runner: VQFRunner) -> np.ndarray:
         """(1,) VQF's own decision: u = 1 (VQF's rejection, where on, acts on it)."""

@@ -51,3 +51,23 @@ def test_a_short_study_runs_end_to_end(capsys):
     assert main(blend.STUDY, ["--seeds", "0", "--duration", "2", "--no-oracle", "--scenarios", "dynamic_magnet"]) == 0
     out = capsys.readouterr().out
     assert "| dynamic_magnet | fan_lambda_tuned |" in out and "trials cut to 2 s" in out and RECORDINGS == "recordings"
+
+
+def test_the_real_vqf_table_groups_the_recordings_and_names_the_worst():
+    from studies import vqf_real
+
+    assert vqf_real.group_of("33_disturbed_attached_magnet_2cm") == "magnet"
+    assert vqf_real.group_of("26_disturbed_phone_vibration_A") == "tapping"
+    assert vqf_real.group_of("11_undisturbed_slow_translation_B") == "undisturbed"
+    recs = ["02_undisturbed_a", "29_disturbed_stationary_magnet_b", "32_disturbed_attached_magnet_c"]
+    scores = {
+        "vqf": dict(zip(recs, [1.0, 2.0, 4.0])),
+        "vqf_fan_lambda_tuned": dict(zip(recs, [1.0, 1.0, 2.0])),
+        "agent": dict(zip(recs, [0.5, 1.0, 6.0])),
+    }
+    lines = vqf_real.table(scores, list(scores))
+    row = next(line for line in lines if line.startswith("| `agent` |"))
+    assert row.endswith("| 32 1.50 |")  # the worst recording: 6 / 4
+    cells = row.split(" | ")
+    assert cells[1].startswith("3.50 · 0.87 [") and cells[2] == "0.50 · 0.50"  # magnet: √(0.5·1.5); undisturbed
+    assert any(line.startswith("agent / vqf_fan_lambda_tuned on the magnet recordings: 1.73") for line in lines)

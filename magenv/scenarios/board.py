@@ -7,7 +7,8 @@ recording and a policy cannot key on one sensor's or one room's particulars. Sce
 family each; ``board_random`` draws one of the five per trial):
 
 * ``board_clean`` — no disturbance;
-* ``board_attached`` — a magnet or a piece of iron fixed to the board for part of the trial (or to its end):
+* ``board_attached`` — a magnet or a piece of iron fixed to the board from 10 s before to 40 s after the motion
+  starts, for 20–90 s (or to the end):
   a constant sensor-frame offset of 1.5–120 µT (hard iron; the recordings show 58 µT at 1 cm, 14 µT at 3 cm),
   mostly along one sensor axis, for the iron also a soft-iron part proportional to the field;
 * ``board_stationary`` — one to three magnets lying in the room; the board is carried to 3–30 cm of one,
@@ -18,12 +19,15 @@ family each; ``board_random`` draws one of the five per trial):
 * ``board_shocks`` — tapping on the board (knocks of 5–60 m/s²) or a vibrating phone on it (90–250 Hz,
   1–15 m/s²) in bursts: the accelerometer disturbed, the field not.
 
-Motion (``magenv.sim.board.hand_motion``): an initial rest of 2–8 s, then rotations, translations or both
+Motion (``magenv.sim.board.hand_motion``): an initial rest (in half the trials 25–45 s, as every BROAD
+recording rests its first 30–45 s, else 2–10 s), then 50–130 s of rotations, translations or both
 (BROAD's motion classes), slow (RMS 10–35 °/s), medium (35–90 °/s) or fast (90–250 °/s, peaks near
 800 °/s), with or without breaks (1–4 rests of 5–10 s). Sensor: ``magenv.sim.sensors.SensorConfig`` drawn
-around the BROAD unit (gyro noise 0.05–0.3 °/s, bias 0.05–0.6 °/s and drift, accelerometer noise
-0.02–0.12 m/s², magnetometer noise 0.2–1.5 µT white or coloured, residual hard iron (0–0.8 µT per axis) and
-soft iron, gyro lag 0–2 and magnetometer lag 0–6 samples, sample-and-hold of 0–40 % in runs of 1 or 2).
+around the BROAD unit (gyro noise 0.05–0.3 °/s, bias 0.05–0.6 °/s and drift, scale and misalignment errors of
+up to 0.4 % per entry (the recordings' fits: 0.1–0.4 %, which at 400 °/s drift the heading by ~1 °/s),
+accelerometer noise 0.02–0.12 m/s², magnetometer noise 0.2–1.5 µT white or coloured, residual hard iron
+(0–0.8 µT per axis) and soft iron, gyro lag 0–2 and magnetometer lag 0–6 samples, sample-and-hold of 0–40 % in
+runs of 1 or 2).
 Earth field: Berlin's (44.5 µT, 69°, ±1.5) in half the trials, else a random location. Rate: BROAD's
 285.7 Hz in 60 % of the trials, else 100–400 Hz.
 
@@ -62,29 +66,36 @@ class BoardConfig:
     """A board scenario (module docstring). Ranges are (low, high), drawn uniformly per seed.
 
     Attributes:
-        duration: s, a number or a range (drawn).
+        duration: s of motion after the initial rest, a number or a range (drawn).
         family: one of ``FAMILIES``, or ``"random"`` (one per trial, uniformly).
         broad_rate_prob: probability of BROAD's rate; else ``rate`` (Hz, drawn).
-        rest_s: initial rest, s. break_prob: probability of breaks; n_breaks, break_s: how many and how long.
+        rest_s: initial rest, s; long_rest_prob, long_rest_s: the probability and length of a BROAD-like one
+            (every recording rests its first 30–45 s). break_prob: probability of breaks; n_breaks, break_s: how
+            many and how long.
         attached_ut: hard-iron offset of an attached magnet, µT (log-uniform). iron_prob: the attached object is
-            iron (a soft-iron part too). attached_ramp_s: attaching / removing it, s. removed_prob: probability
-            that it is removed before the end.
+            iron (a soft-iron part too). attached_on_s: when it is attached, s after the motion starts;
+            attached_for_s: how long it stays. attached_ramp_s: attaching / removing it, s. removed_prob:
+            probability that it is removed before the end.
         magnets, visits: counts of room magnets and of visits to them. moment: A·m² (log-uniform).
             distance_m: closest approach (log-uniform). dwell_s, travel_s: held there, carried there.
         berlin_prob: probability of the BROAD site's Earth field (else a random location).
         field_norm, field_dip: the BROAD site (µT, °).
     """
 
-    duration: float | tuple = (60.0, 150.0)
+    duration: float | tuple = (50.0, 130.0)
     family: str = "random"
     broad_rate_prob: float = 0.6
     rate: tuple = (100.0, 400.0)
-    rest_s: tuple = (2.0, 8.0)
+    rest_s: tuple = (2.0, 10.0)
+    long_rest_prob: float = 0.5
+    long_rest_s: tuple = (25.0, 45.0)
     break_prob: float = 0.5
     n_breaks: tuple = (1, 4)
     break_s: tuple = (5.0, 10.0)
     attached_ut: tuple = (1.5, 120.0)
     iron_prob: float = 0.3
+    attached_on_s: tuple = (-10.0, 40.0)
+    attached_for_s: tuple = (20.0, 90.0)
     attached_ramp_s: tuple = (0.3, 3.0)
     removed_prob: float = 0.75
     magnets: tuple = (1, 3)
@@ -104,10 +115,13 @@ class BoardConfig:
             check_range("duration", self.duration, 1.0, 7200.0)
         if self.family not in (*FAMILIES, "random"):
             raise ValueError(f"family must be one of {(*FAMILIES, 'random')}, got {self.family!r}")
-        for name in ("broad_rate_prob", "break_prob", "iron_prob", "removed_prob", "berlin_prob"):
+        for name in ("broad_rate_prob", "break_prob", "iron_prob", "removed_prob", "berlin_prob", "long_rest_prob"):
             check_number(name, getattr(self, name), 0.0, 1.0)
         check_range("rate", self.rate, 20.0, 2000.0)
         check_range("rest_s", self.rest_s, 0.5, 60.0)
+        check_range("long_rest_s", self.long_rest_s, 0.5, 600.0)
+        check_range("attached_on_s", self.attached_on_s, -600.0, 3600.0)
+        check_range("attached_for_s", self.attached_for_s, 0.5, 3600.0)
         check_range("n_breaks", self.n_breaks, 0, 20)
         check_range("break_s", self.break_s, 0.5, 60.0)
         check_range("attached_ut", self.attached_ut, 0.01, 1000.0)
@@ -191,10 +205,10 @@ def _simulate(scenario: str, cfg: BoardConfig, seed: int, rngs: list[np.random.G
     r_mo = rngs[0]
     rate = BROAD_RATE if r_mo.uniform() < cfg.broad_rate_prob else float(round(r_mo.uniform(*cfg.rate)))
     span = (cfg.duration, cfg.duration) if isinstance(cfg.duration, (int, float)) else cfg.duration
-    duration = float(r_mo.uniform(*span))
+    rest_s = float(r_mo.uniform(*(cfg.long_rest_s if r_mo.uniform() < cfg.long_rest_prob else cfg.rest_s)))
+    duration = rest_s + float(r_mo.uniform(*span))
     n = int(round(duration * rate))
     t = np.arange(n) / rate
-    rest_s = float(r_mo.uniform(*cfg.rest_s))
     breaks = _breaks(r_mo, cfg, rest_s, duration)
     motion = MOTIONS[int(r_mo.integers(len(MOTIONS)))]
     speed = ("slow", "medium", "fast")[int(r_mo.integers(3))]
@@ -262,8 +276,8 @@ def _dress(name: str, scenario: str, seed: int, cfg: BoardConfig, mo: Recorded, 
         if r_dist.uniform() < 0.6:  # mostly along one sensor axis (a magnet beside the chip)
             d = np.eye(3)[int(r_dist.integers(3))] * r_dist.choice((-1.0, 1.0)) + 0.3 * d
         offset = d / np.linalg.norm(d) * _log_uniform(r_dist, cfg.attached_ut)
-        on = float(r_dist.uniform(0.15, 0.45) * duration)
-        off = float(r_dist.uniform(0.6, 0.95) * duration) if r_dist.uniform() < cfg.removed_prob else np.inf
+        on = float(np.clip(rest_s + r_dist.uniform(*cfg.attached_on_s), 1.0, 0.8 * duration))
+        off = on + float(r_dist.uniform(*cfg.attached_for_s)) if r_dist.uniform() < cfg.removed_prob else np.inf
         prof = board.attached_profile(t, on, off, float(r_dist.uniform(*cfg.attached_ramp_s)))
         extra = prof[:, None] * offset
         iron = bool(r_dist.uniform() < cfg.iron_prob)
@@ -283,9 +297,11 @@ def _dress(name: str, scenario: str, seed: int, cfg: BoardConfig, mo: Recorded, 
         acc, gyr = acc + da, gyr + dg
         drawn.update(shock=kind, bursts=bursts, shock_amp=float(amp))
     sensor = _sensor(r_sensor)
-    gyr_m, acc_m, mag_m = apply_sensor_model(gyr, acc, mag, rate, sensor, r_sensor)
+    scale = r_sensor.normal(scale=r_sensor.uniform(0.0, 0.004), size=(3, 3))  # gyro scale and misalignment
+    gyr_m, acc_m, mag_m = apply_sensor_model(gyr @ (np.eye(3) + scale).T, acc, mag, rate, sensor, r_sensor)
     field_norm, field_dip, source = estimate_field(gyr_m, acc_m, mag_m, rate, documented=(norm, dip))
-    drawn.update(site_norm=norm, site_dip=dip, field_source=source, sensor=dataclasses.asdict(sensor))
+    drawn.update(site_norm=norm, site_dip=dip, field_source=source, sensor=dataclasses.asdict(sensor),
+                 gyr_scale=scale.tolist())  # fmt: skip
     return Trial(
         name=name,
         rate=rate,
