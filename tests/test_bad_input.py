@@ -39,12 +39,11 @@ from magenv.agents.loading import RunError, build_model, load_agent, read_run
 from magenv.agents.run_folder import RunFolder
 from magenv.agents.training import train
 from magenv.agents.wrappers import action_bounds
-from magenv.recordings import load_recording
+from magenv.recordings import find_recording, load_recording
 from magenv.train.cli import main as cli
 from magenv.trial import Trial
-from tests.conftest import BROAD_DIR, kinematic_trial
+from tests.conftest import kinematic_trial
 from tests.test_recordings import write_recording
-from tests.test_run_folder import consistent
 
 ENV = "magenv/MagBlend-v0"
 ROOT = Path(__file__).resolve().parents[1]
@@ -298,6 +297,8 @@ def _crash_at(mp, module, name: str, at: int) -> None:
 
 def _killed_then_again(c: Case, module, name: str, at: int, *flags):
     """``magenv train`` with ``flags`` killed at the ``at``-th call of ``module.name``, then the same command."""
+    from tests.test_agents_run_folder import consistent
+
     with pytest.MonkeyPatch.context() as mp:
         _crash_at(mp, module, name, at)
         with pytest.raises(Killed):
@@ -308,6 +309,8 @@ def _killed_then_again(c: Case, module, name: str, at: int, *flags):
 
 
 def _interrupted_evaluation(c: Case):
+    from tests.test_agents_run_folder import consistent
+
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(training, "run_policy_on_trials", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
         got = c.cli(*_train_args(c, "--steps", "256", "--eval-every", "128"))
@@ -380,7 +383,7 @@ def _compare_plot_without_suffix(c: Case):
 
 def _broad(c: Case, edit) -> Path:
     """BROAD recording 02 copied, then ``edit(h5py file)``."""
-    source = next(BROAD_DIR.glob("02_*.hdf5"))
+    source = find_recording("02")
     path = Path(shutil.copy(source, c.tmp / source.name))
     with h5py.File(path, "a") as f:
         edit(f)

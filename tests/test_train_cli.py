@@ -11,7 +11,7 @@ import pytest
 
 from magenv.train.cli import main as cli
 from magenv.train.cli import output_file, output_folder
-from tests.test_hardening import read_only_folder
+from tests.test_bad_input import read_only_folder
 
 # (command line before the output option, the option, whether it names a folder): each with a later error
 OUTPUTS = [

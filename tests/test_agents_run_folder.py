@@ -21,33 +21,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import yaml
 from stable_baselines3 import PPO
 
 from magenv.agents import run_folder, training, weights
 from magenv.agents.loading import RunError, build_model, read_run
 from magenv.agents.run_folder import RunFolder, digest
 from magenv.agents.training import train
+from tests.test_bad_input import ENV, write_config
 
-ENV = "magenv/MagBlend-v0"
 MAGENV = [sys.executable, "-c", "import sys; from magenv.train.cli import main; sys.exit(main(sys.argv[1:]))"]
-SECTION = {
-    "env_kwargs": {"scenario": "dynamic_clean", "episode_seconds": 3.0},
-    "normalize_reward": True,
-    "n_envs": 2,
-    "n_steps": 64,
-    "batch_size": 64,
-    "n_epochs": 1,
-    "policy_kwargs": {"net_arch": [8]},
-}
 STEPS, EVERY = 384, 256  # three rollouts of 128 steps; evaluated at 256 and at 384 (the end)
 EVALUATED = [256, 384]
 
 
-def config(tmp_path: Path, **changes) -> Path:
-    path = tmp_path / "cfg.yaml"
-    path.write_text(yaml.safe_dump({ENV: {**SECTION, **changes}}))
-    return path
+def config(tmp_path: Path) -> Path:
+    return write_config(tmp_path / "cfg.yaml")
 
 
 def run_train(out: Path, cfg: Path | None, steps: int = STEPS, every: int = EVERY) -> Path:
