@@ -31,6 +31,10 @@ OUTPUTS = [
     (["report", "--methods", "nosuch"], "--out", True),
     (["pictures", "--scenario", "nosuch"], "--out", True),
     (["sweep", "no/such/sweep.yaml"], "--out", True),
+    (["estimate", "no/such.csv", "--method", "nosuch"], "--out", False),
+    (["estimate", "no/such.csv", "--method", "nosuch", "--out", "x.csv"], "--plot", False),
+    (["export", "no/such/run"], "--onnx", False),
+    (["data", "broad", "--url", "file:///no/such"], "--dest", True),
 ]
 
 
@@ -38,7 +42,9 @@ def _name(argv: list[str], option: str, folder: bool) -> str:
     """A name of the kind the option writes."""
     if folder:
         return "out"
-    return "out" + {"--plot": ".png", "--video": ".mp4"}.get(option, ".png" if argv[0] == "plot" else ".csv")
+    return "out" + {"--plot": ".png", "--video": ".mp4", "--onnx": ".onnx"}.get(
+        option, ".png" if argv[0] == "plot" else ".csv"
+    )
 
 
 def _run(tmp_path: Path, capsys, argv: list[str], option: str, path: Path) -> str:
