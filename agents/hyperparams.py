@@ -31,8 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from magenv.checks import check_yaml
 from magenv.seeding import SEED_LIMIT, VALIDATION_START
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
@@ -176,13 +175,15 @@ MAPPING = Rule("a mapping", _mapping)
 NONE = Rule("null", _none)
 NAME = Rule("a name", _text)
 POSITIVE_INT = integer(1)
+#: The most environment steps a run may ask for: 10¹⁰ is months of training at magenv's ~20 k steps/s.
+MAX_TIMESTEPS = 10**10
 SEED_RULE = integer(*SEED_RANGE)
 POSITIVE = number(0, lo_open=True)
 UNIT = number(0, 1, lo_open=True)
 
 #: Keys of a config section that are not constructor arguments of the algorithm.
 RUN_RULES = {
-    "n_timesteps": POSITIVE_INT,
+    "n_timesteps": integer(1, MAX_TIMESTEPS),
     "n_envs": integer(*N_ENVS_RANGE),
     "env_kwargs": MAPPING,
     "normalize_reward": BOOL,
@@ -352,13 +353,16 @@ def check_section(algo: str, section, where: str) -> dict:
 
 
 def read_yaml(path: Path, kind: str = "config file"):
-    """The YAML document in ``path``; ConfigError naming ``path`` if it is missing (``no such KIND``) or not YAML."""
+    """The YAML document in ``path`` (``magenv.checks.check_yaml``); ConfigError naming ``path`` if it is missing
+    (``no such KIND``), not YAML, or an alias bomb."""
     if not path.is_file():
         raise ConfigError(f"{path}: no such {kind}")
     try:
-        return yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        return check_yaml(path.read_text(), str(path))
+    except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def load_hyperparams(algo: str, env_id: str, config_file: str | Path | None = None) -> dict:

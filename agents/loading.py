@@ -4,7 +4,9 @@ Run folder layout (written by ``magenv train``)::
 
     runs/NAME/
       run.yaml             env id, env kwargs, algorithm, hyperparameters, seed, steps: what rebuilds the agent
-      state.json           progress (a readable copy of the last checkpoint's): timesteps, best held-out score
+      state.json           the committed state, written last: progress (timesteps, evaluations, best held-out
+                           score) and every file of the run with its SHA-256 (magenv.agents.run_folder)
+      .lock                held while a run writes to the folder
       best.safetensors     policy weights with the lowest held-out RMSE so far
       last.safetensors     the latest checkpoint: weights, optimizer state, reward statistics, progress
       replay_buffer.safetensors   SAC's replay buffer at the latest checkpoint
@@ -17,7 +19,7 @@ A DAgger run folder (``magenv train --teacher oracle``, ``magenv.agents.dagger``
 ``run.yaml`` (algo ``dagger``) and ``best.safetensors``; ``load_agent`` loads it the same way.
 ``pretrained:ENV_ID`` names the agent shipped with magenv for that env (:func:`pretrained_agents`).
 
-Loading reads YAML (``yaml.safe_load``), JSON and safetensors arrays only
+Loading reads YAML (``yaml.SafeLoader``, ``magenv.checks.check_yaml``), JSON and safetensors arrays only
 (``magenv.agents.weights``): the policy is rebuilt from ``run.yaml`` and the
 weights are loaded into it, so a run folder from someone else cannot run
 code. SB3's ``.zip`` files (and ``.pkl`` files of older run folders) hold
@@ -31,10 +33,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import yaml
 
 from magenv.agents.hyperparams import SEED_RANGE, ConfigError, algorithm_class, check_section, constructor_kwargs
 from magenv.agents.weights import RunError, load_policy
+from magenv.checks import check_yaml
 
 if TYPE_CHECKING:  # a run folder of either kind; dagger imports this module
     from magenv.agents.dagger import StudentPolicy
@@ -77,8 +79,8 @@ def read_run(run_dir: str | Path) -> dict:
     if not path.is_file():
         raise RunError(f"{run_dir}: not a magenv run folder (no {RUN_FILE})")
     try:
-        run = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        run = check_yaml(path.read_text(), str(path))
+    except (ValueError, UnicodeDecodeError) as exc:
         raise RunError(f"{path}: corrupt ({exc})") from None
     missing = [k for k in ("env_id", "algo", "env_kwargs", "hyperparams") if not isinstance(run, dict) or k not in run]
     if missing:

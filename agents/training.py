@@ -5,28 +5,43 @@ optionally clones a teacher first (``magenv.agents.imitation``), and learns
 with a progress bar, TensorBoard logs (``RUN/tb``), periodic evaluation on
 held-out trials with the best model kept, checkpoints, and resume: calling it
 again on an existing run folder continues from its last checkpoint up to
-``steps`` in all (Ctrl-C or SIGTERM saves a checkpoint first). Resuming
-rebuilds the agent from ``run.yaml`` and loads arrays only
-(``magenv.agents.weights``); it refuses a config, seed or evaluation set
-other than the run's unless ``force``. The run folder layout is in
-``magenv.agents.loading``.
+``steps`` in all. Resuming rebuilds the agent from ``run.yaml`` and loads
+arrays only (``magenv.agents.weights``), checked before any training; it
+refuses a config, seed or evaluation set other than the run's unless
+``force``. The run folder layout is in ``magenv.agents.loading``.
+
+What a run folder holds is always whole (``magenv.agents.run_folder``): files
+are committed together with ``state.json``, which names them, and the folder
+is locked while a run writes to it. A checkpoint is committed
+
+* after the update that completes a rollout, at each evaluation (the model
+  evaluated, the evaluation recorded, the best model kept, ``checkpoints/step_T``);
+* at the end (after a last evaluation, unless the last update was evaluated);
+* on Ctrl-C or SIGTERM: the model after its last completed update — an update
+  (and a commit) under way finishes first; an evaluation under way is dropped,
+  and made first when the run resumes.
+
+A kill (``kill -9``, a crash, a power cut) loses what was trained since the
+last commit and nothing else: the same command resumes from it, evaluating
+at the same step counts and ending at the same total as an uninterrupted run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import inspect
-import json
 import math
 import signal
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 import yaml
-from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
 import magenv
@@ -47,6 +62,7 @@ from magenv.agents.hyperparams import (
 )
 from magenv.agents.imitation import check_teacher, clone, demonstrations
 from magenv.agents.loading import RUN_FILE, SB3_EXPORTS, WEIGHTS, AgentPolicy, RunError, build_model, read_run
+from magenv.agents.run_folder import STATE_FILE, RunFolder, digest
 from magenv.agents.vec_env import make_train_env
 from magenv.agents.wrappers import action_bounds
 from magenv.evaluation import run_policy_on_trials
@@ -56,91 +72,203 @@ from magenv.scenarios import make_trial, scenario_names
 #: loaded 2-core machine PPO on 128 batched envs ran 4.1 k env-steps/s with 2 threads, 20 k with 1.
 TORCH_THREADS = 1
 
-STATE_FILE = "state.json"
 REPLAY_FILE = "replay_buffer.safetensors"
+EVALUATIONS_FILE = "evaluations.csv"  # timesteps, held-out RMSE (°), seconds since the run began; no header
 #: What older run folders (magenv 0.1) kept as pickles: read only with ``trust_pickle``.
 LEGACY_VECNORMALIZE, LEGACY_REPLAY = "vecnormalize.pkl", "replay_buffer.pkl"
 
 
-class HeldOutEvaluation(BaseCallback):
-    """Scores the current agent on fixed held-out trials every ``every`` steps.
+class Interrupts:
+    """SIGINT (Ctrl-C) and SIGTERM as KeyboardInterrupt, held back while :meth:`held` (an update, a commit)."""
 
-    The score is the mean total-orientation RMSE (degrees) over the trials,
-    the same figure ``magenv compare`` prints; the model with the lowest score
-    is saved as ``best.safetensors`` (and ``best_model.zip``). Checkpoints
-    (``last.safetensors``, ``checkpoints/``, ``state.json``) are written at the
-    same cadence, so an interrupted run resumes from its last evaluation.
-    """
+    def __init__(self) -> None:
+        self.holding = 0
+        self.pending = False
 
-    def __init__(self, run_dir: Path, trials: list, env_id: str, env_kwargs: dict, every: int, state: dict, bounds):
-        super().__init__()
-        self.bounds = bounds
-        self.run_dir, self.trials, self.env_id, self.env_kwargs = run_dir, trials, env_id, env_kwargs
-        self.every, self.state = every, state
-        self._next = state["timesteps"] + every
-        self.last_evaluated: int | None = None  # timesteps of the latest evaluation in this process
+    def _handle(self, signum, frame) -> None:
+        if self.holding:
+            self.pending = True
+        else:
+            raise KeyboardInterrupt
 
-    def _on_step(self) -> bool:
-        if self.num_timesteps >= self._next:
-            self._next = self.num_timesteps + self.every
-            self.evaluate_and_checkpoint()
-        return True
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[None]:
+        """The handlers in place (from the main thread only: elsewhere Python delivers no signals)."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield
+        finally:
+            for s, handler in previous.items():
+                signal.signal(s, handler)
 
-    def evaluate_and_checkpoint(self) -> float:
-        policy = AgentPolicy(self.model, self.env_id, self.env_kwargs, name="candidate", action_bounds=self.bounds)
-        scores = run_policy_on_trials(policy, self.trials, self.env_id, self.env_kwargs)
+    @contextlib.contextmanager
+    def held(self) -> Iterator[None]:
+        """Run the block to its end; a signal that came meanwhile is raised after it."""
+        self.holding += 1
+        try:
+            yield
+        finally:
+            self.holding -= 1
+        if not self.holding and self.pending:
+            self.pending = False
+            raise KeyboardInterrupt
+
+
+class Checkpoints:
+    """What a run writes to its folder, and when: evaluations on the held-out ``trials`` and commits of the
+    model's state (see the module docstring). ``state`` is the committed progress record: ``timesteps``,
+    ``best_score`` / ``best_timesteps`` (lowest mean total RMSE, °, over the trials), ``evaluations`` (rows
+    ``[timesteps, score, seconds]``), ``t0`` (when the run began, epoch seconds)."""
+
+    def __init__(self, folder: RunFolder, model, run: dict, state: dict, trials: list, every: int):
+        self.folder, self.model, self.run = folder, model, run
+        self.state = {k: v for k, v in state.items() if k != "files"}  # the folder keeps the file digests
+        self.trials, self.every = trials, every
+        self.interrupts = Interrupts()
+        self.run_yaml_pending = True  # run.yaml goes with the first commit of this process
+        self.trained = state["timesteps"]  # steps whose update is complete
+        self._marks: tuple = ()
+
+    def after_update(self) -> None:
+        """Called with every update complete (and before the first rollout): note the step count and what a
+        rollout changes besides the model (reward statistics, the replay buffer's position), then evaluate and
+        commit if an evaluation is due."""
+        model = self.model
+        self.trained = model.num_timesteps
+        norm, buf = weights._vecnormalize(model), getattr(model, "replay_buffer", None)
+        self._marks = (
+            None if norm is None else (norm.ret_rms.mean.copy(), norm.ret_rms.var.copy(), norm.ret_rms.count),
+            None if buf is None else (buf.pos, buf.full),
+        )
+        if self.trained >= self.next_evaluation():
+            self.evaluate_and_commit()
+
+    def next_evaluation(self) -> int:
+        """The step count from which the next evaluation is due: ``every`` after the last one."""
+        evaluations = self.state["evaluations"]
+        return (evaluations[-1][0] if evaluations else 0) + self.every
+
+    def evaluate(self) -> float:
+        """The mean total-orientation RMSE (°) of the current model over the held-out trials (a method that
+        diverges scores 180°, ``magenv.evaluation``); logged to TensorBoard."""
+        run = self.run
+        policy = AgentPolicy(
+            self.model, run["env_id"], run["env_kwargs"], name="candidate", action_bounds=run["action_bounds"]
+        )
+        scores = run_policy_on_trials(policy, self.trials, run["env_id"], run["env_kwargs"])
         score = float(sum(s.total for s in scores) / len(scores))
-        self.logger.record("heldout/total_rmse_deg", score)
-        self.logger.dump(self.num_timesteps)
-        if score < self.state["best_score"]:
-            self.state["best_score"] = score
-            self.state["best_timesteps"] = self.num_timesteps
-            weights.save_policy(self.model, self.run_dir / WEIGHTS["best"], self.num_timesteps)
-            self.model.save(self.run_dir / SB3_EXPORTS["best"])
-        with open(self.run_dir / "evaluations.csv", "a", newline="") as f:
-            csv.writer(f).writerow([self.num_timesteps, f"{score:.4f}", f"{time.time() - self.state['t0']:.1f}"])
-        save_checkpoint(self.model, self.run_dir, self.state, self.num_timesteps)
-        self.last_evaluated = self.num_timesteps
+        logger = getattr(self.model, "_logger", None)  # set up by learn(): none if this process trains nothing
+        if logger is not None:
+            logger.record("heldout/total_rmse_deg", score)
+            logger.dump(self.trained)
         return score
 
+    def evaluate_and_commit(self) -> float:
+        score = self.evaluate()
+        self.commit(score)
+        return score
 
-def save_checkpoint(model, run_dir: Path, state: dict, timesteps: int) -> None:
-    """Weights, optimizer state, reward statistics, SAC's replay buffer and progress, as arrays and JSON
-    (``magenv.agents.weights``), each file replaced atomically, so a kill at any moment leaves a usable run;
-    plus the SB3 export ``last_model.zip``."""
-    state["timesteps"] = int(timesteps)
-    ckpt = run_dir / "checkpoints"
-    ckpt.mkdir(exist_ok=True)
-    weights.save_policy(model, ckpt / f"step_{timesteps}.safetensors", timesteps)
-    if getattr(model, "replay_buffer", None) is not None:
-        weights.save_replay_buffer(model, run_dir / REPLAY_FILE, timesteps)
-    weights.save_checkpoint(model, run_dir / WEIGHTS["last"], state)
-    tmp = run_dir / "last_model.tmp.zip"
-    model.save(tmp)
-    tmp.replace(run_dir / SB3_EXPORTS["last"])
-    (run_dir / (STATE_FILE + ".tmp")).write_text(json.dumps(state, indent=1))
-    (run_dir / (STATE_FILE + ".tmp")).replace(run_dir / STATE_FILE)
+    def commit(self, score: float | None = None) -> None:
+        """Commit the model after ``trained`` steps (with its evaluation ``score``, if evaluated): the
+        checkpoint, the SB3 export, SAC's replay buffer, and with a score the evaluation record, the step's
+        policy weights and, if it is the best so far, the best model. Signals wait until it is done."""
+        model, t, folder = self.model, self.trained, self.folder
+        state = {**self.state, "timesteps": t}
+        writers: dict[str, Callable[[Path], object]] = {}
+        if score is not None:
+            state["evaluations"] = [*state["evaluations"], [t, score, round(time.time() - state["t0"], 1)]]
+            writers[f"checkpoints/step_{t}.safetensors"] = lambda p: weights.save_policy(model, p, t)
+            writers[EVALUATIONS_FILE] = lambda p: _write_evaluations(p, state["evaluations"])
+            if score < state["best_score"]:
+                state["best_score"], state["best_timesteps"] = score, t
+                writers[WEIGHTS["best"]] = lambda p: weights.save_policy(model, p, t)
+                writers[SB3_EXPORTS["best"]] = lambda p: _export(model, p)
+        if self.run_yaml_pending:
+            writers[RUN_FILE] = lambda p: p.write_text(yaml.safe_dump(self.run, sort_keys=False))
+        writers[WEIGHTS["last"]] = lambda p: weights.save_checkpoint(model, p, state)
+        writers[SB3_EXPORTS["last"]] = lambda p: _export(model, p)
+        if getattr(model, "replay_buffer", None) is not None:
+            writers[REPLAY_FILE] = lambda p: weights.save_replay_buffer(model, p, t)
+        with self.interrupts.held():
+            folder.commit(writers, state)
+        self.state, self.run_yaml_pending = state, False
+
+    def commit_interrupted(self) -> None:
+        """On Ctrl-C or SIGTERM: commit the model after its last complete update, unless that is committed.
+        Stopped inside a rollout, the rollout's steps are dropped: the reward statistics and the replay buffer's
+        position go back to where the rollout began (the weights and optimizers do not change in a rollout)."""
+        if self.trained == self.state["timesteps"]:
+            return
+        if self.model.num_timesteps != self.trained and self._marks:
+            rms, position = self._marks
+            if rms is not None:
+                norm = weights._vecnormalize(self.model).ret_rms
+                norm.mean, norm.var, norm.count = rms
+            if position is not None:
+                self.model.replay_buffer.pos, self.model.replay_buffer.full = position
+        self.commit()
+
+
+def _export(model, path: Path) -> None:
+    """The SB3 ``.zip`` of ``model`` (for SB3 users; never read by magenv unless trusted), without the held
+    update :func:`_learn` sets on it."""
+    model.save(path, exclude=["train"])
+
+
+def _write_evaluations(path: Path, rows: list) -> None:
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows([t, f"{score:.4f}", f"{seconds:.1f}"] for t, score, seconds in rows)
+
+
+class HeldOutEvaluation(BaseCallback):
+    """Hands SB3's training loop to :class:`Checkpoints`: each rollout begins after the update of the one before
+    (``_on_rollout_start``), so the model seen there is the model after that update."""
+
+    def __init__(self, checkpoints: Checkpoints):
+        super().__init__()
+        self.checkpoints = checkpoints
+
+    def _on_rollout_start(self) -> None:
+        self.checkpoints.after_update()
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def _read_evaluations(path: Path) -> list:
+    """Rows ``[timesteps, score, seconds]`` of an older run folder's ``evaluations.csv`` (none if missing)."""
+    if not path.is_file():
+        return []
+    try:
+        return [[int(r[0]), float(r[1]), float(r[2])] for r in csv.reader(path.open()) if r]
+    except (ValueError, IndexError) as exc:
+        raise RunError(f"{path}: corrupt ({exc})") from None
 
 
 def progress(run_dir: Path, algo: str) -> dict | None:
-    """The progress record (``timesteps``, ``best_score`` …) a resume of ``run_dir`` continues from: that of
-    its latest checkpoint (``last.safetensors``; ``state.json`` is written after it, so a kill between the two
-    leaves it one checkpoint behind), else ``state.json`` (runs from before checkpoints carried it); None for
-    a run with neither. RunError naming a corrupt file."""
-    checkpoint = run_dir / WEIGHTS["last"]
-    if checkpoint.is_file():
-        state = weights.read(checkpoint, algo)[1].get("state")
-        if not isinstance(state, dict) or not isinstance(state.get("timesteps"), int):
-            raise RunError(f"{checkpoint}: no progress record in the checkpoint")
-        return state
-    if not (run_dir / STATE_FILE).is_file():
-        return None
+    """The progress record (``timesteps``, ``best_score``, ``evaluations`` …) a resume of ``run_dir`` continues
+    from: its committed ``state.json``; None for a folder without one. Older run folders (whose state file
+    names no files) keep it in their latest checkpoint (``last.safetensors``), else in ``state.json``.
+    RunError naming a corrupt file."""
+    run_dir = Path(run_dir)
+    state = RunFolder(run_dir).read_state()
     try:
-        state = json.loads((run_dir / STATE_FILE).read_text())
-        state["timesteps"] = int(state["timesteps"])
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise RunError(f"{run_dir / STATE_FILE}: corrupt ({type(exc).__name__}: {exc})") from None
-    return state
+        if state is not None and "files" in state:
+            return weights.check_progress(state)
+        checkpoint = run_dir / WEIGHTS["last"]
+        if checkpoint.is_file():
+            state = weights.read(checkpoint, algo)[1].get("state")
+            if not isinstance(state, dict):
+                raise RunError(f"{checkpoint}: no progress record in the checkpoint")
+            return weights.check_progress(state)
+        return None if state is None else weights.check_progress(state)
+    except ValueError as exc:
+        if isinstance(exc, RunError):
+            raise
+        raise RunError(f"{run_dir}: corrupt progress record ({exc})") from None
 
 
 def pretrain(model, env_id: str, section: dict, teacher, bounds, seed: int) -> float:
@@ -215,15 +343,41 @@ def _differences(run: dict, requested: dict) -> list[str]:
     return out
 
 
-def rollout_unit(model) -> tuple[int, str]:
-    """(steps, why): the algorithm trains in whole multiples of ``steps`` environment steps."""
-    n_envs = model.n_envs
-    if hasattr(model, "n_steps") and not hasattr(model, "train_freq"):  # on-policy: whole rollouts
-        return model.n_steps * n_envs, f"rollouts of n_steps {model.n_steps} × {n_envs} env(s)"
-    freq = model.train_freq
-    if getattr(freq.unit, "value", freq.unit) == "step":
-        return freq.frequency * n_envs, f"train_freq {freq.frequency} × {n_envs} env(s)"
+def rollout_unit(algo: str, section: dict) -> tuple[int, str]:
+    """(steps, why): the algorithm of a checked config ``section`` trains in whole multiples of ``steps``
+    environment steps (a whole number of them from 0, so a fresh run and a resumed one stop at the same total)."""
+    defaults = {k: p.default for k, p in inspect.signature(algorithm_class(algo).__init__).parameters.items()}
+    n_envs = section["n_envs"]
+    if "train_freq" not in defaults:  # on-policy: whole rollouts
+        n_steps = section.get("n_steps", defaults["n_steps"])
+        return n_steps * n_envs, f"rollouts of n_steps {n_steps} × {n_envs} env(s)"
+    freq = section.get("train_freq", defaults["train_freq"])
+    every, unit = (freq, "step") if isinstance(freq, int) else freq
+    if unit == "step":
+        return every * n_envs, f"train_freq {every} × {n_envs} env(s)"
     return n_envs, f"{n_envs} env(s) per step"
+
+
+def check_env_kwargs(env_id: str, env_kwargs: dict, where: str = "env_kwargs") -> None:
+    """ConfigError naming ``where`` unless ``env_kwargs`` are arguments the env ``env_id`` takes, with values it
+    accepts (one env is made and closed)."""
+    import gymnasium as gym
+    from gymnasium.envs.registration import load_env_creator
+
+    entry = gym.spec(env_id).entry_point
+    creator = load_env_creator(entry) if isinstance(entry, str) else entry
+    assert callable(creator), f"{env_id} has no entry point"
+    params = inspect.signature(creator).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        unknown = [k for k in env_kwargs if k not in params]
+        if unknown:
+            raise ConfigError(
+                f"{where}: unknown argument(s) {', '.join(map(repr, unknown))} of {env_id}; known: {', '.join(params)}"
+            )
+    try:
+        gym.make(env_id, disable_env_checker=True, **env_kwargs).close()
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: {env_id} refuses them: {exc}") from None
 
 
 def _legacy_model(out: Path, cls, vec_env, section: dict):
@@ -245,6 +399,17 @@ def _legacy_model(out: Path, cls, vec_env, section: dict):
     return model, vec_env
 
 
+def _adopt_legacy(folder: RunFolder, state: dict) -> dict:
+    """An older run folder (its state file names no files): name the files it holds, and read its evaluations
+    from ``evaluations.csv``, so that its first commit writes a whole state."""
+    names = [RUN_FILE, *WEIGHTS.values(), *SB3_EXPORTS.values(), REPLAY_FILE, EVALUATIONS_FILE]
+    names += [f"checkpoints/{p.name}" for p in sorted((folder.path / "checkpoints").glob("*.safetensors"))]
+    folder.files = {n: digest(folder.path / n) for n in names if (folder.path / n).is_file()}
+    evaluations = _read_evaluations(folder.path / EVALUATIONS_FILE)
+    state = {"best_score": math.inf, "best_timesteps": None, "t0": time.time(), **state, "evaluations": evaluations}
+    return weights.check_progress(state)
+
+
 def train(
     env_id: str,
     algo: str,
@@ -264,74 +429,36 @@ def train(
     """Train (or resume) a run; returns the run folder. See the module docstring.
 
     ``steps`` is the total (default: the config's ``n_timesteps``, or the run's
-    when resuming); it is rounded up to the algorithm's whole rollouts, and
-    the rounding printed. ``config``, ``seed``, ``n_envs``, ``eval_scenarios``
-    and ``eval_seeds`` left None mean the run's own when resuming, else the
-    shipped config, 0, the config's, ``DEFAULT_EVAL_SCENARIOS`` ×
-    ``DEFAULT_EVAL_SEEDS``; given and different from a resumed run's, they are
-    a RunError naming each difference, unless ``force`` (then the run
-    continues with them). ``trust_pickle`` lets an older run folder resume
-    from its pickles. ``make_method(name)`` builds a method from its name
-    (``magenv.registry.make``); it is needed only when the config has a
-    ``pretrain`` teacher, which it builds.
+    when resuming); it is rounded up to the algorithm's whole rollouts
+    (:func:`rollout_unit`), the same total for a fresh run and a resumed one,
+    and the rounding printed. ``config``, ``seed``, ``n_envs``,
+    ``eval_scenarios`` and ``eval_seeds`` left None mean the run's own when
+    resuming, else the shipped config, 0, the config's,
+    ``DEFAULT_EVAL_SCENARIOS`` × ``DEFAULT_EVAL_SEEDS``; given and different
+    from a resumed run's, they are a RunError naming each difference, unless
+    ``force`` (then the run continues with them). ``trust_pickle`` lets an
+    older run folder resume from its pickles. ``make_method(name)`` builds a
+    method from its name (``magenv.registry.make``); it is needed only when the
+    config has a ``pretrain`` teacher, which it builds. Every argument, the
+    config and the run folder are checked before anything is written or
+    trained; RunError if another run is writing to ``out``.
     """
     out = Path(out)
-    steps = None if steps is None else check_value("train", "steps", steps, POSITIVE_INT)
+    steps = None if steps is None else check_value("train", "steps", steps, RUN_RULES["n_timesteps"])
     eval_every = check_value("train", "eval_every", eval_every, POSITIVE_INT)
     seed = None if seed is None else check_value("train", "seed", seed, SEED_RULE)
     n_envs = None if n_envs is None else check_value("train", "n_envs", n_envs, RUN_RULES["n_envs"])
     eval_scenarios, eval_seeds = _check_eval_set(eval_scenarios, eval_seeds)
     cls = algorithm_class(algo)
-    checkpoint = out / WEIGHTS["last"]
-    legacy = not checkpoint.is_file() and (out / SB3_EXPORTS["last"]).is_file()
-    resuming = (out / RUN_FILE).is_file() and (checkpoint.is_file() or (out / STATE_FILE).is_file())
-    if resuming:
-        run = read_run(out)
-        if (run["env_id"], run["algo"]) != (env_id, algo):
-            raise RunError(
-                f"{out}: existing run is {run['algo']} on {run['env_id']}; use another --out for {algo} on {env_id}"
-            )
-        try:
-            run["steps"] = check_value("run.yaml", "steps", run.get("steps"), POSITIVE_INT)
-            run["eval_scenarios"], run["eval_seeds"] = _check_eval_set(
-                run.get("eval_scenarios", []), run.get("eval_seeds", [])
-            )
-        except ConfigError as exc:
-            raise RunError(f"{out / RUN_FILE}: {exc}") from None
-        requested: dict[str, Any] = {}
-        if config is not None or n_envs is not None:
-            section = load_hyperparams(algo, env_id, config) if config is not None else dict(run["hyperparams"])
-            requested["hyperparams"] = {**section, "n_envs": n_envs or section["n_envs"]}
-        for key, value in (("seed", seed), ("eval_scenarios", eval_scenarios), ("eval_seeds", eval_seeds)):
-            if value is not None:
-                requested[key] = value
-        changes = _differences(run, requested)
-        if changes and not force:
-            raise RunError(
-                f"{out}: the run was trained with other values: {'; '.join(changes)}. "
-                "Use another --out for a new run, or --force to continue this one with the new values"
-            )
-        if changes:
-            print(f"{out}: continuing with {'; '.join(changes)} (--force)")
-            run.update(requested)
-            run["env_kwargs"] = run["hyperparams"]["env_kwargs"]
-        if not checkpoint.is_file() and not (legacy and trust_pickle):
-            raise RunError(
-                f"{out}: no checkpoint to resume from ({WEIGHTS['last']})"
-                + (
-                    f"; the folder holds an older magenv's pickles ({SB3_EXPORTS['last']}), which can run code when "
-                    "loaded: resume from them with --trust-pickle (trust_pickle=True) only if you trust whoever "
-                    "wrote it"
-                    if legacy
-                    else "; remove the folder or use another --out"
-                )
-            )
-        section = run["hyperparams"]
-    else:
+    if out.exists() and not out.is_dir():
+        raise RunError(f"{out}: not a folder (--out names the run folder)")
+    new = not (out / RUN_FILE).is_file() and not (out / STATE_FILE).is_file()
+    if new:  # a new run: its config checked before the folder is made
         section = load_hyperparams(algo, env_id, config)
         if n_envs:
             section["n_envs"] = n_envs
-        _teacher(section, env_id, make_method)  # a bad teacher fails before the run folder is written
+        check_env_kwargs(env_id, section["env_kwargs"], f"{config or 'the shipped config'}: env_kwargs")
+        _teacher(section, env_id, make_method)
         run = {
             "env_id": env_id,
             "algo": algo,
@@ -344,67 +471,173 @@ def train(
             "eval_seeds": eval_seeds or list(DEFAULT_EVAL_SEEDS),
             "magenv_version": magenv.__version__,
         }
-        out.mkdir(parents=True, exist_ok=True)
-    run["steps"] = steps = steps or run["steps"]
-    seed = run["seed"]
-    state = progress(out, algo) if resuming else None
-    if state is None:
-        state = {"timesteps": 0, "best_score": float("inf"), "best_timesteps": None, "t0": time.time()}
-    done = state["timesteps"]
-    if done >= steps:
-        print(f"{out}: already trained for {done:,} steps (asked {steps:,})")
-        return out
-    (out / RUN_FILE).write_text(yaml.safe_dump(run, sort_keys=False))
+    folder = RunFolder(out)
+    with folder.locked():
+        state = folder.recover()
+        legacy = False
+        if new:
+            if state is not None:
+                raise RunError(f"{out}: another run began in this folder meanwhile; use another --out")
+            state = {"timesteps": 0, "best_score": math.inf, "best_timesteps": None, "t0": time.time()}
+            state["evaluations"] = []
+        else:
+            requested = {"config": config, "seed": seed, "n_envs": n_envs}
+            requested |= {"eval_scenarios": eval_scenarios, "eval_seeds": eval_seeds}
+            run, state, legacy = _resumed(folder, state, env_id, algo, requested, force, trust_pickle)
+        section = run["hyperparams"]
+        run["steps"] = steps = steps or run["steps"]
+        unit, why = rollout_unit(algo, section)
+        total = math.ceil(steps / unit) * unit
+        done = state["timesteps"]
+        if done >= total and state["evaluations"] and state["evaluations"][-1][0] == done:
+            rounded = f", which {algo} trains as {total:,}" if total != steps else ""
+            print(f"{out}: already trained for {done:,} steps (asked {steps:,}{rounded})")
+            return out
+        if total != steps:
+            print(f"{algo} trains in whole {why} = {unit:,} steps: training {total:,} steps in all, not {steps:,}")
+        _run(folder, run, state, cls, new, legacy, total, eval_every, make_method, progress_bar)
+    return out
 
-    torch.set_num_threads(TORCH_THREADS)
-    vec_env = make_train_env(env_id, section["n_envs"], seed + done, section["env_kwargs"])
-    if resuming and legacy:
-        model, vec_env = _legacy_model(out, cls, vec_env, section)
-    else:
-        if section.get("normalize_reward"):
-            # Reward scale differs by orders of magnitude between scenarios (0.5° clean, 20° in a bad
-            # random trial); learning sees rewards divided by a running std of the return. Scores and
-            # the env's own rewards are unchanged.
-            vec_env = VecNormalize(vec_env, norm_obs=False, norm_reward=True, gamma=section.get("gamma", 0.99))
-        model = build_model(run, env=vec_env, where=str(out / RUN_FILE), seed=seed, tensorboard_log=str(out / "tb"))
-        if resuming:
-            state = weights.load_checkpoint(model, checkpoint)
-            if getattr(model, "replay_buffer", None) is not None and (out / REPLAY_FILE).is_file():
-                weights.load_replay_buffer(model, out / REPLAY_FILE)
-        elif section.get("pretrain"):
-            teacher = _teacher(section, env_id, make_method)
-            state["pretrain_mse"] = pretrain(model, env_id, section, teacher, run["action_bounds"], seed)
-    unit, why = rollout_unit(model)
-    remaining = math.ceil((steps - done) / unit) * unit
-    if remaining != steps - done:
-        print(
-            f"{algo} trains in whole {why} = {unit:,} steps: training {done + remaining:,} steps in all, not {steps:,}"
+
+def _resumed(
+    folder: RunFolder, state: dict | None, env_id: str, algo: str, asked: dict, force: bool, trust_pickle: bool
+) -> tuple[dict, dict, bool]:
+    """(run.yaml, progress record, whether only an older magenv's pickles hold the model) of the run in
+    ``folder`` (recovered, its committed ``state``), checked against the request: ``asked`` holds the
+    ``config``, ``seed``, ``n_envs``, ``eval_scenarios`` and ``eval_seeds`` given (None: not given); other
+    values are a RunError naming each difference unless ``force``."""
+    out = folder.path
+    checkpoint = out / WEIGHTS["last"]
+    legacy = not checkpoint.is_file() and (out / SB3_EXPORTS["last"]).is_file()
+    if state is None and not checkpoint.is_file() and not legacy:
+        raise RunError(
+            f"{out}: {RUN_FILE} without training state ({STATE_FILE}, {WEIGHTS['last']}): not a run that "
+            "magenv train can continue (a DAgger run?); remove the folder or use another --out"
         )
-
-    trials = held_out_trials(run["eval_scenarios"], run["eval_seeds"])
-    evaluation = HeldOutEvaluation(out, trials, env_id, section["env_kwargs"], eval_every, state, run["action_bounds"])
-
-    def _stop(signum, frame):  # SIGTERM behaves like Ctrl-C: checkpoint, then exit
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, _stop)
+    run = read_run(out)
+    if (run["env_id"], run["algo"]) != (env_id, algo):
+        raise RunError(
+            f"{out}: existing run is {run['algo']} on {run['env_id']}; use another --out for {algo} on {env_id}"
+        )
     try:
-        model.learn(
-            remaining,
-            callback=CallbackList([evaluation]),
-            progress_bar=progress_bar,
-            reset_num_timesteps=done == 0,
-            tb_log_name=algo,
+        run["steps"] = check_value("run.yaml", "steps", run.get("steps"), RUN_RULES["n_timesteps"])
+        run["eval_scenarios"], run["eval_seeds"] = _check_eval_set(
+            run.get("eval_scenarios", []), run.get("eval_seeds", [])
         )
-        if evaluation.last_evaluated != model.num_timesteps:
-            evaluation.evaluate_and_checkpoint()
+    except ConfigError as exc:
+        raise RunError(f"{out / RUN_FILE}: {exc}") from None
+    requested: dict[str, Any] = {}
+    if asked["config"] is not None or asked["n_envs"] is not None:
+        section = load_hyperparams(algo, env_id, asked["config"]) if asked["config"] is not None else run["hyperparams"]
+        requested["hyperparams"] = {**section, "n_envs": asked["n_envs"] or section["n_envs"]}
+    requested |= {k: asked[k] for k in ("seed", "eval_scenarios", "eval_seeds") if asked[k] is not None}
+    changes = _differences(run, requested)
+    if changes and not force:
+        raise RunError(
+            f"{out}: the run was trained with other values: {'; '.join(changes)}. "
+            "Use another --out for a new run, or --force to continue this one with the new values"
+        )
+    if changes:
+        print(f"{out}: continuing with {'; '.join(changes)} (--force)")
+        run.update(requested)
+        run["env_kwargs"] = run["hyperparams"]["env_kwargs"]
+    if not checkpoint.is_file() and not (legacy and trust_pickle):
+        raise RunError(
+            f"{out}: no checkpoint to resume from ({WEIGHTS['last']})"
+            + (
+                f"; the folder holds an older magenv's pickles ({SB3_EXPORTS['last']}), which can run code when "
+                "loaded: resume from them with --trust-pickle (trust_pickle=True) only if you trust whoever "
+                "wrote it"
+                if legacy
+                else "; remove the folder or use another --out"
+            )
+        )
+    check_env_kwargs(env_id, run["env_kwargs"], f"{out / RUN_FILE}: env_kwargs")
+    if state is None or "files" not in state:  # an older run folder: its checkpoint holds the progress
+        state = _adopt_legacy(folder, progress(out, algo) or {"timesteps": 0})
+    try:
+        weights.check_progress(state)
+    except ValueError as exc:
+        raise RunError(f"{out / STATE_FILE}: {exc}") from None
+    return run, state, legacy
+
+
+def _run(
+    folder: RunFolder,
+    run: dict,
+    state: dict,
+    cls,
+    new: bool,
+    legacy: bool,
+    total: int,
+    every: int,
+    make_method: Callable[[str], Any] | None,
+    progress_bar: bool,
+) -> None:
+    """Build the env and the agent of ``run`` (a new one, its first commit made; or the checkpoint's, checked
+    and loaded) and train it to ``total`` steps (:func:`_learn`), evaluating every ``every`` steps."""
+    out, section, seed, done = folder.path, run["hyperparams"], run["seed"], state["timesteps"]
+    torch.set_num_threads(TORCH_THREADS)
+    vec_env = make_train_env(run["env_id"], section["n_envs"], seed + done, section["env_kwargs"])
+    try:
+        if legacy:
+            model, vec_env = _legacy_model(out, cls, vec_env, section)
+        else:
+            if section.get("normalize_reward"):
+                # Reward scale differs by orders of magnitude between scenarios (0.5° clean, 20° in a bad
+                # random trial); learning sees rewards divided by a running std of the return. Scores and
+                # the env's own rewards are unchanged.
+                vec_env = VecNormalize(vec_env, norm_obs=False, norm_reward=True, gamma=section.get("gamma", 0.99))
+            model = build_model(run, env=vec_env, where=str(out / RUN_FILE), seed=seed, tensorboard_log=str(out / "tb"))
+            if not new:
+                saved = weights.load_checkpoint(model, out / WEIGHTS["last"])
+                if saved["timesteps"] != done:
+                    raise RunError(f"{out / WEIGHTS['last']}: holds {saved['timesteps']} steps, {STATE_FILE} {done}")
+                if getattr(model, "replay_buffer", None) is not None and (out / REPLAY_FILE).is_file():
+                    weights.load_replay_buffer(model, out / REPLAY_FILE)
+            elif section.get("pretrain"):
+                teacher = _teacher(section, run["env_id"], make_method)
+                state["pretrain_mse"] = pretrain(model, run["env_id"], section, teacher, run["action_bounds"], seed)
+        trials = held_out_trials(run["eval_scenarios"], run["eval_seeds"])
+        checkpoints = Checkpoints(folder, model, run, state, trials, every)
+        with checkpoints.interrupts.installed():
+            if new:  # the untrained (or cloned) model: a run to resume from from the start
+                checkpoints.commit()
+            _learn(model, checkpoints, total - done, run["algo"], progress_bar, reset=done == 0)
+    finally:
+        vec_env.close()
+    if model.num_timesteps != total:
+        print(f"{run['algo']} stopped at {model.num_timesteps:,} steps (its rollouts end with episodes)")
+
+
+def _learn(model, checkpoints: Checkpoints, remaining: int, algo: str, progress_bar: bool, reset: bool) -> None:
+    """Train ``remaining`` steps with SB3, every update held against signals (:class:`Interrupts`) and followed
+    by :meth:`Checkpoints.after_update`; then evaluate and commit the end, unless already done. On Ctrl-C or
+    SIGTERM: commit the last complete update (:meth:`Checkpoints.commit_interrupted`), then raise."""
+    update = model.train
+
+    def held_update(*args, **kwargs):
+        with checkpoints.interrupts.held():
+            update(*args, **kwargs)
+            checkpoints.trained = model.num_timesteps  # complete: a signal that came meanwhile commits it
+
+    model.train = held_update  # SB3 calls self.train() for every update
+    try:
+        if remaining > 0:
+            model.learn(
+                remaining,
+                callback=HeldOutEvaluation(checkpoints),
+                progress_bar=progress_bar,
+                reset_num_timesteps=reset,
+                tb_log_name=algo,
+            )
+        checkpoints.trained = model.num_timesteps
+        evaluations = checkpoints.state["evaluations"]
+        if not evaluations or evaluations[-1][0] != checkpoints.trained:
+            checkpoints.evaluate_and_commit()
     except KeyboardInterrupt:
-        save_checkpoint(model, out, state, model.num_timesteps)
-        print(f"\ninterrupted at {model.num_timesteps} steps; run the same command again to resume")
+        checkpoints.commit_interrupted()
+        print(f"\ninterrupted at {checkpoints.trained:,} steps; run the same command again to resume")
         raise
     finally:
-        signal.signal(signal.SIGTERM, previous)
-        vec_env.close()
-    if model.num_timesteps != done + remaining:
-        print(f"{algo} stopped at {model.num_timesteps:,} steps (its rollouts end with episodes)")
-    return out
+        del model.train

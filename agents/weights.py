@@ -183,12 +183,115 @@ def save_checkpoint(model, path: Path, state: dict) -> None:
     )
 
 
+#: Optimizer moments that are running means of squares: never negative.
+SQUARED_MOMENTS = ("exp_avg_sq", "max_exp_avg_sq", "square_avg")
+
+
+def _count(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"{name} must be an integer ≥ 0, got {value!r}")
+    return value
+
+
+def _array(name: str, value, shape: tuple, nonnegative: bool = False) -> None:
+    """``value`` (a tensor) has ``shape`` and finite entries (≥ 0 with ``nonnegative``); else ValueError."""
+    if tuple(value.shape) != tuple(shape):
+        raise ValueError(f"{name} has shape {tuple(value.shape)}, expected {tuple(shape)}")
+    if not bool(value.isfinite().all()):
+        raise ValueError(f"{name} holds NaN or inf")
+    if nonnegative and bool((value < 0).any()):
+        raise ValueError(f"{name} holds negative entries (a mean of squares)")
+
+
+def check_progress(state, timesteps: int | None = None) -> dict:
+    """A progress record (``state``) checked: ``timesteps`` an integer ≥ 0 (equal to ``timesteps`` if given),
+    ``best_timesteps`` None or in [0, timesteps], ``best_score`` a number ≥ 0 (inf before the first evaluation),
+    ``evaluations`` (if present) rows [timesteps, score, seconds] at increasing steps up to ``timesteps``.
+    ValueError naming the entry."""
+    import math
+
+    if not isinstance(state, dict):
+        raise ValueError(f"progress record must be a mapping, got {type(state).__name__}")
+    done = _count("timesteps", state.get("timesteps"))
+    if timesteps is not None and done != timesteps:
+        raise ValueError(f"progress record says {done} steps, the checkpoint's arrays {timesteps}")
+    best_at, best = state.get("best_timesteps"), state.get("best_score", math.inf)
+    if best_at is not None and _count("best_timesteps", best_at) > done:
+        raise ValueError(f"best_timesteps {best_at} is after the {done} steps trained")
+    if isinstance(best, bool) or not isinstance(best, (int, float)) or math.isnan(best) or best < 0:
+        raise ValueError(f"best_score must be a number ≥ 0, got {best!r}")
+    steps = [
+        _count("evaluations step", row[0]) if isinstance(row, list) and len(row) == 3 else row
+        for row in state.get("evaluations", [])
+    ]
+    if any(not isinstance(s, int) for s in steps) or steps != sorted(set(steps)) or (steps and steps[-1] > done):
+        raise ValueError(f"evaluations must be rows [timesteps, score, seconds] at increasing steps ≤ {done}")
+    return state
+
+
+def _check_checkpoint(model, tensors: dict, meta: dict) -> None:
+    """ValueError naming what in a checkpoint's arrays and counts does not fit ``model``: the step and update
+    counts, every array's name and shape, finite values, and the optimizer moments (one entry per parameter of
+    its shape, squared means ≥ 0, a step count ≥ 0)."""
+    timesteps = _count("timesteps", meta.get("timesteps"))
+    _count("n_updates", meta.get("n_updates", 0))
+    check_progress(meta.get("state"), timesteps)
+    expected = {f"policy/{k}": v for k, v in model.policy.state_dict().items()}
+    for name, value in _variables(model).items():
+        expected[f"var/{name}"] = value
+    norm = _vecnormalize(model)
+    if norm is not None:
+        shape = np.shape(norm.ret_rms.mean)
+        expected.update({"vecnormalize/ret_rms/mean": shape, "vecnormalize/ret_rms/var": shape})
+        expected["vecnormalize/ret_rms/count"] = ()
+    groups = meta.get("optimizers")
+    if not isinstance(groups, dict):
+        raise ValueError("no optimizer parameter groups in the metadata")
+    for name, opt in _optimizers(model).items():
+        saved = groups.get(name)
+        params = [p for g in opt.param_groups for p in g["params"]]
+        if not isinstance(saved, list) or [len(g.get("params", ())) if isinstance(g, dict) else -1 for g in saved] != [
+            len(g["params"]) for g in opt.param_groups
+        ]:
+            raise ValueError(f"optimizer {name}: parameter groups do not fit the model's ({len(params)} parameters)")
+        ids = [i for g in saved for i in g["params"]]
+        if any(isinstance(i, bool) or not isinstance(i, int) for i in ids) or len(set(ids)) != len(ids):
+            raise ValueError(f"optimizer {name}: parameter ids must be distinct integers, got {ids}")
+        param_of = dict(zip(ids, params))
+        fields: dict[str, set] = {}
+        for key in _group(tensors, f"optim/{name}/"):
+            idx, field = key.split("/", 1)
+            if not idx.isdigit() or int(idx) not in param_of:
+                raise ValueError(f"optim/{name}/{key}: no parameter {idx} in the optimizer")
+            fields.setdefault(idx, set()).add(field)
+            shape = () if field == "step" else tuple(param_of[int(idx)].shape)
+            expected[f"optim/{name}/{key}"] = shape
+        if len({frozenset(f) for f in fields.values()}) > 1:
+            raise ValueError(f"optimizer {name}: its parameters' moments differ in kind ({fields})")
+    unknown = sorted(set(tensors) - set(expected))
+    missing = sorted(k for k in set(expected) - set(tensors) if not k.startswith("vecnormalize/"))
+    if unknown or missing:
+        raise ValueError(f"arrays {', '.join(unknown)} unknown; {', '.join(missing) or 'none'} missing".lstrip())
+    for key, value in tensors.items():
+        shape = expected[key]
+        shape = tuple(shape.shape) if hasattr(shape, "shape") else shape
+        squared = key.rsplit("/", 1)[-1] in (*SQUARED_MOMENTS, "var", "step", "count")
+        _array(key, value, shape, nonnegative=squared and not key.startswith("policy/"))
+    if "vecnormalize/ret_rms/count" in tensors and not float(tensors["vecnormalize/ret_rms/count"]) > 0:
+        raise ValueError("vecnormalize/ret_rms/count must be > 0")
+
+
 def load_checkpoint(model, path: Path) -> dict:
-    """Restore ``model`` (built from the run's config, its env wrapped as in training) from a checkpoint;
-    returns the progress ``state`` saved with it."""
+    """Restore ``model`` (built from the run's config, its env wrapped as in training) from a checkpoint,
+    checked first (``_check_checkpoint``: nothing is loaded from a checkpoint that does not fit); returns the
+    progress ``state`` saved with it."""
     import torch
 
     tensors, meta = read(path, _algo(model))
+    try:
+        _check_checkpoint(model, tensors, meta)
+    except ValueError as exc:
+        raise RunError(f"{path}: the checkpoint does not fit the model that run.yaml describes: {exc}") from None
     _load_policy(model, tensors, path)
     try:
         state, groups = dict(meta["state"]), meta["optimizers"]
@@ -200,10 +303,7 @@ def load_checkpoint(model, path: Path) -> dict:
             opt.load_state_dict({"state": entries, "param_groups": groups[name]})
         with torch.no_grad():
             for name, var in _variables(model).items():
-                saved = tensors[f"var/{name}"]
-                if saved.shape != var.shape:
-                    raise ValueError(f"{name} has shape {tuple(saved.shape)}, expected {tuple(var.shape)}")
-                var.copy_(saved)
+                var.copy_(tensors[f"var/{name}"])
         norm = _vecnormalize(model)
         if norm is not None and "vecnormalize/ret_rms/mean" in tensors:
             rms = norm.ret_rms

@@ -149,3 +149,63 @@ def check_instance(name: str, value, cls: type) -> None:
     """``value`` is a ``cls``."""
     if not isinstance(value, cls):
         raise ValueError(f"{name} must be a {cls.__module__}.{cls.__qualname__}, got {type(value).__name__}")
+
+
+#: The most values a YAML document may hold once its aliases are expanded (a config has hundreds).
+MAX_YAML_VALUES = 100_000
+
+
+def _expanded_size(node, sizes: dict, open_: set) -> int:
+    """The number of values (scalars, lists, mappings) a composed YAML node holds with every alias expanded;
+    memoised by node (an alias is the node it names), so an alias bomb is counted without being expanded."""
+    import yaml
+
+    key = id(node)
+    if key in sizes:
+        return sizes[key]
+    if key in open_:
+        raise ValueError("an alias refers to a node that holds it (a recursive structure)")
+    open_.add(key)
+    children = (
+        [n for pair in node.value for n in pair]
+        if isinstance(node, yaml.MappingNode)
+        else node.value
+        if isinstance(node, yaml.SequenceNode)
+        else []
+    )
+    total = 1
+    for child in children:
+        total += _expanded_size(child, sizes, open_)
+        if total > MAX_YAML_VALUES:
+            raise ValueError(
+                f"its aliases expand it to more than {MAX_YAML_VALUES:,} values (an alias bomb?); write the values out"
+            )
+    open_.discard(key)
+    sizes[key] = total
+    return total
+
+
+def check_yaml(text: str, what: str):
+    """The YAML document ``text`` as plain data, read with ``yaml.SafeLoader`` (no code runs); ValueError naming
+    ``what`` if it is not YAML, or if its aliases expand it beyond ``MAX_YAML_VALUES`` values (an alias bomb:
+    a few lines that anything walking the data — printing it in a message, for one — expands to gigabytes)."""
+    import yaml
+
+    try:
+        loader = yaml.SafeLoader(text)
+    except yaml.YAMLError as exc:  # a character YAML does not allow
+        raise ValueError(f"{what}: not valid YAML ({exc})") from None
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _expanded_size(node, {}, set())
+        return loader.construct_document(node)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{what}: not valid YAML ({exc})") from None
+    except ValueError as exc:
+        raise ValueError(f"{what}: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"{what}: nested too deeply") from None
+    finally:
+        loader.dispose()

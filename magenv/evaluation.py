@@ -15,9 +15,13 @@ Python use::
     rows = evaluation.compare(methods, trials)   # list of dicts, CSV_COLUMNS
     evaluation.write_csv(rows, "out.csv")
 
-With ``keep_going=True`` a method that cannot run a trial (it raises) does
-not stop the others: its Run carries the reason in ``error``, and its row in
-the table has NaN figures and the reason under ``"error"``.
+A method that **diverges** on a trial — its estimate is not finite somewhere, or it stops with a
+numerical error (``DIVERGED``: ZeroDivisionError, FloatingPointError, OverflowError, LinAlgError) —
+scores ``magenv.metrics.WORST_DEG`` (180°) in every part on that trial, its Run carrying the reason in
+``diverged``: its row is present and ranks below every method that kept a finite estimate, and
+below none that diverged too (diverging later is no better). With ``keep_going=True`` a method that
+cannot run a trial for any other reason (it raises) does not stop the others: its Run carries the
+reason in ``error``, and its row in the table has NaN figures and the reason under ``"error"``.
 """
 
 from __future__ import annotations
@@ -35,6 +39,11 @@ from magenv.envs.render import magnetometer_trust, write_video
 from magenv.protocols import is_policy
 from magenv.stats import paired_ratio
 from magenv.trial import META_SCENARIO, Trial
+
+#: Errors that mean a method's arithmetic blew up on a trial (it diverged), not that it cannot run the trial.
+DIVERGED = (ArithmeticError, np.linalg.LinAlgError)
+#: The score of a diverged run (degrees): the worst there is, in every part.
+DIVERGED_SCORE = metrics.Score(metrics.WORST_DEG, metrics.WORST_DEG, metrics.WORST_DEG)
 
 CSV_COLUMNS = (
     "method",
@@ -58,8 +67,10 @@ class Run:
         q: (N, 4) estimate sensor → ENU.
         lam: (N,) λ per sample for MagBlend policies, else None.
         trust: (N,) the method's magnetometer trust (1 − λ for MagBlend), or None.
-        score: RMSE (°) over the trial's score mask.
+        score: RMSE (°) over the trial's score mask; ``DIVERGED_SCORE`` if the method diverged.
         error: why the method could not run the trial (``evaluate(keep_going=True)``); q and score are then None.
+        diverged: how the method diverged on the trial (a non-finite estimate from some sample, or its numerical
+            error); None if it did not. q is then the estimate, or None if the method stopped.
     """
 
     method: str
@@ -70,6 +81,11 @@ class Run:
     trust: np.ndarray | None
     score: metrics.Score | None
     error: str | None = None
+    diverged: str | None = None
+
+    def without_arrays(self) -> Run:
+        """This run without its trial and arrays (what a worker sends back): scores and reasons only."""
+        return Run(self.method, None, self.label, None, None, None, self.score, self.error, self.diverged)  # type: ignore[arg-type]
 
     @property
     def scored(self) -> metrics.Score:
@@ -152,14 +168,23 @@ def estimate(
 
 
 def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = None, label: str | None = None) -> Run:
-    """Run one Policy or Estimator on one trial (:func:`estimate`) and score it against ``trial``'s truth."""
-    q, lam, trust = estimate(method, trial, runner)
+    """Run one Policy or Estimator on one trial (:func:`estimate`) and score it against ``trial``'s truth. A
+    method that diverges (see the module docstring) scores ``DIVERGED_SCORE``."""
+    label = label or trial_label(trial)
+    try:
+        q, lam, trust = estimate(method, trial, runner)
+    except DIVERGED as exc:
+        return Run(name, trial, label, None, None, None, DIVERGED_SCORE, diverged=f"{type(exc).__name__}: {exc}")
     if q.shape != (trial.n, 4):
         raise ValueError(
             f"method {name!r} returned an estimate of shape {q.shape} for trial {trial.name!r} ({trial.n} samples)"
         )
+    bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
+    if bad.size:
+        diverged = f"non-finite estimate from sample {bad[0]} of trial {trial.name!r} ({bad.size} of {trial.n})"
+        return Run(name, trial, label, q, lam, trust, DIVERGED_SCORE, diverged=diverged)
     score = metrics.score(q, trial.q_true, trial.score_mask)
-    return Run(name, trial, label or trial_label(trial), q, lam, trust, score)
+    return Run(name, trial, label, q, lam, trust, score)
 
 
 def run_policy_on_trials(
@@ -219,7 +244,8 @@ def summarize(runs: Sequence[Run]) -> list[dict]:
     """One row per (method, label) with ``CSV_COLUMNS``; std is the sample std (ddof 1; NaN for n = 1).
 
     A group where the method failed on some trial has NaN figures (a mean over fewer trials would not pair
-    with the other methods') and the reasons under ``"error"``."""
+    with the other methods') and the reasons under ``"error"``; one where it diverged on some trial counts
+    those trials at 180° and says how under ``"diverged"``."""
     groups: dict[tuple[str, str], list[Run]] = {}
     for r in runs:
         groups.setdefault((r.method, r.label), []).append(r)
@@ -243,17 +269,21 @@ def summarize(runs: Sequence[Run]) -> list[dict]:
             continue
         scores = [r.scored for r in group]
         tot = np.array([s.total for s in scores])
-        rows.append(
-            {
-                "method": method,
-                "scenario": label,
-                "n": len(scores),
-                "total_rmse_mean": float(np.mean(tot)),
-                "total_rmse_std": float(np.std(tot, ddof=1)) if len(tot) > 1 else float("nan"),
-                "heading_rmse_mean": float(np.mean([s.heading for s in scores])),
-                "inclination_rmse_mean": float(np.mean([s.inclination for s in scores])),
-            }
-        )
+        row = {
+            "method": method,
+            "scenario": label,
+            "n": len(scores),
+            "total_rmse_mean": float(np.mean(tot)),
+            "total_rmse_std": float(np.std(tot, ddof=1)) if len(tot) > 1 else float("nan"),
+            "heading_rmse_mean": float(np.mean([s.heading for s in scores])),
+            "inclination_rmse_mean": float(np.mean([s.inclination for s in scores])),
+        }
+        diverged = [r.diverged for r in group if r.diverged]
+        if diverged:
+            row["diverged"] = f"diverged on {len(diverged)} of {len(group)} trial(s), scored 180°: " + "; ".join(
+                dict.fromkeys(diverged)
+            )
+        rows.append(row)
     return rows
 
 
@@ -309,7 +339,7 @@ def plot_runs(runs: Sequence[Run], path: str | Path, title: str | None = None) -
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    runs = [r for r in runs if r.error is None]
+    runs = [r for r in runs if r.q is not None]
     fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(9, 6))
     for r in runs:
         t = r.trial.t

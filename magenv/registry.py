@@ -227,7 +227,8 @@ def tuned_file(rule: str) -> Path | None:
 
 def tuned_params(rule: str) -> dict[str, float]:
     """The parameters ``magenv tune`` wrote for ``rule``, checked name by name against the rule's
-    ``PARAM_BOUNDS`` (every one present, none unknown, each a finite number). Raises TunedParamsError."""
+    ``PARAM_BOUNDS`` (every one present, none unknown, each a finite number within its bounds). Raises
+    TunedParamsError."""
     path = tuned_file(rule)
     if path is None:
         raise TunedParamsError(
@@ -250,6 +251,11 @@ def tuned_params(rule: str) -> dict[str, float]:
     for key, value in params.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise TunedParamsError(f"{path}: parameter {key!r} must be a finite number, got {value!r}")
+        lo, hi = bounds[key]
+        if not lo <= value <= hi:
+            raise TunedParamsError(
+                f"{path}: parameter {key!r} = {value!r} is outside the bounds of rule {rule!r}, [{lo:g}, {hi:g}]"
+            )
     return {k: float(v) for k, v in params.items()}
 
 

@@ -137,7 +137,7 @@ class _Evaluator:
         )
         if not keep:
             # the trial and the arrays stay with the caller (no transfer back)
-            runs = [evaluation.Run(r.method, None, r.label, None, None, None, r.score, r.error) for r in runs]  # type: ignore[arg-type]
+            runs = [r.without_arrays() for r in runs]
         return index, runs
 
 

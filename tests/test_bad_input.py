@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import base64
+import contextlib
 import inspect
 import json
 import math
@@ -18,6 +19,7 @@ import os
 import pickle
 import re
 import shutil
+import subprocess
 import warnings
 import zipfile
 from pathlib import Path
@@ -26,15 +28,18 @@ import gymnasium as gym
 import h5py
 import numpy as np
 import pytest
+import torch
 import yaml
+from stable_baselines3 import PPO
 
 from magenv import registry
-from magenv.agents import weights
+from magenv.agents import run_folder, training, weights
 from magenv.agents.hyperparams import NOT_IN_CONFIG, VALUE_RULES, algorithm_class, check_section, load_hyperparams
-from magenv.agents.loading import RunError, build_model, load_agent
+from magenv.agents.loading import RunError, build_model, load_agent, read_run
+from magenv.agents.run_folder import RunFolder
 from magenv.agents.training import train
 from magenv.agents.wrappers import action_bounds
-from magenv.recordings import load_recording
+from magenv.recordings import find_recording, load_recording
 from magenv.train.cli import main as cli
 from magenv.trial import Trial
 from tests.conftest import kinematic_trial
@@ -235,6 +240,220 @@ def _yaml_payload(c: Case):
     return got
 
 
+class Killed(BaseException):
+    """A kill, in process: nothing catches it, so nothing is written on the way out."""
+
+
+def _train_args(c: Case, *flags, **config):
+    """``magenv train`` into ``c.tmp/run`` with a small config (``config``: changes to it)."""
+    return [
+        "train",
+        "--config",
+        write_config(c.tmp / "cfg.yaml", **config),
+        "--out",
+        c.tmp / "run",
+        *QUICK_EVAL,
+        *flags,
+    ]
+
+
+def _policy_arrays(path: Path) -> dict:
+    return {k: v for k, v in weights.read(path)[0].items() if k.startswith("policy/")}
+
+
+def _one_rollout(c: Case):
+    """One rollout trained: what is saved is the model after its update, not the initial policy."""
+    got = c.cli(*_train_args(c, "--steps", "128", "--eval-every", "64"))
+    run = read_run(c.tmp / "run")
+    initial = {f"policy/{k}": v for k, v in build_model(run, seed=run["seed"]).policy.state_dict().items()}
+    for name in ("best.safetensors", "last.safetensors", "checkpoints/step_128.safetensors"):
+        saved = _policy_arrays(c.tmp / "run" / name)
+        assert any(not np.array_equal(saved[k], initial[k]) for k in saved), name
+    assert weights.read(c.tmp / "run" / "last.safetensors")[1]["n_updates"] == 1
+    return got
+
+
+def _continued(c: Case):
+    _one_rollout(c)
+    got = c.cli(*_train_args(c, "--steps", "256", "--eval-every", "64"))
+    first, second = (_policy_arrays(c.tmp / "run" / "checkpoints" / f"step_{t}.safetensors") for t in (128, 256))
+    assert any(not np.array_equal(first[k], second[k]) for k in first)
+    return got
+
+
+def _crash_at(mp, module, name: str, at: int) -> None:
+    """``module.name`` raises Killed after its ``at``-th call did its work."""
+    original, calls = getattr(module, name), [0]
+
+    def wrapped(*args, **kwargs):
+        calls[0] += 1
+        result = original(*args, **kwargs)
+        if calls[0] == at:
+            raise Killed
+        return result
+
+    mp.setattr(module, name, wrapped)
+
+
+def _killed_then_again(c: Case, module, name: str, at: int, *flags):
+    """``magenv train`` with ``flags`` killed at the ``at``-th call of ``module.name``, then the same command."""
+    from tests.test_agents_run_folder import consistent
+
+    with pytest.MonkeyPatch.context() as mp:
+        _crash_at(mp, module, name, at)
+        with pytest.raises(Killed):
+            c.cli(*_train_args(c, *flags))
+    got = c.cli(*_train_args(c, *flags))
+    consistent(c.tmp / "run")
+    return got
+
+
+def _interrupted_evaluation(c: Case):
+    from tests.test_agents_run_folder import consistent
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(training, "run_policy_on_trials", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+        got = c.cli(*_train_args(c, "--steps", "256", "--eval-every", "128"))
+    assert json.loads((c.tmp / "run" / "state.json").read_text())["evaluations"] == []
+    assert c.cli(*_train_args(c, "--steps", "256", "--eval-every", "128"))[0] == "exit 0"
+    assert [r[0] for r in consistent(c.tmp / "run")["evaluations"]] == [128, 256]
+    return got
+
+
+def _second_run(c: Case):
+    with RunFolder(c.tmp / "run").locked():
+        return c.cli(*_train_args(c, "--steps", "128"))
+
+
+def _tampered_checkpoint(c: Case, tensors=None, **meta):
+    """``magenv train`` resuming a run folder whose ``last.safetensors`` has ``tensors`` and ``meta`` changed."""
+    run = fake_run(c.tmp / "run", files=("last",))
+    old_tensors, old_meta = weights.read(run / "last.safetensors")
+    meta = {**{k: v for k, v in old_meta.items() if k != "format"}, **meta}
+    weights._write(run / "last.safetensors", {**old_tensors, **(tensors or {})}, meta)
+    return c.cli("train", "--out", run, "--steps", "256", *QUICK_EVAL)
+
+
+def _read_only_folder(path: Path) -> Path:
+    """A folder this process cannot write in: mode 555, and immutable (``chattr +i``) for root, who ignores modes;
+    the test is skipped where neither holds."""
+    path.mkdir()
+    path.chmod(0o555)
+    probe = path / "probe"
+    try:
+        probe.touch()
+    except OSError:
+        return path
+    probe.unlink()
+    subprocess.run(["chattr", "+i", str(path)], capture_output=True, check=False)
+    try:
+        probe.touch()
+    except OSError:
+        return path
+    probe.unlink()
+    pytest.skip("no folder here is read-only for this user")
+
+
+@contextlib.contextmanager
+def read_only_folder(path: Path):
+    try:
+        yield _read_only_folder(path)
+    finally:
+        subprocess.run(["chattr", "-i", str(path)], capture_output=True, check=False)
+        path.chmod(0o755)
+
+
+def _under_a_file(c: Case, name: str) -> Path:
+    (c.tmp / "file").write_text("a file")
+    return c.tmp / "file" / name
+
+
+def _into_read_only(c: Case, *argv_before, option: str, name: str, argv_after=()):
+    with read_only_folder(c.tmp / "ro") as ro:
+        return c.cli(*argv_before, option, ro / name, *argv_after)
+
+
+def _compare_plot_without_suffix(c: Case):
+    got = c.cli("compare", "--scenario", "dynamic_clean", "--seeds", "0", "--methods", "mimu", "--no-progress",
+                "--plot", c.tmp / "out")  # fmt: skip
+    assert (c.tmp / "out.png").is_file() and not (c.tmp / "out").exists()
+    assert f"wrote {c.tmp / 'out.png'}" in got[1]
+    return got
+
+
+def _broad(c: Case, edit) -> Path:
+    """BROAD recording 02 copied, then ``edit(h5py file)``."""
+    source = find_recording("02")
+    path = Path(shutil.copy(source, c.tmp / source.name))
+    with h5py.File(path, "a") as f:
+        edit(f)
+    return path
+
+
+def _scale(key: str, factor: float):
+    def edit(f):
+        f[key][...] = f[key][()] * factor
+
+    return edit
+
+
+def _burst(f):
+    gyr = f["imu_gyr"][()]
+    gyr[1000] = 1e300
+    f["imu_gyr"][...] = gyr
+
+
+def _diverged(c: Case):
+    """Methods diverging on a trial with a 1e300 gyro burst: each row present, each at 180° in every part."""
+    from magenv import evaluation
+
+    trial = kinematic_trial(duration=5.0)
+    trial.gyr[300] = 1e300
+    names = ["mimu", "imu", "fan_lambda", "vqf", "aekf"]
+    rows = evaluation.compare({n: registry.make(n) for n in names}, [trial], keep_going=True)
+    assert [r["method"] for r in rows] == names and not any("error" in r for r in rows)
+    for r in rows:
+        assert (r["total_rmse_mean"], r["heading_rmse_mean"], r["inclination_rmse_mean"]) == (180.0, 180.0, 180.0)
+    return "no error", "\n".join(r["diverged"] for r in rows)
+
+
+def _bad_field(**field):
+    trial = kinematic_trial(duration=1.0)
+    return lambda: Trial(**{**trial.__dict__, **field})
+
+
+def _set_field(**field):
+    def set_it():
+        trial = kinematic_trial(duration=1.0)
+        for k, v in field.items():
+            setattr(trial, k, v)
+
+    return set_it
+
+
+def _vector_reset(**kw):
+    return lambda: gym.make_vec(
+        "magenv/MagBlend-v0",
+        num_envs=2,
+        vectorization_mode="vector_entry_point",
+        scenario=[kinematic_trial(duration=1.0)],
+    ).reset(**kw)
+
+
+BOMB = "\n".join(
+    [f"{ENV}:", '  a: &a ["x","x","x","x","x","x","x","x","x"]']
+    + [f"  {k}: &{k} [{','.join([f'*{p}'] * 9)}]" for p, k in zip("abcdef", "bcdefg")]
+    + ["  learning_rate: *g"]
+)
+
+
+def _alias_bomb(c: Case):
+    (c.tmp / "bomb.yaml").write_text(BOMB)
+    got = c.call(lambda: load_hyperparams("ppo", ENV, c.tmp / "bomb.yaml"))
+    assert len(got[1]) < 300, len(got[1])
+    return got
+
+
 CASES = {
     "a run folder holding its model only as SB3 `.zip` (an older magenv, or SB3)": _pickle_only,
     "`magenv train` resuming such a folder": lambda c: c.cli(
@@ -360,6 +579,84 @@ CASES = {
     "a trial file of random bytes": lambda c: c.call(
         lambda: Trial.load(_write_bytes(c.tmp / "trial.h5", np.random.default_rng(0).bytes(4096)))
     ),
+    "`magenv train … --steps 128 --eval-every 64` (one rollout of 128 steps)": _one_rollout,
+    "the same run continued with `--steps 256`": _continued,
+    "`magenv train … --steps 200` killed after its first rollout, then the same command": lambda c: _killed_then_again(
+        c, PPO, "train", 2, "--steps", "200", "--eval-every", "128"
+    ),
+    "Ctrl-C (or SIGTERM) during `magenv train`'s evaluation": _interrupted_evaluation,
+    "a second `magenv train … --out RUN` while one trains into `RUN`": _second_run,
+    "`magenv train` killed after writing `best.safetensors`, before its state, then the same command": lambda c: (
+        _killed_then_again(c, run_folder, "_flush", 7, "--steps", "256", "--eval-every", "128")
+    ),
+    "resuming from a checkpoint whose `timesteps` is -5000": lambda c: _tampered_checkpoint(
+        c, timesteps=-5000, state={"timesteps": -5000, "best_score": 1.0, "best_timesteps": None}
+    ),
+    "resuming from a `last.safetensors` whose optimizer moments have another shape": lambda c: _tampered_checkpoint(
+        c, {"optim/policy.optimizer/0/exp_avg": torch.zeros(3)}
+    ),
+    "`magenv train` with config `env_kwargs: {bogus: 1}`": lambda c: c.cli(
+        *_train_args(c, "--steps", "128", env_kwargs={"scenario": "dynamic_clean", "bogus": 1})
+    ),
+    "`magenv train … --steps 99999999999999999999`": lambda c: c.cli(
+        "train", "--out", c.tmp / "x", "--steps", "99999999999999999999"
+    ),
+    "a config whose YAML is a 7-level alias bomb": _alias_bomb,
+    "a tuned-parameter file with `norm_tol` 1e308 (outside `fan_lambda`'s bounds)": lambda c: _user_tuned(
+        c, '{"params": {"norm_tol": 1e308, "th_dip_deg": 10.0}}'
+    ),
+    "`magenv compare --csv DIR/t.csv` into a folder one cannot write": lambda c: _into_read_only(
+        c, "compare", "--seeds", "0", "--no-progress", option="--csv", name="t.csv"
+    ),
+    "`magenv compare --plot DIR` (an existing folder)": lambda c: c.cli("compare", "--seeds", "0", "--plot", c.tmp),
+    "`magenv compare --plot out` (no suffix)": _compare_plot_without_suffix,
+    "`magenv evaluate RUN --csv FILE/t.csv` (a path under a file)": lambda c: c.cli(
+        "evaluate", fake_run(c.tmp / "run"), "--csv", _under_a_file(c, "t.csv")
+    ),
+    "`magenv evaluate RUN --video out.gif`": lambda c: c.cli(
+        "evaluate", fake_run(c.tmp / "run"), "--video", c.tmp / "out.gif"
+    ),
+    "`magenv simulate … --out DIR` (an existing folder)": lambda c: c.cli(
+        "simulate", "--scenario", "dynamic_clean", "--out", c.tmp
+    ),
+    "`magenv plot TRIAL --out` into a folder one cannot write": lambda c: _into_read_only(
+        c, "plot", c.trial_file(lambda f: None), option="--out", name="trial.png"
+    ),
+    "`magenv train --out FILE` (an existing file)": lambda c: c.cli("train", "--out", _under_a_file(c, "x").parent),
+    "`magenv tune … --out FILE/tuned` (a path under a file)": lambda c: c.cli(
+        "tune", "--rule", "fan_lambda", "--out", _under_a_file(c, "tuned")
+    ),
+    "a recording whose magnetometer is all zero": lambda c: c.call(
+        lambda: load_recording(c.recording(imu_mag=np.zeros((100, 3))))
+    ),
+    "a recording whose accelerometer is all zero": lambda c: c.call(
+        lambda: load_recording(c.recording(imu_acc=np.zeros((100, 3))))
+    ),
+    "a recording whose magnetometer is in nT": lambda c: c.call(
+        lambda: load_recording(_broad(c, _scale("imu_mag", 1e3)))
+    ),
+    "a recording whose gyro is in °/s": lambda c: c.call(
+        lambda: load_recording(_broad(c, _scale("imu_gyr", 180 / math.pi)))
+    ),
+    "a recording whose `sampling_rate` is 10× the true one": lambda c: c.call(
+        lambda: load_recording(_broad(c, lambda f: f.attrs.__setitem__("sampling_rate", f.attrs["sampling_rate"] * 10)))
+    ),
+    "a recording whose field is 15 µT at rest": lambda c: c.warning(
+        lambda: load_recording(c.recording(imu_mag=np.tile([0, 5.0, -14.0], (100, 1))))
+    ),
+    "a recording with a gyro burst of 1e300": lambda c: c.call(lambda: load_recording(_broad(c, _burst))),
+    "methods that diverge on a trial (a 1e300 gyro burst: `mimu`, `vqf` …) in `magenv.evaluation.compare`": (_diverged),
+    "`Trial(field_norm=0)` (then any env)": lambda c: c.call(_bad_field(field_norm=0)),
+    "`Trial(field_norm=nan)`": lambda c: c.call(_bad_field(field_norm=math.nan)),
+    "`Trial(field_norm=-40)`": lambda c: c.call(_bad_field(field_norm=-40)),
+    "`Trial(field_dip=500)`": lambda c: c.call(_bad_field(field_dip=500)),
+    "`trial.field_norm = 0` on a made trial": lambda c: c.call(_set_field(field_norm=0)),
+    'a vector env\'s `reset(options={"trail": trial})`': lambda c: c.call(
+        _vector_reset(options={"trail": kinematic_trial(duration=1.0)})
+    ),
+    "a vector env's `reset(seed=True)`": lambda c: c.call(_vector_reset(seed=True)),
+    'a vector env\'s `reset(options="abc")`': lambda c: c.call(_vector_reset(options="abc")),
+    "a vector env's `reset(seed=1.5)`": lambda c: c.call(_vector_reset(seed=1.5)),
 }
 ROWS = readme_rows()
 
@@ -484,10 +781,17 @@ def test_planted_pickles_never_run(trained_run, tmp_path, capsys):
     assert marker.exists()
 
 
-def test_an_old_run_resumes_from_its_pickles_only_when_trusted(trained_run, tmp_path, capsys):
-    run = Path(shutil.copytree(trained_run, tmp_path / "run"))
+def as_older_magenv(run: Path) -> Path:
+    """``run`` as an older magenv left it: its model in SB3 .zip files only, a state file naming no files."""
     for p in run.glob("*.safetensors"):
         p.unlink()
+    state = json.loads((run / "state.json").read_text())
+    (run / "state.json").write_text(json.dumps({k: v for k, v in state.items() if k not in ("files", "evaluations")}))
+    return run
+
+
+def test_an_old_run_resumes_from_its_pickles_only_when_trusted(trained_run, tmp_path, capsys):
+    run = as_older_magenv(Path(shutil.copytree(trained_run, tmp_path / "run")))
     marker = tmp_path / "pwned"
     (run / "vecnormalize.pkl").write_bytes(pickle.dumps(Payload(marker)))
     assert cli(["train", "--out", str(run), "--steps", "256", "--no-progress"]) == 2

@@ -165,3 +165,33 @@ def test_the_extended_vqf_observation_is_batched_too():
     assert want[2].sum() >= 3 and got[0].shape[-1] > 60
     for g, w in zip(got, want):
         np.testing.assert_array_equal(g, w)
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, message",
+    [
+        ({"seed": True}, TypeError, "seed must be None or an integer ≥ 0, got True"),
+        ({"seed": 1.5}, TypeError, "seed must be None or an integer ≥ 0, got 1.5"),
+        ({"seed": -1}, ValueError, "seed must be None or an integer ≥ 0, got -1"),
+        ({"seed": [0, -1]}, ValueError, "seed must be None or an integer ≥ 0, got -1"),
+        ({"seed": [0, "1"]}, TypeError, "seed must be None or an integer ≥ 0, got '1'"),
+        ({"seed": [0]}, ValueError, "seed: got 1 seeds for 2 envs"),
+        ({"options": "abc"}, TypeError, "options must be a dict of keyword arguments or None, got 'abc'"),
+        ({"options": {"trail": None}}, ValueError, "options: unknown key(s) 'trail'; known: trial"),
+        ({"options": {"trial": "x"}}, TypeError, "options['trial'] must be a magenv.trial.Trial, got str"),
+    ],
+)
+def test_reset_checks_seed_and_options_as_the_single_env(kwargs, error, message):
+    """The vector env refuses what the single env refuses, with the same message, before any sub-env resets."""
+    trial = kinematic_trial(duration=1.0)
+    vec = gym.make_vec(BLEND_ID, num_envs=2, vectorization_mode="vector_entry_point", scenario=[trial])
+    vec.reset(seed=[3, 4])
+    before = vec.unwrapped.pos.copy()
+    with pytest.raises(error) as caught:
+        vec.reset(**kwargs)
+    assert message in str(caught.value)
+    np.testing.assert_array_equal(vec.unwrapped.pos, before)
+    single = gym.make(BLEND_ID, scenario=[trial])
+    if not isinstance(kwargs.get("seed"), list):
+        with pytest.raises(error, match=message.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")):
+            single.reset(**kwargs)

@@ -300,3 +300,101 @@ def test_realism_benchmark_runs(broad_dir, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "magnetometer noise σ, µT per axis" in text and "32_disturbed_attached_ma" in text
     assert out.stat().st_size > 10_000
+
+
+# ------------------------------------------------------------------ physical sense (check_physical)
+
+
+def test_the_nine_recordings_make_physical_sense(broad_dir):
+    import warnings
+
+    from magenv.recordings import check_physical, gyro_turn_ratio
+
+    for path in list_recordings(broad_dir):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # not even a warning
+            trial = load_recording(path)
+        assert check_physical(trial) == []
+        ratio, windows = gyro_turn_ratio(trial)
+        assert 0.99 < ratio < 1.01 and windows > 100, (path.name, ratio, windows)
+
+
+@pytest.mark.parametrize("scenario", ["dynamic_magnet", "stationary_magnet", "handheld_texting", "constraint_test1"])
+def test_simulated_trials_make_physical_sense(scenario):
+    from magenv.recordings import check_physical
+    from magenv.scenarios import make_trial
+
+    assert check_physical(make_trial(scenario, 0)) == []
+
+
+@pytest.fixture(scope="module")
+def moving(broad_dir) -> Trial:
+    return load_recording(find_recording("02", broad_dir))
+
+
+def _changed(trial: Trial, **change) -> Trial:
+    import dataclasses
+
+    return dataclasses.replace(trial, **change)
+
+
+NO_TRUTH = "no truth"
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"mag": 1e3}, r"magnetometer norm 4.4e\+04 looks like nT, expected µT \(20–70 µT\)"),
+        ({"mag": 10.0}, "magnetometer norm 4.4e.02 looks like mG, expected µT"),
+        ({"mag": 1e-2}, "magnetometer norm 0.44 looks like G, expected µT"),
+        ({"mag": 1e-6}, "magnetometer norm 4.4e-05 looks like T, expected µT"),
+        ({"mag": 1e6}, "magnetometer norm 4.38e.07 µT is implausible in any unit"),
+        ({"mag": 0.0}, "magnetometer norm is all zero"),
+        ({"acc": 1 / 9.81}, "accelerometer norm at rest 1 looks like g, expected m/s²"),
+        ({"acc": 1e3 / 9.81}, "accelerometer norm 1e.03 looks like mg, expected m/s²"),
+        ({"acc": 0.0}, "accelerometer norm at rest is all zero"),
+        ({"gyr": 180 / np.pi}, "gyro rates look like °/s, expected rad/s"),
+        ({"gyr": 0.0}, "the gyroscope is all zero: the gyro turns 0× as far as the truth"),
+        ({"rate": 10.0}, "sampling rate 2857.14 Hz looks 10× too high: the gyro turns 0.0998× as far as the truth"),
+        ({"rate": 0.1}, "sampling rate 28.5714 Hz looks 10× too low: the gyro turns 10× as far as the truth"),
+        ({"rate": 10.0, NO_TRUTH: True}, "sampling rate 2857.14 Hz looks 10× too high: .* the accelerometer tilts"),
+        ({"gyr": 180 / np.pi, NO_TRUTH: True}, "gyro rates look like °/s"),
+    ],
+)
+def test_magnitudes_that_another_unit_explains_are_refused(moving, change, message):
+    """Recording 02 with one channel (or the rate) scaled, as if written in another unit: refused, naming it."""
+    from magenv.recordings import check_physical
+
+    change = dict(change)
+    fields = {}
+    if change.pop(NO_TRUTH, False):
+        fields["q_true"] = np.full_like(moving.q_true, np.nan)
+    for key, factor in change.items():
+        fields[key] = getattr(moving, key) * factor
+    with pytest.raises(TrialError, match=f"^02_x: {message}"):
+        check_physical(_changed(moving, **fields), "02_x")
+
+
+def test_slightly_off_magnitudes_are_warnings(moving):
+    from magenv.recordings import check_physical
+
+    assert check_physical(_changed(moving, rate=moving.rate * 1.3)) == [
+        "the gyro turns 0.766× as far as the truth (681 windows): a gyro scale or sampling-rate error?"
+    ]
+    weak = check_physical(_changed(moving, mag=moving.mag * 0.4))
+    assert weak == ["magnetometer norm 17.5 µT is outside the expected 20–70 µT"]
+    assert check_physical(_changed(moving, acc=moving.acc * 1.15)) == [
+        "accelerometer norm at rest 11.3 m/s² is outside the expected 8.83–10.8 m/s²"
+    ]
+
+
+def test_a_corrupt_gyro_sample_is_refused(moving):
+    from magenv.recordings import check_physical
+
+    gyr = moving.gyr.copy()
+    gyr[1000] = [0.0, 1e300, 0.0]
+    with pytest.raises(TrialError, match=r"gyro rate 1e\+300 rad/s at row 1000 is beyond any gyroscope's range"):
+        check_physical(_changed(moving, gyr=gyr))
+    gyr[1000] = [0.0, 80.0, 0.0]  # 4600 °/s
+    with pytest.raises(TrialError, match="gyro rate 80 rad/s at row 1000"):
+        check_physical(_changed(moving, gyr=gyr))

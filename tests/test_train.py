@@ -163,37 +163,15 @@ def test_pretrain_config_errors(tmp_path):
         train(ENV, "ppo", 1, tmp_path / "x", config=cfg, progress_bar=False, make_method=registry.make)
 
 
-def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path, monkeypatch):
-    """Ctrl-C (or SIGTERM) at the second evaluation saves a checkpoint; the same call then finishes the run."""
-    from magenv.agents import training
-    from magenv.agents.weights import read
-
-    evaluate = training.HeldOutEvaluation.evaluate_and_checkpoint
-
-    def interrupt_at_the_second(self):
-        if self.last_evaluated is not None:
-            raise KeyboardInterrupt
-        return evaluate(self)
-
-    out = tmp_path / "run"
-    kw = train_kwargs(tmp_path)
-    monkeypatch.setattr(training.HeldOutEvaluation, "evaluate_and_checkpoint", interrupt_at_the_second)
-    with pytest.raises(KeyboardInterrupt):
-        train(ENV, "ppo", 512, out, **kw)
-    assert json.loads((out / "state.json").read_text())["timesteps"] == 256
-    assert read(out / "last.safetensors")[1]["timesteps"] == 256
-    (out / "state.json").write_text(json.dumps({"timesteps": 128}))  # a kill between the checkpoint and state.json
-    assert progress(out, "ppo")["timesteps"] == 256  # what a resume continues from: the checkpoint's
-    monkeypatch.undo()
-    train(ENV, "ppo", 512, out, **kw)
-    assert [int(r[0]) for r in csv.reader(open(out / "evaluations.csv"))] == [128, 384, 512]
-    assert read(out / "last.safetensors")[1]["timesteps"] == 512
-
-
-def test_the_progress_of_a_run_without_a_checkpoint_is_its_state_file(tmp_path):
+def test_the_progress_of_a_run_is_its_state_file(tmp_path):
     assert progress(tmp_path, "ppo") is None  # a fresh run
-    (tmp_path / "state.json").write_text('{"timesteps": 64, "best_score": 1.5}')
-    assert progress(tmp_path, "ppo") == {"timesteps": 64, "best_score": 1.5}
+    (tmp_path / "state.json").write_text('{"timesteps": 64, "best_score": 1.5, "files": {}}')
+    assert progress(tmp_path, "ppo") == {"timesteps": 64, "best_score": 1.5, "files": {}}
+    (tmp_path / "state.json").write_text('{"timesteps": 64}')  # an older run folder's (no files named)
+    assert progress(tmp_path, "ppo") == {"timesteps": 64}
+    (tmp_path / "state.json").write_text('{"timesteps": -64, "files": {}}')
+    with pytest.raises(RunError, match="timesteps must be an integer ≥ 0, got -64"):
+        progress(tmp_path, "ppo")
     (tmp_path / "state.json").write_text('{"timesteps": ')
     with pytest.raises(RunError, match="state.json: corrupt"):
         progress(tmp_path, "ppo")

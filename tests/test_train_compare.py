@@ -190,3 +190,51 @@ def test_compare_keeps_going_past_a_method_that_cannot_run(tmp_path, capsys):
     assert np.isnan(float(rows["cf_constraint"]["total_rmse_mean"])) and rows["cf_constraint"]["n"] == "2"
     with pytest.raises(Exception, match="gyr_j"):  # without keep_going, evaluation raises as before
         evaluation.evaluate({"cf": registry.make("cf_constraint")}, [kinematic_trial(duration=1.0)])
+
+
+def test_a_method_that_diverges_scores_180_and_ranks_below_every_finite_one(capsys):
+    """Two trials; on the second a 1e300 gyro burst early (sample 100) or late (sample 900): whichever sample a
+    method diverges at, its trial scores 180° in every part, its row is present, and it is not ahead of another
+    method that diverged elsewhere."""
+    from magenv.train.compare import divergence_notes, finish, table_order
+
+    good = kinematic_trial(seed=0, duration=4.0)
+    early, late = kinematic_trial(seed=1, duration=4.0), kinematic_trial(seed=1, duration=4.0)
+    early.gyr[100], late.gyr[900] = 1e300, 1e300
+    names = ["mimu", "imu", "fan_lambda", "vqf"]
+    for burst in (early, late):
+        runs = evaluation.evaluate({n: registry.make(n) for n in names}, [good, burst], keep_going=True)
+        diverged = [r for r in runs if r.trial is burst]
+        assert all(r.score == evaluation.DIVERGED_SCORE and r.diverged and r.error is None for r in diverged)
+        assert all(r.diverged is None and r.score.total < 10 for r in runs if r.trial is good)
+        rows = evaluation.summarize(runs)
+        assert [r["method"] for r in rows] == names and not any("error" in r for r in rows)
+        for r in rows:
+            finite = next(run.score.total for run in runs if run.method == r["method"] and run.trial is good)
+            assert r["total_rmse_mean"] == pytest.approx((finite + 180.0) / 2)
+            assert r["diverged"].startswith("diverged on 1 of 2 trial(s), scored 180°: ")
+    # a method with a finite estimate on every trial ranks ahead of every one that diverged
+    rows = [
+        {"method": "a", "scenario": "s", "n": 1, "total_rmse_mean": 180.0, "diverged": "diverged on 1 of 1 trial(s)"},
+        {"method": "b", "scenario": "s", "n": 1, "total_rmse_mean": 120.0},
+    ]
+    assert [r["method"] for r in table_order(rows)] == ["b", "a"]
+    assert divergence_notes(rows) == ["a on s: diverged on 1 of 1 trial(s)"]
+    for r in rows:
+        r.update(total_rmse_std=float("nan"), heading_rmse_mean=180.0, inclination_rmse_mean=180.0)
+    assert finish(rows, "t", None) == 0  # a divergence is a result, not an n/a cell
+    out = capsys.readouterr().out
+    assert "180.00" in out and "a on s: diverged on 1 of 1 trial(s)" in out and "n/a" not in out
+
+
+def test_a_non_finite_estimate_is_a_divergence():
+    class NaNAfter100:
+        def run(self, trial):
+            q = np.tile([1.0, 0, 0, 0], (trial.n, 1))
+            q[100:] = np.nan
+            return type("Estimate", (), {"q": q, "trust": None})()
+
+    trial = kinematic_trial(duration=2.0)
+    run = evaluation.run_method("nan", NaNAfter100(), trial)
+    assert run.score == evaluation.DIVERGED_SCORE and run.q is not None
+    assert run.diverged == f"non-finite estimate from sample 100 of trial {trial.name!r} ({trial.n - 100} of {trial.n})"

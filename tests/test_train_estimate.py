@@ -112,7 +112,7 @@ def test_bad_input_is_named_before_any_work(log, tmp_path, capsys):
     cases = [
         (["estimate", str(tmp_path / "none.csv"), "--method", "vqf", "--out", out], "no such file"),
         (["estimate", str(good), "--method", "nope", "--out", out], "unknown method 'nope'"),
-        (["estimate", str(good), "--method", "vqf", "--out", str(tmp_path / "o.txt")], "must end in .csv"),
+        (["estimate", str(good), "--method", "vqf", "--out", str(tmp_path / "o.txt")], "must name a .csv, .h5"),
         (["estimate", str(good), "--method", "vqf", "--out", out, "--mag", "a,b,c"], "no column(s) a, b, c"),
         (["estimate", str(tmp_path / "uneven.csv"), "--method", "vqf", "--out", out], "uneven sampling"),
         (["estimate", str(nt), "--method", "vqf", "--out", out], "looks like nT"),

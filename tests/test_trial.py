@@ -54,3 +54,44 @@ def test_load_errors_name_the_file(tmp_path):
     junk.write_text("not hdf5")
     with pytest.raises(TrialError, match="junk.h5: not an HDF5 file"):
         Trial.load(junk)
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("field_norm", 0.0, r"field_norm must be a finite number in \(0, 1000\], got 0.0"),
+        ("field_norm", np.nan, "field_norm must be a finite number in .*, got nan"),
+        ("field_norm", -40.0, "got -40.0"),
+        ("field_norm", np.inf, "got inf"),
+        ("field_dip", 500.0, r"field_dip must be a finite number in \[-90, 90\], got 500.0"),
+        ("field_dip", np.nan, "field_dip must be a finite number"),
+        ("field_norm", "46", "field_norm must be a number"),
+    ],
+)
+def test_an_impossible_field_is_refused_whenever_it_is_set(field, value, message, tmp_path, make_kinematic_trial):
+    """At construction, by assignment afterwards, and from a file: no env or filter is handed it."""
+    import dataclasses
+
+    import h5py
+
+    kwargs = dict(name="x", rate=100.0, field_norm=46.0, field_dip=49.6, **_arrays())
+    with pytest.raises(TrialError, match=message):
+        Trial(**{**kwargs, field: value})
+    trial = make_kinematic_trial(duration=1.0)
+    with pytest.raises(TrialError, match=message):
+        setattr(trial, field, value)
+    assert (trial.field_norm, trial.field_dip) == (46.0, 49.6)  # unchanged
+    with pytest.raises(TrialError, match=message):
+        dataclasses.replace(trial, **{field: value})
+    if isinstance(value, float):
+        path = trial.save(tmp_path / "t.h5")
+        with h5py.File(path, "a") as f:
+            f.attrs[field] = value
+        with pytest.raises(TrialError, match=f"t.h5: .*{message}"):
+            Trial.load(path)
+
+
+def test_a_good_field_is_stored_as_a_float(make_kinematic_trial):
+    trial = make_kinematic_trial(duration=1.0)
+    trial.field_norm, trial.field_dip = np.float32(50), -90
+    assert (trial.field_norm, trial.field_dip) == (50.0, -90.0) and type(trial.field_dip) is float

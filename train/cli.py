@@ -8,7 +8,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+import tempfile
+from pathlib import Path
+from typing import overload
 
 COMMANDS = {
     "simulate": ("magenv.train.simulate", "make one simulated trial and write it to HDF5"),
@@ -44,6 +48,71 @@ TRUST_PICKLE_HELP = (
     "also load agents from SB3 .zip files, which carry pickles that can run code: only for run "
     "folders whose author you trust (default: weights-only files)"
 )
+
+
+#: What ``--plot`` and the like may write (matplotlib's formats; a name without a suffix gets the first).
+IMAGE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+
+
+def _check_writable_folder(folder: Path, option: str, path: Path) -> None:
+    """CommandError unless ``folder`` exists as a folder one can write in, or can be made (its nearest existing
+    ancestor is one): a file is made and removed there to find out."""
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise CommandError(f"{option} {path}: {probe} is a file, not a folder")
+    try:
+        handle, name = tempfile.mkstemp(dir=probe, prefix=".magenv-write-check-")
+        os.close(handle)
+        os.unlink(name)
+    except OSError as exc:
+        raise CommandError(f"{option} {path}: cannot write in {probe} ({exc.strerror})") from None
+
+
+@overload
+def output_file(path: None, option: str, suffixes: tuple[str, ...] = ()) -> None: ...
+@overload
+def output_file(path: str | Path, option: str, suffixes: tuple[str, ...] = ()) -> Path: ...
+def output_file(path: str | Path | None, option: str, suffixes: tuple[str, ...] = ()) -> Path | None:
+    """The file an output option (``--csv``, ``--plot`` …) names, checked before any work is done: not a folder,
+    writable, in a folder that exists or can be made. ``suffixes``: the kinds of file it may be (a name without a
+    suffix gets the first, and the name returned is the one to write and print). None stays None. CommandError
+    naming the option and the problem."""
+    if path is None:
+        return None
+    path = Path(path)
+    if path.is_dir():
+        raise CommandError(f"{option} {path}: is a folder; give a file name")
+    if suffixes and path.suffix.lower() not in suffixes:
+        if path.suffix:
+            raise CommandError(f"{option} must name a {', '.join(suffixes)} file, got {path}")
+        path = path.with_name(path.name + suffixes[0])
+        if path.is_dir():
+            raise CommandError(f"{option} {path}: is a folder; give a file name")
+    if path.exists():
+        try:
+            open(path, "ab").close()  # appends nothing: the file stays as it is until it is written
+        except OSError as exc:
+            raise CommandError(f"{option} {path}: cannot write it ({exc.strerror})") from None
+    _check_writable_folder(path.parent, option, path)
+    return path
+
+
+@overload
+def output_folder(path: None, option: str) -> None: ...
+@overload
+def output_folder(path: str | Path, option: str) -> Path: ...
+def output_folder(path: str | Path | None, option: str) -> Path | None:
+    """The folder an output option (``--out``) names, checked before any work is done: a folder one can write
+    in, or one that can be made. None stays None. CommandError naming the option and the problem."""
+    if path is None:
+        return None
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise CommandError(f"{option} {path}: is a file, not a folder")
+    _check_writable_folder(path, option, path)
+    return path
 
 
 def rule_arg(rule):

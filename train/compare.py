@@ -37,7 +37,7 @@ from pathlib import Path
 
 from magenv.agents.hyperparams import POSITIVE_INT
 from magenv.envs import BLEND_ID
-from magenv.train.cli import PARTIAL, TRUST_PICKLE_HELP, CommandError, rule_arg
+from magenv.train.cli import IMAGE_SUFFIXES, PARTIAL, TRUST_PICKLE_HELP, CommandError, output_file, rule_arg
 from magenv.train.seeds import seeds_arg
 
 DEFAULT_METHODS = "mimu,imu,fan_lambda,threshold"
@@ -189,6 +189,11 @@ def failure_notes(rows: list[dict]) -> list[str]:
     return [f"n/a: {r['method']} on {r['scenario']}: {r['error']}" for r in rows if "error" in r]
 
 
+def divergence_notes(rows: list[dict]) -> list[str]:
+    """One line per row whose method diverged on some trial (scored 180° there): the method, the group, how."""
+    return [f"{r['method']} on {r['scenario']}: {r['diverged']}" for r in rows if "diverged" in r]
+
+
 @contextlib.contextmanager
 def _progress_bar(total: int, progress: bool = True, console=None):
     """A transient progress bar over ``total`` runs; yields ``advance(n, description)``."""
@@ -303,16 +308,16 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
     console.print(table)
 
 
-def finish(rows: list[dict], title: str, csv_path: str | None) -> int:
-    """Print the table and the reasons for its n/a cells, write the CSV; the exit status (``PARTIAL`` if a
-    cell is n/a)."""
+def finish(rows: list[dict], title: str, csv_path: str | Path | None) -> int:
+    """Print the table, the reasons for its n/a cells and the divergences, write the CSV; the exit status
+    (``PARTIAL`` if a cell is n/a)."""
     from magenv import evaluation
 
     print_table(rows, title=title)
     if any(r.get("headroom") for r in rows):
         print(HEADROOM_FOOTNOTE)
     notes = failure_notes(rows)
-    for line in notes:
+    for line in notes + divergence_notes(rows):
         print(line)
     if csv_path:
         print(f"wrote {evaluation.write_csv(rows, csv_path)}")
@@ -322,6 +327,8 @@ def finish(rows: list[dict], title: str, csv_path: str | None) -> int:
 def run(args: argparse.Namespace) -> int:
     from magenv import evaluation, registry, scale
 
+    args.csv = output_file(args.csv, "--csv")
+    args.plot = output_file(args.plot, "--plot", IMAGE_SUFFIXES)
     methods = select_methods(
         args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent], args.trust_pickle
     )

@@ -33,7 +33,7 @@ import urllib.request
 from importlib import resources
 from pathlib import Path
 
-from magenv.train.cli import CommandError
+from magenv.train.cli import CommandError, output_folder
 
 DATASETS = ("broad",)
 CHUNK = 1 << 16  # bytes per read of a download
@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
     from magenv.userdata import user_data_dir
 
     manifest = read_manifest(Path(args.manifest) if args.manifest else manifest_path())
-    dest = Path(args.dest) if args.dest else user_data_dir() / BROAD_SUBDIR
+    dest = output_folder(Path(args.dest) if args.dest else user_data_dir() / BROAD_SUBDIR, "--dest")
     paths = fetch(dest, manifest, args.url, args.force, progress=not args.no_progress)
     print(f"{len(paths)} recording(s) in {dest}")
     if dest.resolve() not in [p.resolve() for p in default_broad_dirs()]:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from magenv.agents.hyperparams import POSITIVE_INT
 from magenv.envs import BLEND_ID as ENV_ID
-from magenv.train.cli import CommandError, rule_arg
+from magenv.train.cli import CommandError, output_file, output_folder, rule_arg
 from magenv.train.seeds import seeds_arg
 
 RULES = ["mimu", "imu", "fan_lambda", "fan_lambda_tuned", "threshold", "threshold_tuned", "oracle"]
@@ -52,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
         select_methods,
     )
 
+    args.out = output_folder(args.out, "--out")
+    args.csv = output_file(args.csv, "--csv")
     print(f"[1/2] training PPO on {ENV_ID} for {args.steps} steps -> {args.out}")
     try:
         train(

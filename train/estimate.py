@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magenv.train.cli import CommandError
+from magenv.train.cli import IMAGE_SUFFIXES, CommandError, output_file
 
 DEFAULT_COLUMNS = {"t": "t", "gyr": ("gx", "gy", "gz"), "acc": ("ax", "ay", "az"), "mag": ("mx", "my", "mz")}
 #: unit → factor to magenv's units (rad/s, m/s², µT)
@@ -212,8 +212,8 @@ def draw(path: Path, result) -> None:
 def run(args: argparse.Namespace) -> int:
     from magenv.streaming import estimate, method_of
 
-    if args.out.suffix.lower() not in (".csv", *HDF5_SUFFIXES):
-        raise CommandError(f"--out must end in .csv, .h5 or .hdf5, got {args.out}")
+    args.out = output_file(args.out, "--out", (".csv", *HDF5_SUFFIXES))
+    args.plot = output_file(args.plot, "--plot", IMAGE_SUFFIXES)
     if args.rate is not None and not (np.isfinite(args.rate) and args.rate > 0):
         raise CommandError(f"--rate must be a positive number of Hz, got {args.rate}")
     name = args.method if args.method is not None else "agent:" + args.agent

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import argparse
 
-from magenv.train.cli import TRUST_PICKLE_HELP, CommandError
+from magenv.train.cli import TRUST_PICKLE_HELP, CommandError, output_file
 from magenv.train.seeds import seeds_arg
 
 
@@ -44,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
     from magenv.agents.loading import RunError, load_agent
     from magenv.train.compare import finish, make_trials, run_comparison
 
+    args.csv = output_file(args.csv, "--csv")
+    args.video = output_file(args.video, "--video", (".mp4",))
     try:
         agent = load_agent(args.run_dir, which=args.which, trust_pickle=args.trust_pickle)
     except RunError as exc:
@@ -53,8 +55,6 @@ def run(args: argparse.Namespace) -> int:
         args.scenario if args.scenario is not None else ("" if args.recordings else "dynamic_magnet,dynamic_clean")
     )
     trials, labels = make_trials(scenarios, args.seeds, args.recordings)
-    if args.video is not None and not str(args.video).lower().endswith(".mp4"):
-        raise CommandError(f"--video must name an .mp4 file, got {args.video!r}")
     rows = evaluation.summarize(run_comparison({agent.name: agent}, trials, labels, progress=not args.no_progress))
     status = finish(rows, f"{agent.name} ({agent.which} model): orientation RMSE (°)", args.csv)
     if args.video is not None:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from magenv.train.cli import CommandError
+from magenv.train.cli import CommandError, output_file
 
 FORMAT = "magenv-onnx-student-1"
 LAG = re.compile(r"^(.*)_lag(\d+)$")
@@ -164,8 +164,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.onnx.suffix.lower() != ".onnx":
-        raise CommandError(f"--onnx must name a .onnx file, got {args.onnx}")
+    args.onnx = output_file(args.onnx, "--onnx", (".onnx",))
+    output_file(args.onnx.with_suffix(".json"), "--onnx (its sidecar)")
     onnx_path, json_path = export(args.agent, args.onnx)
     print(f"wrote {onnx_path} and {json_path}")
     return 0

@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 
 from magenv.agents.hyperparams import POSITIVE_INT
-from magenv.train.cli import PARTIAL, CommandError, rule_arg
+from magenv.train.cli import IMAGE_SUFFIXES, PARTIAL, CommandError, output_file, rule_arg
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,6 +41,8 @@ def run(args: argparse.Namespace) -> int:
 
     from magenv import fidelity, registry
 
+    args.csv = output_file(args.csv, "--csv")
+    args.plot = output_file(args.plot, "--plot", IMAGE_SUFFIXES)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     known = registry.names()
     bad = [m for m in methods if m not in known and not m.startswith(registry.AGENT_PREFIX)]

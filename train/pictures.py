@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magenv.train.cli import CommandError
+from magenv.train.cli import CommandError, output_folder
 
 PALETTE_COLOURS = 64
 
@@ -65,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from magenv.scenarios import make_trial, scenario_names
     from magenv.train.report import _plot_trial
 
+    args.out = output_folder(args.out, "--out")
     if args.scenario not in scenario_names("gimbal"):
         raise CommandError(f"--scenario must be a gimbal scenario: {', '.join(scenario_names('gimbal'))}")
     trial = make_trial(args.scenario, args.seed)

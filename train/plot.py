@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magenv.train.cli import CommandError
+from magenv.train.cli import IMAGE_SUFFIXES, CommandError, output_file
 
 
 def add_arguments(parser) -> None:
@@ -83,10 +83,10 @@ def run(args) -> int:
     from magenv.recordings import load_trial_file
     from magenv.trial import TrialError
 
+    out = output_file(args.out or args.trial.with_suffix(".png"), "--out", IMAGE_SUFFIXES)
     try:
         trial = load_trial_file(args.trial)
     except TrialError as exc:
         raise CommandError(str(exc)) from None
-    out = args.out or args.trial.with_suffix(".png")
     print(draw(trial, out))
     return 0

@@ -87,7 +87,7 @@ def _plot_bars(rows: list[dict], path: Path) -> Path:
 def markdown_table(rows: list[dict]) -> str:
     """The comparison rows as a Markdown table, best total RMSE first within each scenario; an n/a cell's
     reason follows the table."""
-    from magenv.train.compare import failure_notes, method_label, paired_cells, table_order
+    from magenv.train.compare import divergence_notes, failure_notes, method_label, paired_cells, table_order
 
     fmt = lambda x: "–" if isinstance(x, float) and math.isnan(x) else f"{x:.2f}"
     paired = any("paired" in r for r in rows)
@@ -106,7 +106,7 @@ def markdown_table(rows: list[dict]) -> str:
         )
         cells += paired_cells(r) if paired else []
         lines.append(f"| {r['scenario']} | {method_label(r)} | {r['n']} | " + " | ".join(cells) + " |")
-    notes = failure_notes(rows)
+    notes = failure_notes(rows) + divergence_notes(rows)
     return "\n".join(lines + ([""] + [f"* {n}" for n in notes] if notes else []))
 
 
@@ -173,7 +173,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from magenv import evaluation, registry
-    from magenv.train.cli import PARTIAL
+    from magenv.train.cli import PARTIAL, output_folder
     from magenv.train.compare import (
         DEFAULT_REFERENCE,
         failure_notes,
@@ -183,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
         select_methods,
     )
 
+    args.out = output_folder(args.out, "--out")
     methods = select_methods(
         args.methods.split(",") + [registry.AGENT_PREFIX + a for a in args.agent], args.trust_pickle
     )

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from magenv.agents.hyperparams import integer
-from magenv.train.cli import CommandError, rule_arg
+from magenv.train.cli import CommandError, output_file, rule_arg
 
 
 def add_arguments(parser) -> None:
@@ -45,6 +45,7 @@ def parse_overrides(items: list[str]) -> dict:
 def run(args) -> int:
     from magenv import scenarios
 
+    args.out = output_file(args.out, "--out")
     overrides = parse_overrides(args.set)
     if args.scenario not in scenarios.scenario_names():
         raise CommandError(

@@ -42,7 +42,7 @@ from pathlib import Path
 import yaml
 
 from magenv.agents.hyperparams import POSITIVE_INT
-from magenv.train.cli import PARTIAL, CommandError, rule_arg
+from magenv.train.cli import PARTIAL, CommandError, output_folder, rule_arg
 
 SUMMARY_COLUMNS = (
     "env",
@@ -267,6 +267,8 @@ def run(args: argparse.Namespace) -> int:
     from magenv.agents.hyperparams import ConfigError
     from magenv.train.sweep_config import load_sweep
 
+    if not args.dry_run:
+        output_folder(args.out, "--out")
     try:
         sweep = load_sweep(args.config)
     except ConfigError as exc:

@@ -41,7 +41,7 @@ from magenv.agents.hyperparams import (
     SEED_RULE,
 )
 from magenv.envs import BLEND_ID
-from magenv.train.cli import CommandError, rule_arg
+from magenv.train.cli import CommandError, output_folder, rule_arg
 from magenv.train.seeds import seeds_arg
 
 
@@ -137,10 +137,9 @@ def run_dagger(args: argparse.Namespace) -> int:
     """``--teacher``: DAgger into ``--out`` (config: ``--config`` or the packaged dagger.yaml)."""
     from importlib import resources
 
-    import yaml
-
     from magenv import registry
     from magenv.agents import dagger
+    from magenv.checks import check_yaml
 
     try:
         teacher = registry.make(args.teacher)
@@ -153,8 +152,8 @@ def run_dagger(args: argparse.Namespace) -> int:
     if args.refit is not None and (args.resume or not args.config):
         raise CommandError("--refit needs --config (the fit keys to change) and no --resume")
     try:  # a resumed run keeps its own config
-        config = {} if args.resume else dict((yaml.safe_load(Path(path).read_text()) or {}).get(env_id) or {})
-    except (OSError, yaml.YAMLError, AttributeError, TypeError, ValueError) as exc:
+        config = {} if args.resume else dict((check_yaml(Path(path).read_text(), path) or {}).get(env_id) or {})
+    except (OSError, AttributeError, TypeError, ValueError) as exc:
         raise CommandError(f"cannot read the DAgger config {path}: {exc}") from None
     if args.iters is not None:
         config["iterations"] = args.iters
@@ -195,6 +194,7 @@ def run(args: argparse.Namespace) -> int:
     from magenv.agents.loading import WEIGHTS, RunError
     from magenv.agents.training import progress, train
 
+    args.out = output_folder(args.out, "--out")
     if args.teacher is not None:
         return run_dagger(args)
     if args.resume:

@@ -22,7 +22,7 @@ from pathlib import Path
 from magenv.agents.hyperparams import POSITIVE_INT, SEED_RULE, integer
 from magenv.scenarios import TRAINING_MIX
 from magenv.seeding import HELD_OUT_BELOW as TRAIN_SEED_START
-from magenv.train.cli import CommandError, rule_arg
+from magenv.train.cli import CommandError, output_file, output_folder, rule_arg
 from magenv.train.seeds import seeds_arg
 
 
@@ -77,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
     from magenv import registry
     from magenv.baselines.tuning import tune_rule
 
+    folder = output_folder(args.out or registry.user_tuned_dir(), "--out")
+    path = output_file(folder / f"{args.rule}.json", "--out")
     seeds = args.seeds
     if min(seeds) < TRAIN_SEED_START:
         raise CommandError(f"training seeds must be >= {TRAIN_SEED_START}; lower seeds are held out for evaluation")
@@ -94,9 +96,7 @@ def run(args: argparse.Namespace) -> int:
         )
     except (KeyError, ValueError) as exc:  # TunedParamsError is a ValueError
         raise CommandError(str(exc)) from None
-    folder = args.out or registry.user_tuned_dir()
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{args.rule}.json"
     path.write_text(json.dumps(record, indent=2) + "\n")
     print(
         f"{args.rule}: published {record['published_objective_deg']:.3f}° -> tuned {record['objective_deg']:.3f}° "

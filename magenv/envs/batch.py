@@ -27,7 +27,7 @@ import numpy as np
 from gymnasium.utils import seeding
 
 from magenv.checks import check_int
-from magenv.envs.common import TrialRunner, TrustEnv, cut_trial
+from magenv.envs.common import TrialRunner, TrustEnv, check_reset_args, cut_trial
 from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR
 from magenv.trial import Trial
 
@@ -287,14 +287,19 @@ class BatchVectorEnv(gym.vector.VectorEnv):
             self._begin(int(i))
 
     def reset(self, *, seed=None, options=None):
+        """``seed`` (None, an integer ≥ 0, or one such per sub-env) and ``options`` are checked as the single env
+        checks them (``magenv.envs.common.check_reset_args``), before any sub-env is reset."""
         n = self.num_envs
-        if seed is None or isinstance(seed, (int, np.integer)):
-            seeds = [None if seed is None else int(seed) + i for i in range(n)]
-        else:
+        if isinstance(seed, (list, tuple, np.ndarray)):
             seeds = list(seed)
             if len(seeds) != n:
-                raise ValueError(f"got {len(seeds)} seeds for {n} envs")
-        trial = (options or {}).get("trial")
+                raise ValueError(f"seed: got {len(seeds)} seeds for {n} envs")
+            for s in seeds:
+                check_reset_args(s, None)
+        else:
+            check_reset_args(seed, None)
+            seeds = [None if seed is None else int(seed) + i for i in range(n)]
+        trial = check_reset_args(None, options).get("trial")
         if trial is not None and not isinstance(trial, Trial):
             raise TypeError(f"options['trial'] must be a magenv.trial.Trial, got {type(trial).__name__}")
         for i, s in enumerate(seeds):
