@@ -67,8 +67,13 @@ through ``reset(options={"trial": …})``), so training sees exactly the
 observations and action handling of evaluation; the teacher reads the env's
 runner.
 
-The run folder holds weights and arrays only (``magenv.agents.weights`` format, numpy ``.npz``; no pickles)::
+The run folder holds weights and arrays only (``magenv.agents.weights`` format, numpy ``.npz``; no pickles), always
+whole: a run holds its lock while it writes (a second run into it stops at once); the files that change —
+``run.yaml``, ``best.safetensors``, ``iterations.csv`` — are written as one transaction with ``state.json``
+(``magenv.agents.run_folder``), so a kill leaves them as they were before a step or after it, and the write-once
+files (an iteration's data and checkpoint) are written whole before the step that names them::
 
+    state.json           the committed state: iterations done, the SHA-256 of run.yaml, best and the log
     run.yaml             env id, env kwargs, algo "dagger", the config, the student's shape and input constants
     best.safetensors     the student with the best validation score
     checkpoints/it_N.safetensors   the student of each iteration (an ensemble's members: run.yaml ``ensemble``)
@@ -98,6 +103,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import yaml
 
+from magenv.agents.run_folder import RunFolder
 from magenv.agents.student_inputs import StudentInputs, inputs_for
 from magenv.agents.weights import RunError, _write, read
 from magenv.envs import BLEND_ID
@@ -677,7 +683,14 @@ def train(
         raise ValueError(f"regret_scale best_rule needs a teacher with rule_actions; {teacher.name!r} has none")
     if not resume and (out / RUN_FILE).exists():
         raise ValueError(f"{out} already holds a run; choose another --out (or continue it with --resume)")
-    out.mkdir(parents=True, exist_ok=True)
+    folder = RunFolder(out)
+    with folder.locked():
+        folder.recover()
+        return _train(out, folder, teacher, cfg, run, env_id, log)
+
+
+def _train(out: Path, folder: RunFolder, teacher, cfg: dict, run: dict | None, env_id: str, log) -> Path:
+    """:func:`train` in the locked, recovered run folder ``folder``: every file committed with ``state.json``."""
     k = cfg["decision_every"]
     inputs = inputs_for(env_id)
     cands, meta = candidate_matrix(teacher.candidates), inputs.meta(teacher)
@@ -709,7 +722,11 @@ def train(
             new_run["ensemble"] = run["ensemble"]
     elif (out / DATA).is_dir() and any((out / DATA).iterdir()):
         raise ValueError(f"{out / DATA} holds another run's data; choose another --out")
-    _write_run(out / RUN_FILE, new_run)
+
+    def commit(writers: dict) -> None:  # the state names the iterations done
+        folder.commit(writers, {"algo": ALGO, "iterations": len(rows)})
+
+    commit({RUN_FILE: lambda p: _write_run(p, new_run)})
 
     def rule_act(o, runner, costs):
         return teacher.continuation_action(runner)
@@ -796,18 +813,19 @@ def train(
         t_fit = time.time() - t
         rmse, ratio, score = validation.score(student)
         info = {"iteration": it, "val_ratio": score, "samples": len(x)}
-        student.save(out / CHECKPOINTS / f"it_{it}.safetensors", info)
+        student.save(out / CHECKPOINTS / f"it_{it}.safetensors", info)  # write-once, atomic; the log names it
+        writers = {}
         if best is None or score < best:
             best = score
-            student.save(out / BEST, info)
+            writers[BEST] = lambda p, st=student, i=info: st.save(p, i)
         rows.append(_log_row(it, len(x), t_fit, score, best, rmse, ratio))
-        _write_log(out / LOG, rows)
+        commit({**writers, LOG: lambda p: _write_log(p, rows)})  # best and log: one transaction
         log(f"iteration {it}: {len(x)} samples, fit {t_fit:.0f} s, val ratio {score:.3f} {_fmt(ratio)}")
     if cfg["ensemble"] > 1:
-        add_ensemble(out, teacher, cfg["ensemble"], log, validation)
+        _add_ensemble(out, folder, teacher, cfg["ensemble"], log, validation)
     elif "ensemble" in new_run:  # resumed with ``ensemble: 1``: the student is the best iteration again
         del new_run["ensemble"]
-        _write_run(out / RUN_FILE, new_run)
+        commit({RUN_FILE: lambda p: _write_run(p, new_run)})
     return out
 
 
@@ -846,13 +864,21 @@ def refit(source: str | Path, out: str | Path, teacher, changes: dict, log: Call
     student = fit(x, r, cfg, cfg["seed"], cands, inputs, meta, _joined([rule for _, _, rule in parts]))
     t_fit = time.time() - t
     rmse, ratio, score = validation.score(student)
-    out.mkdir(parents=True, exist_ok=True)
     new_run = {**run, "config": cfg, "student": {**run["student"], "hidden": [int(h) for h in cfg["hidden"]]}}
     new_run.pop("ensemble", None)
     new_run["refit_of"] = {"run": str(source), "iterations": len(rows), "samples": int(len(x))}
-    _write_run(out / RUN_FILE, new_run)
-    student.save(out / BEST, {"iteration": len(rows), "val_ratio": score, "samples": len(x)})
-    _write_log(out / LOG, [_log_row(len(rows), len(x), t_fit, score, score, rmse, ratio)])
+    info = {"iteration": len(rows), "val_ratio": score, "samples": len(x)}
+    log_rows = [_log_row(len(rows), len(x), t_fit, score, score, rmse, ratio)]
+    folder = RunFolder(out)
+    with folder.locked():
+        folder.recover()
+        if (out / RUN_FILE).exists():
+            raise ValueError(f"{out} already holds a run; choose another --out")
+        folder.commit(
+            {RUN_FILE: lambda p: _write_run(p, new_run), BEST: lambda p: student.save(p, info),
+             LOG: lambda p: _write_log(p, log_rows)},
+            {"algo": ALGO, "iterations": 1},
+        )  # fmt: skip
     log(f"refit of {source} ({len(x)} samples): fit {t_fit:.0f} s, val ratio {score:.3f} {_fmt(ratio)}")
     return out
 
@@ -889,7 +915,14 @@ def add_ensemble(
     """Make the student of the run in ``run_dir`` the ensemble of its ``k`` iterations of lowest validation
     score (step 4 of the module docstring): scores it on the run's validation trials and writes its members,
     score and ``config.ensemble = k`` into run.yaml; returns that ``ensemble`` entry."""
-    run_dir = Path(run_dir)
+    folder = RunFolder(Path(run_dir))
+    with folder.locked():
+        folder.recover()
+        return _add_ensemble(Path(run_dir), folder, teacher, k, log, validation)
+
+
+def _add_ensemble(run_dir: Path, folder: RunFolder, teacher, k: int, log, validation: Validation | None) -> dict:
+    """:func:`add_ensemble` in the locked, recovered run folder ``folder``."""
     run = yaml.safe_load((run_dir / RUN_FILE).read_text())
     check_teacher(teacher, run["env_id"])
     if getattr(teacher, "name", "") != run["teacher"]:
@@ -906,7 +939,7 @@ def add_ensemble(
     _, ratio, score = validation.score(ensemble)
     run["config"]["ensemble"] = int(k)
     run["ensemble"] = {"members": members, "val_ratio": score, **{f"{sc}_ratio": v for sc, v in ratio.items()}}
-    _write_run(run_dir / RUN_FILE, run)
+    folder.commit({RUN_FILE: lambda p: _write_run(p, run)}, {"algo": ALGO, "iterations": len(rows)})
     log(f"ensemble of iterations {[int(row['iteration']) for row in chosen]}: val ratio {score:.3f} {_fmt(ratio)}")
     return run["ensemble"]
 
@@ -933,17 +966,15 @@ def _resumed_run(out: Path, teacher, env_id: str, config: dict | None, purpose: 
 
 
 def _write_run(path: Path, run: dict) -> None:
-    """run.yaml written whole, then renamed (an interrupted write leaves the old one)."""
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(yaml.safe_dump(run, sort_keys=False))
-    tmp.replace(path)
+    """run.yaml at ``path`` (a :meth:`RunFolder.commit` writer: the commit makes it whole)."""
+    path.write_text(yaml.safe_dump(run, sort_keys=False))
 
 
 def _save_data(path: Path, obs: np.ndarray, regret: np.ndarray, rule: np.ndarray) -> None:
     """``obs``, ``regret`` and ``rule`` into ``path`` (.npz; written whole, then renamed: an interrupted run leaves
     none)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
+    tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         np.savez_compressed(f, obs=obs, regret=regret, rule=rule.astype(np.int16))
     tmp.replace(path)

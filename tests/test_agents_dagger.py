@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import yaml
@@ -37,8 +39,10 @@ def run_dir(tmp_path_factory):
 
 def test_run_folder_holds_weights_only(run_dir):
     files = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.rglob("*") if p.is_file())
-    assert files == ["best.safetensors", "checkpoints/it_0.safetensors", "checkpoints/it_1.safetensors",
-                     "data/it_0.npz", "data/it_1.npz", "iterations.csv", "run.yaml"]  # fmt: skip
+    assert files == [".lock", "best.safetensors", "checkpoints/it_0.safetensors", "checkpoints/it_1.safetensors",
+                     "data/it_0.npz", "data/it_1.npz", "iterations.csv", "run.yaml", "state.json"]  # fmt: skip
+    state = json.loads((run_dir / "state.json").read_text())
+    assert state["iterations"] == 2 and sorted(state["files"]) == ["best.safetensors", "iterations.csv", "run.yaml"]
     with np.load(run_dir / "data" / "it_1.npz", allow_pickle=False) as data:
         assert data["obs"].dtype == np.float32 and data["regret"].shape == (len(data["obs"]), 5)
         assert data["regret"].min() == 0.0  # the regret of each state's cheapest candidate
@@ -545,3 +549,26 @@ def test_a_guarded_student_falls_back_outside_its_inputs_range_and_where_members
         np.testing.assert_array_equal(loose.action(o), [0.9])
     with pytest.raises(ValueError, match="guard"):
         dagger.check_config({**TINY, "guard": {"fallback": [1.0]}})
+
+
+def test_a_second_run_into_a_locked_folder_stops_at_once_and_a_killed_step_leaves_the_folder_whole(tmp_path):
+    """Another process's lock on the folder stops a run before it writes; a kill between a step's files and its
+    state.json leaves the state before that step, which a resumed run recovers from."""
+    from magenv.agents.run_folder import RunFolder
+
+    out = tmp_path / "run"
+    with RunFolder(out).locked(), pytest.raises(RunError, match="another run is writing"):
+        with RunFolder(out).locked():
+            pass
+    teacher = registry.make("oracle")
+    dagger.train(out, teacher, TINY, log=lambda s: None)
+    before = {p.name: p.read_bytes() for p in (out / "best.safetensors", out / "iterations.csv", out / "state.json")}
+    (out / "best.safetensors.tmp").write_bytes(b"half a file")  # a step killed before its commit point
+    (out / "iterations.csv.tmp").write_text("iteration\n")
+    state = RunFolder(out).recover()
+    assert state["iterations"] == 2 and not list(out.glob("*.tmp"))
+    assert {
+        p.name: p.read_bytes() for p in (out / "best.safetensors", out / "iterations.csv", out / "state.json")
+    } == before
+    dagger.train(out, teacher, {"iterations": 3}, log=lambda s: None, resume=True)
+    assert json.loads((out / "state.json").read_text())["iterations"] == 3
