@@ -39,7 +39,9 @@ Training (Ross et al. 2011; β, config ``beta``, is the teacher's share of the d
    r_c = 100 · (cost_c − min cost) / (H · MSE of the continuation rule on that
    trial) (H = look-ahead samples: a unit of r is 1 % of the trial's rule MSE; ``regret_scale: best_rule``:
    of the lowest MSE of the teacher's rules, ``rule_actions(runner)`` (R, action_dim), each acting alone, so
-   that a protocol whose continuation rule is poor is not weighted down);
+   that a protocol whose continuation rule is poor is not weighted down; ``teacher``: of the teacher's own
+   closed-loop run, what can be reached — so that a trial the rule fails badly is not weighted down, and a
+   change of the error counts as it counts in the per-trial ratio of RMSEs the targets are stated in);
    with ``regret_clip: R`` each r_c is clipped at R in the loss (regrets are heavy-tailed: the states of a
    diverged roll-out cost 10³–10⁵ units and otherwise decide the fit; the stored data keep the raw values);
    with ``rule_margin: m`` every candidate other than the continuation rule's action at that state
@@ -139,7 +141,7 @@ RESUMABLE = ("iterations", "ensemble")  # the config keys a resumed run may chan
 # the fit keys a refit may change
 REFIT_KEYS = ("hidden", "fit_steps", "batch_size", "learning_rate", "seed", "regret_clip", "rule_margin")
 ACTS = ("mean", "argmax")  # how the student turns its candidate probabilities into an action
-REGRET_SCALES = ("rule", "best_rule")  # the trial MSE a unit of regret is 1 % of
+REGRET_SCALES = ("rule", "best_rule", "teacher")  # the trial MSE a unit of regret is 1 % of
 REGRET_UNIT = 100.0  # r_c in % of the trial's rule MSE
 TEACHER_NEEDS = ("env_id", "candidates", "decision_every", "candidate_costs", "continuation_action", "horizon_s")
 _SHAPE_KEYS = ("hidden", "candidates", "n_inputs", "act", "guard")  # run.yaml student keys: not input constants
@@ -731,9 +733,14 @@ def _train(out: Path, folder: RunFolder, teacher, cfg: dict, run: dict | None, e
     def rule_act(o, runner, costs):
         return teacher.continuation_action(runner)
 
+    def oracle_act(o, runner, costs):
+        return episodes.candidates(o)[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
+
     def rule_mse(trial) -> float:
         if cfg["regret_scale"] == "rule":
             return episodes.run(trial, rule_act, label_every=0).rmse ** 2
+        if cfg["regret_scale"] == "teacher":
+            return episodes.run(trial, oracle_act, label_every=0, needs_costs=True).rmse ** 2
         mses: list[float] = []
         n_rules = [1]
         while len(mses) < n_rules[0]:  # each of the teacher's rules alone (their number: from the first)
@@ -746,9 +753,6 @@ def _train(out: Path, folder: RunFolder, teacher, cfg: dict, run: dict | None, e
 
             mses.append(episodes.run(trial, act, label_every=0).rmse ** 2)
         return min(mses)
-
-    def oracle_act(o, runner, costs):
-        return episodes.candidates(o)[int(np.argmin(costs))]  # the cheapest candidate (the first on ties)
 
     def collect(j: int, student: Student | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The labelled states of iteration j: the teacher's (or rule's) episodes for j = 0, else ``student``'s
@@ -769,11 +773,12 @@ def _train(out: Path, folder: RunFolder, teacher, cfg: dict, run: dict | None, e
             first = cfg["train_seed"] + n_per * j
             for s in range(first, first + n_per):
                 trial = make_trial(sc, s)
-                o, costs, rule, _ = episodes.run(trial, act, cfg["label_every"], needs)
+                o, costs, rule, rmse = episodes.run(trial, act, cfg["label_every"], needs)
                 horizon = int(round(teacher.horizon_s * trial.rate))
                 if horizon < 1:
                     raise ValueError(f"the teacher's look-ahead {teacher.horizon_s} s is under one sample of {sc}")
-                regret = regret_units(costs, horizon, rule_mse(trial))
+                own = act is oracle_act and cfg["regret_scale"] == "teacher"  # this run is the teacher's own
+                regret = regret_units(costs, horizon, rmse**2 if own else rule_mse(trial))
                 if np.isnan(regret).any():  # every candidate's roll-out failed, or the rule's MSE is 0
                     raise ValueError(f"{sc} seed {s}: regrets are undefined at some decisions (no candidate of finite"
                                      " cost, or a rule of zero error)")  # fmt: skip

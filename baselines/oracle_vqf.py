@@ -39,7 +39,7 @@ from magenv.protocols import Estimate
 from magenv.trial import Trial
 
 CANDIDATES = (0.0, 0.25, 0.5, 0.75, 1.0)  # trust levels searched
-HORIZON_S = 2.0  # s, look-ahead of each search
+HORIZON_S = 4.0  # s, look-ahead of each search (half of VQF's τ_mag: a trust's cost shows)
 DECISION_EVERY = 32  # samples per decision (≈ 9 Hz at BROAD's 286 Hz)
 
 

@@ -419,6 +419,22 @@ def test_regret_scale_best_rule_scales_by_the_best_rules_mse(tmp_path):
         dagger.check_config({"regret_scale": "median"})
 
 
+def test_regret_scale_teacher_scales_by_the_teachers_own_mse(tmp_path):
+    """``regret_scale: teacher``: the same labels, in % of the MSE of the teacher's own closed-loop run on the
+    trial — one factor per trial, the rule's MSE over the teacher's, > 1 where the teacher does better."""
+    cfg = {**TINY, "iterations": 1, "label_every": 16}
+    teacher = registry.make("oracle")
+    regrets = []
+    for scale in ("rule", "teacher"):
+        out = dagger.train(tmp_path / scale, teacher, {**cfg, "regret_scale": scale}, log=lambda line: None)
+        with np.load(out / "data" / "it_0.npz") as z:
+            regrets.append(z["regret"])
+    positive = regrets[0] > 0
+    factor = regrets[1][positive] / regrets[0][positive]
+    np.testing.assert_allclose(factor, factor[0], rtol=1e-5)
+    assert factor[0] > 1.0  # the oracle does better than its continuation rule on the trial
+
+
 def test_regret_clip_bounds_each_states_loss():
     """``regret_clip: R`` fits exactly the student of the regrets clipped at R (the data keep the raw values);
     without it a state of huge regret changes the fit. Bad clips are refused."""

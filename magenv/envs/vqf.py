@@ -138,12 +138,25 @@ EXTRA = FeatureTable(
     Feature("rest_ema_5", 0.0, 1.0, "–", "EMA (τ 5 s) of VQF's rest flag"),
     Feature("gain_ema_10", 0.0, 1.0, "–", "EMA (τ 10 s) of the trust that reached VQF's gain (0 where rejected)"),
     Feature("gain_ema_60", 0.0, 1.0, "–", "EMA (τ 60 s) of that trust: how long the heading has gone uncorrected"),
+    Feature("norm_dev_ema_10", 0.0, 10.0, "fraction of m0", "EMA (τ 10 s) of |norm_dev|, against the trial's site"),
+    Feature(
+        "dip_dev_ema_10", 0.0, 2.0, f"units of {DIP_SCALE_DEG:g}°", "EMA (τ 10 s) of |dip_dev| (estimate after it)"
+    ),
+    Feature(
+        "psi_change_10",
+        -1.0,
+        1.0,
+        "units of 180°",
+        "the field's heading ψ in the 6D frame (= e + δ; steady in a clean field but for gyro drift) over the step, "
+        "against its EMA (τ 10 s) before: how far the field has turned lately without the sensor turning",
+    ),
+    Feature("psi_change_60", -1.0, 1.0, "units of 180°", "the same against ψ's EMA of τ 60 s"),
 )
 X: Any = EXTRA.ix
 _XLOW, _XHIGH = EXTRA.low64, EXTRA.high64
 #: per-sample sums the kernel keeps over a step for the EMAs (indices of ``Outputs.sums``)
-SUM_E, SUM_DIST, SUM_NORM, SUM_GYRO, SUM_REST, SUM_GAIN = range(6)
-N_SUMS = 6
+SUM_E, SUM_DIST, SUM_NORM, SUM_GYRO, SUM_REST, SUM_GAIN, SUM_NORM_DEV, SUM_DIP_DEV, SUM_PSI_C, SUM_PSI_S = range(10)
+N_SUMS = 10
 _EMA = (  # (feature, the sum it follows, τ s); dis_rate_2 follows the rate of the steps' mean e (update_memory)
     (X.dis_ema_1, SUM_E, 1.0),
     (X.dis_ema_10, SUM_E, 10.0),
@@ -153,19 +166,14 @@ _EMA = (  # (feature, the sum it follows, τ s); dis_rate_2 follows the rate of 
     (X.rest_ema_5, SUM_REST, 5.0),
     (X.gain_ema_10, SUM_GAIN, 10.0),
     (X.gain_ema_60, SUM_GAIN, 60.0),
+    (X.norm_dev_ema_10, SUM_NORM_DEV, 10.0),
+    (X.dip_dev_ema_10, SUM_DIP_DEV, 10.0),
 )
 _EMA_FEATURE = np.array([e[0] for e in _EMA], np.int64)
 _EMA_SUM = np.array([e[1] for e in _EMA], np.int64)
 _EMA_TAU = np.array([e[2] for e in _EMA])
-_SUM_SCALE = np.zeros(N_SUMS)  # sum → feature unit
-_SUM_SCALE[[SUM_E, SUM_DIST, SUM_NORM, SUM_GYRO, SUM_REST, SUM_GAIN]] = (
-    1.0 / np.pi,
-    1.0,
-    1.0,
-    1.0 / GYRO_SCALE,
-    1.0,
-    1.0,
-)
+_SUM_SCALE = np.ones(N_SUMS)  # sum → feature unit
+_SUM_SCALE[SUM_E], _SUM_SCALE[SUM_GYRO], _SUM_SCALE[SUM_DIP_DEV] = 1.0 / np.pi, 1.0 / GYRO_SCALE, 1.0 / DIP_SCALE_DEG
 
 LAGS = (4, 16)  # decisions: the memory of the extended observation
 _CURRENT = (*FEATURES.features, *EXTRA.features)
@@ -296,8 +304,9 @@ def state_scalars(p, s, delta0, vq):
 
 
 @njit(cache=True)
-def advance(p, s, w, reject, site, sensors, truth, out, u, start, stop):
-    """Fuse samples ``start:stop`` with trust ``u``, then the observation of sample ``stop``.
+def advance(p, s, w, reject, site, sensors, truth, out, u, start, stop, memory):
+    """Fuse samples ``start:stop`` with trust ``u``, then the observation of sample ``stop``; with ``memory`` also
+    the per-sample sums of the extended observation's EMAs (``out.sums``).
 
     Args:
         p, s, w: ``magenv.filters.vqf`` parameters, state (updated in place) and scratch vectors.
@@ -313,6 +322,7 @@ def advance(p, s, w, reject, site, sensors, truth, out, u, start, stop):
     for m in range(N_SUMS):
         sums[m] = 0.0
     for i in range(start, stop):
+        delta_prev = s[S.delta]
         vqf.step(p, s, w, gyr[i], acc[i], mag[i], k, tau)
         out.est[i, 0], out.est[i, 1], out.est[i, 2], out.est[i, 3] = vqf.quat9d(s)
         flag = s[S.mag_dist]
@@ -320,6 +330,8 @@ def advance(p, s, w, reject, site, sensors, truth, out, u, start, stop):
         out.trust[i] = u
         gain = 0.0 if (reject and flag) else u
         out.gain[i] = gain
+        if not memory:
+            continue
         sums[SUM_GAIN] += gain
         sums[SUM_E] += s[S.dis_angle]
         sums[SUM_DIST] += flag
@@ -327,6 +339,11 @@ def advance(p, s, w, reject, site, sensors, truth, out, u, start, stop):
         sums[SUM_NORM] += abs(s[S.norm_dip] - ref) / ref if ref > 0.0 else 0.0
         sums[SUM_GYRO] += _norm3(gyr[i])
         sums[SUM_REST] += s[S.rest]
+        sums[SUM_NORM_DEV] += abs(_norm3(mag[i]) - site.m0) / site.m0
+        sums[SUM_DIP_DEV] += abs(dip_deg(out.est[i], mag[i]) - site.dip0)
+        psi = s[S.dis_angle] + delta_prev  # e = ψ − δ before the sample's step
+        sums[SUM_PSI_C] += np.cos(psi)
+        sums[SUM_PSI_S] += np.sin(psi)
     error_sums(out.est, truth.q_true, truth.dist, start, stop, out.err)
     state_scalars(p, s, delta0, out.vq)
     q_now = w[vqf.W_E : vqf.W_E + 4]  # the scratch's last rows, free after the samples
@@ -336,7 +353,9 @@ def advance(p, s, w, reject, site, sensors, truth, out, u, start, stop):
                     u_prev, out.feat)  # fmt: skip
 
 
-N_MEMORY = len(_EMA) + 3  # the EMAs, then the dis-rate EMA, the last step's mean e and its step length
+PSI_TAUS = (10.0, 60.0)  # s, the EMAs of ψ's direction (cos, sin) behind psi_change_10 and psi_change_60
+#: the EMAs, then the dis-rate EMA, the last step's mean e and its step length, then ψ's EMAs (cos, sin each)
+N_MEMORY = len(_EMA) + 3 + 2 * len(PSI_TAUS)
 
 
 @njit(cache=True)
@@ -368,6 +387,21 @@ def update_memory(p, s, sums, cnt, memory, count, extra):
             a = 1.0 if count[0] == 1 else -np.expm1(-cnt * ts / 2.0)
             memory[n_ema] += a * (rate - memory[n_ema])
         memory[n_ema + 1], memory[n_ema + 2] = e, cnt
+        c, sn = sums[SUM_PSI_C] / cnt, sums[SUM_PSI_S] / cnt
+        psi = np.arctan2(sn, c)
+        for j in range(len(PSI_TAUS)):
+            o = n_ema + 3 + 2 * j
+            if first:
+                memory[o], memory[o + 1] = c, sn
+            d = psi - np.arctan2(memory[o + 1], memory[o])
+            if d > np.pi:
+                d -= 2.0 * np.pi
+            elif d < -np.pi:
+                d += 2.0 * np.pi
+            extra[X.psi_change_10 + j] = d / np.pi
+            a = -np.expm1(-cnt * ts / PSI_TAUS[j])
+            memory[o] += a * (c - memory[o])
+            memory[o + 1] += a * (sn - memory[o + 1])
     for m in range(n_ema):
         f = _EMA_FEATURE[m]
         extra[f] = min(_XHIGH[f], max(_XLOW[f], memory[m]))
@@ -379,7 +413,7 @@ def advance_extended(p, s, w, reject, site, sensors, truth, out, u, start, stop,
     """:func:`advance`, then the extended observation ``feat`` (len(EXTENDED)) of sample ``stop``: the extra
     features (:func:`update_memory`; ``memory`` its EMAs, ``extra`` its values) and the memory ``rows`` (ring of
     the current blocks by decision), ``count`` (1,) decisions so far."""
-    advance(p, s, w, reject, site, sensors, truth, out, u, start, stop)
+    advance(p, s, w, reject, site, sensors, truth, out, u, start, stop, True)
     update_memory(p, s, out.sums, stop - start, memory, count, extra)
     lagged.compose(out.feat, extra, rows, count, _LAGS, stop > start, feat)
 
@@ -426,8 +460,8 @@ class VQFRunner(TrialRunner):
             self._more: tuple = (self.memory, self.extra, rows, np.zeros(1, np.int64), self.feat)
             self._advance = self.compiled(advance_extended, *self._args, 1.0, 0, 0, *self._more)
         else:
-            self._more = ()
-            self._advance = self.compiled(advance, *self._args, 1.0, 0, 0)
+            self._more = (False,)  # no memory sums
+            self._advance = self.compiled(advance, *self._args, 1.0, 0, 0, *self._more)
         self._fuse(0, 0, 1.0)  # the observation of sample 0, nothing fused
 
     @property
@@ -735,7 +769,7 @@ def _advance_env(b, i):
         advance_extended(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], start - base,
                          stop - base, b.memory[i], b.extra[i], b.rows[i], b.decisions[i], b.feat_ext[i])  # fmt: skip
     else:
-        advance(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], start - base, stop - base)
+        advance(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], start - base, stop - base, False)
     b.pos[i] = stop
 
 

@@ -361,7 +361,7 @@ def bias_sigma(p, s):
     return np.sqrt(min(top, p[P.bias_p0])) * (np.pi / 100.0 / 180.0)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _lowpass(p, c, tau, s, lp, x, n, out):
     """One step of the low-pass with coefficients p[c:c + 5] and state s[lp:lp + 2n] on ``x[:n]`` → ``out[:n]``
     (``out`` may be ``x``). For its first τ seconds its output is the mean of its inputs; then it starts from the
@@ -438,7 +438,7 @@ def _clip(x, lim):
 # ----------------------------------------------------------------- the three updates
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _update_gyr(p, s, w, g0, g1, g2):
     """Rest detection on the gyro, then the strapdown step with the de-biased rate (eq. 4)."""
     if p[P.rest_bias] or p[P.mag_rejection]:
@@ -462,7 +462,7 @@ def _update_gyr(p, s, w, g0, g1, g2):
         _normalize(s, q, 4)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _update_acc(p, s, w, a0, a1, a2):
     """Rest detection on the accelerometer, the inclination correction (eqs. 6–9) and the bias update (eqs.
     10–26). An all-zero sample is skipped."""
@@ -504,7 +504,7 @@ def _update_acc(p, s, w, a0, a1, a2):
         _update_bias(p, s, w, e0, e1)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _update_bias(p, s, w, e0, e1):
     """The bias Kalman filter (eqs. 10–26): at rest the measurement is the low-passed gyro (eq. 24), in motion
     the inclination correction the low-passed accelerometer (e0, e1: its unit x, y in E_i) asks for, as a rate,
@@ -564,7 +564,7 @@ def _update_bias(p, s, w, e0, e1):
         s[b + i] = _clip(s[b + i], clip)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def field_step(p, s, m0, m1, m2):
     """The magnetometer sample's part of VQF that does not depend on the trust: disturbance detection,
     new-field acceptance and the rejection's bookkeeping (eqs. 31–36). Returns (ψ, d): ψ the heading of the field
@@ -645,7 +645,7 @@ def heading_update(delta, init, psi, divisor, k, tau, ts):
     return d, init, e, k
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def heading_step(p, s, psi, divisor, k, tau):
     """The trust's part of a magnetometer sample: :func:`heading_update` on the state (``divisor`` 0: no
     sample, nothing moves)."""
@@ -657,7 +657,7 @@ def heading_step(p, s, psi, divisor, k, tau):
     s[S.mag_corr_rate] = k * e / ts
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def six_d_step(p, s, w, gyr, acc):
     """The gyroscope and accelerometer part of a sample (rest, strapdown, inclination, bias): q6D."""
     _update_gyr(p, s, w, gyr[0], gyr[1], gyr[2])
