@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import json
 
+import kernel_rmse
 import numpy as np
 import pytest
-
-import kernel_rmse
 
 TOLERANCE_DEG = 1e-9
 RECORDED = json.loads(kernel_rmse.FIXTURE.read_text())
