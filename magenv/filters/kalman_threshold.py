@@ -51,6 +51,7 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.checks import check_noise, check_positive, check_site
+from magenv.filters.linalg import is_pd3, mat3, store3
 from magenv.filters.sensors import Sensors
 from magenv.filters.solvers import Solver, make_solver, solve1
 from magenv.quaternion import GRAVITY, align1, from_rotvec1, mul1, normalize1, rotate_inv1
@@ -102,56 +103,80 @@ class State(NamedTuple):
 
 
 @njit(cache=True)
-def _is_pd(p):
-    """Cholesky test: True if the symmetric matrix ``p`` is positive definite."""
-    n = p.shape[0]
-    lo = np.zeros((n, n))
+def is_pd(p, n, lo):
+    """Cholesky test: True if the leading n×n block of the symmetric matrix ``p`` is positive definite;
+    ``lo`` (≥ n, ≥ n) is scratch for the factor (its diagonal holds the reciprocals of L's)."""
     for j in range(n):
+        lj = lo[j]
         s = p[j, j]
         for k in range(j):
-            s -= lo[j, k] * lo[j, k]
+            s -= lj[k] * lj[k]
         if not (s > 0.0):
             return False
-        lo[j, j] = np.sqrt(s)
+        inv = 1.0 / np.sqrt(s)
+        lj[j] = inv
         for i in range(j + 1, n):
+            li = lo[i]
             s = p[i, j]
             for k in range(j):
-                s -= lo[i, k] * lo[j, k]
-            lo[i, j] = s / lo[j, j]
+                s -= li[k] * lj[k]
+            li[j] = s * inv
     return True
 
 
 @njit(cache=True)
-def repair_cov1(p, floor):
-    """Keep a covariance healthy, in place.
+def repair_cov(p, n, floor, lo):
+    """Keep the covariance on the leading n×n block of ``p`` healthy, in place (``lo`` (≥ n, ≥ n) scratch).
 
-    Symmetrises ``p``; if it is then not positive definite, floors its
-    eigenvalues at ``floor``. Returns 0 (healthy), 1 (repaired) or −1
-    (non-finite: cannot be repaired — the caller must fail loudly).
+    Symmetrises it; if it is then not positive definite, floors its eigenvalues at ``floor``. Returns 0
+    (healthy), 1 (repaired) or −1 (non-finite: cannot be repaired — the caller must fail loudly).
     """
-    n = p.shape[0]
     for i in range(n):
-        for j in range(n):
-            if not np.isfinite(p[i, j]):
-                return -1
-    for i in range(n):
+        if not np.isfinite(p[i, i]):
+            return -1
         for j in range(i + 1, n):
-            m = 0.5 * (p[i, j] + p[j, i])
+            a, b = p[i, j], p[j, i]
+            if not (np.isfinite(a) and np.isfinite(b)):
+                return -1
+            m = 0.5 * (a + b)
             p[i, j] = m
             p[j, i] = m
-    if _is_pd(p):
+    if is_pd(p, n, lo):
         return 0
-    vals, vecs = np.linalg.eigh(p)
+    vals, vecs = np.linalg.eigh(p[:n, :n].copy())
     for k in range(n):
         if vals[k] < floor:
             vals[k] = floor
-    p[:, :] = (vecs * vals) @ vecs.T
+    p[:n, :n] = (vecs * vals) @ vecs.T
     for i in range(n):
         for j in range(i + 1, n):
             m = 0.5 * (p[i, j] + p[j, i])
             p[i, j] = m
             p[j, i] = m
     return 1
+
+
+@njit(cache=True)
+def repair_cov1(p, floor):
+    """:func:`repair_cov` of the whole square matrix ``p``."""
+    return repair_cov(p, p.shape[0], floor, np.empty_like(p))
+
+
+@njit(cache=True)
+def repair_cov3(p, floor):
+    """:func:`repair_cov1` of a 3×3 covariance given as a 9-tuple ``p`` (``magenv.filters.linalg``).
+    Returns ``(status, p')``, p' a 9-tuple (``p`` where not finite, status −1)."""
+    for v in p:
+        if not np.isfinite(v):
+            return -1, p
+    m01, m02, m12 = 0.5 * (p[1] + p[3]), 0.5 * (p[2] + p[6]), 0.5 * (p[5] + p[7])
+    m = (p[0], m01, m02, m01, p[4], m12, m02, m12, p[8])
+    if is_pd3(m):
+        return 0, m
+    out = np.empty((3, 3))
+    store3(m, out)
+    status = repair_cov1(out, floor)
+    return status, mat3(out)
 
 
 @njit(cache=True, inline="always")
