@@ -15,7 +15,8 @@ ending in ``1``, for use inside other kernels), and as a broadcasting NumPy
 ufunc built from that kernel (for arrays ``(..., 4)``). The kernels the
 filters' sample loops call most also come as tuple kernels (names ending in
 the tuple's length: ``mul4``, ``normalize4``, ``rotate3``, ``rotate_inv3``,
-``from_rotvec4``), which allocate nothing; the ``1`` kernels are built on them.
+``from_rotvec4``, and the product matrices ``left_matrix4``, ``right_matrix4``),
+which allocate nothing; the ``1`` kernels are built on them.
 """
 
 from __future__ import annotations
@@ -37,6 +38,28 @@ def mul4(a, b):
         a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
         a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
         a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
+    )
+
+
+@njit(cache=True, inline="always")
+def left_matrix4(q):
+    """Rows (a 4-tuple of 4-tuples) of the 4×4 M(q) with ``q ⊗ p = M(q) p``."""
+    return (
+        (q[0], -q[1], -q[2], -q[3]),
+        (q[1], q[0], -q[3], q[2]),
+        (q[2], q[3], q[0], -q[1]),
+        (q[3], -q[2], q[1], q[0]),
+    )
+
+
+@njit(cache=True, inline="always")
+def right_matrix4(p):
+    """Rows (a 4-tuple of 4-tuples) of the 4×4 C(p) with ``q ⊗ p = C(p) q``."""
+    return (
+        (p[0], -p[1], -p[2], -p[3]),
+        (p[1], p[0], p[3], -p[2]),
+        (p[2], -p[3], p[0], p[1]),
+        (p[3], p[2], -p[1], p[0]),
     )
 
 

@@ -56,7 +56,7 @@ from magenv.filters.kalman_threshold import (
 )
 from magenv.filters.linalg import add33, diag3, inv3, mul33, mul33t, mulsym33t, mv3, sandwich3, scale33, skew3, sub33
 from magenv.filters.sensors import Sensors
-from magenv.filters.solvers import Solver, make_solver, solve1
+from magenv.filters.solvers import Solver, make_solver, solve1, solve4
 from magenv.quaternion import from_rotvec4, rotate_inv3
 
 C_A = 0.1  # GM correlation per sample (survey)
@@ -216,10 +216,10 @@ def run_kernel(prm, sensors, q_out, x_acc, x_mag, gain_mag):
         if sa < 0 or sm < 0:
             return k, repairs
         repairs += sa + sm
-        qk = solve1(prm.solver, xa[:3], xm[:3], prm.g_ref, prm.h_ref)
+        qk = solve4(prm.solver, xa[:3], xm[:3], prm.g_ref, prm.h_ref)
         if not np.isfinite(qk[0]):
             return k, repairs
-        q_out[k] = qk
+        q_out[k, 0], q_out[k, 1], q_out[k, 2], q_out[k, 3] = qk
         x_acc[k] = xa
         x_mag[k] = xm
         gain_mag[k] = gm

@@ -1,10 +1,11 @@
 """Small fixed-size linear algebra written out for the filters' sample loops: nothing is allocated.
 
-* 3×3 matrices as 9-tuples, row-major (``m[3 * i + j]``), 3-vectors as 3-tuples (arrays of those shapes
-  are read the same way by :func:`mat3`): products, the symmetric sandwich ``A P Aᵀ``, the inverse by the
-  adjugate, and the Kalman update of a 3-state error with a 3-component measurement (:func:`update3`) —
-  the trust KF's (``magenv.filters.kalman_trust``) and the Gauss–Markov split's
-  (``magenv.filters.kalman_model``) pieces.
+* 3×3 matrices as 9-tuples, row-major (``m[3 * i + j]``), 3-vectors as 3-tuples (:func:`mat3` reads a
+  (3, 3) array): products, the symmetric sandwich ``A P Aᵀ``, the inverse by the adjugate, the innovation
+  covariance and the Joseph form of a 3-component update (:func:`joseph3`) — the pieces of the trust KF
+  (``magenv.filters.kalman_trust``) and of the Gauss–Markov split (``magenv.filters.kalman_model``).
+* :func:`inv4` — a 4×4 inverse by the adjugate (the threshold KF's ``S⁻¹``,
+  ``magenv.filters.kalman_threshold``).
 * Symmetric n×n covariances held in arrays, updated in place on their leading ``n`` rows and columns
   (``magenv.filters.qsf``'s 11 and 15 states): the Joseph update with a 3-row measurement through its
   low-rank factors (:func:`joseph_update`), the projection of a quaternion's rows and columns on the unit
@@ -151,7 +152,7 @@ def quad3(v, a):
 @njit(cache=True, inline="always")
 def inv3(a):
     """Inverse of a 9-tuple by its adjugate over the determinant (a symmetric ``a`` gives an exactly symmetric
-    inverse); inf/NaN entries where ``a`` is singular."""
+    inverse); NaN entries where ``a`` is singular (the filters then fail loudly on a non-finite state)."""
     c00 = a[4] * a[8] - a[5] * a[7]
     c01 = a[5] * a[6] - a[3] * a[8]
     c02 = a[3] * a[7] - a[4] * a[6]
@@ -161,7 +162,8 @@ def inv3(a):
     c20 = a[1] * a[5] - a[2] * a[4]
     c21 = a[2] * a[3] - a[0] * a[5]
     c22 = a[0] * a[4] - a[1] * a[3]
-    d = 1.0 / (a[0] * c00 + a[1] * c01 + a[2] * c02)
+    det = a[0] * c00 + a[1] * c01 + a[2] * c02
+    d = 1.0 / det if det != 0.0 else np.nan
     return (c00 * d, c10 * d, c20 * d, c01 * d, c11 * d, c21 * d, c02 * d, c12 * d, c22 * d)
 
 
@@ -196,6 +198,42 @@ def is_pd3(p):
     l21 = (p[7] - l20 * l10) * (1.0 / np.sqrt(s))
     s = p[8] - l20 * l20 - l21 * l21
     return s > 0.0
+
+
+@njit(cache=True)
+def inv4(a, out):
+    """``out`` (4, 4) ← the inverse of the (4, 4) array ``a`` by its adjugate over the determinant (Laplace
+    expansion in the 2×2 minors of the first two and the last two rows); NaN where ``a`` is singular."""
+    s0 = a[0, 0] * a[1, 1] - a[1, 0] * a[0, 1]
+    s1 = a[0, 0] * a[1, 2] - a[1, 0] * a[0, 2]
+    s2 = a[0, 0] * a[1, 3] - a[1, 0] * a[0, 3]
+    s3 = a[0, 1] * a[1, 2] - a[1, 1] * a[0, 2]
+    s4 = a[0, 1] * a[1, 3] - a[1, 1] * a[0, 3]
+    s5 = a[0, 2] * a[1, 3] - a[1, 2] * a[0, 3]
+    c5 = a[2, 2] * a[3, 3] - a[3, 2] * a[2, 3]
+    c4 = a[2, 1] * a[3, 3] - a[3, 1] * a[2, 3]
+    c3 = a[2, 1] * a[3, 2] - a[3, 1] * a[2, 2]
+    c2 = a[2, 0] * a[3, 3] - a[3, 0] * a[2, 3]
+    c1 = a[2, 0] * a[3, 2] - a[3, 0] * a[2, 2]
+    c0 = a[2, 0] * a[3, 1] - a[3, 0] * a[2, 1]
+    det = s0 * c5 - s1 * c4 + s2 * c3 + s3 * c2 - s4 * c1 + s5 * c0
+    d = 1.0 / det if det != 0.0 else np.nan
+    out[0, 0] = (a[1, 1] * c5 - a[1, 2] * c4 + a[1, 3] * c3) * d
+    out[0, 1] = (-a[0, 1] * c5 + a[0, 2] * c4 - a[0, 3] * c3) * d
+    out[0, 2] = (a[3, 1] * s5 - a[3, 2] * s4 + a[3, 3] * s3) * d
+    out[0, 3] = (-a[2, 1] * s5 + a[2, 2] * s4 - a[2, 3] * s3) * d
+    out[1, 0] = (-a[1, 0] * c5 + a[1, 2] * c2 - a[1, 3] * c1) * d
+    out[1, 1] = (a[0, 0] * c5 - a[0, 2] * c2 + a[0, 3] * c1) * d
+    out[1, 2] = (-a[3, 0] * s5 + a[3, 2] * s2 - a[3, 3] * s1) * d
+    out[1, 3] = (a[2, 0] * s5 - a[2, 2] * s2 + a[2, 3] * s1) * d
+    out[2, 0] = (a[1, 0] * c4 - a[1, 1] * c2 + a[1, 3] * c0) * d
+    out[2, 1] = (-a[0, 0] * c4 + a[0, 1] * c2 - a[0, 3] * c0) * d
+    out[2, 2] = (a[3, 0] * s4 - a[3, 1] * s2 + a[3, 3] * s0) * d
+    out[2, 3] = (-a[2, 0] * s4 + a[2, 1] * s2 - a[2, 3] * s0) * d
+    out[3, 0] = (-a[1, 0] * c3 + a[1, 1] * c1 - a[1, 2] * c0) * d
+    out[3, 1] = (a[0, 0] * c3 - a[0, 1] * c1 + a[0, 2] * c0) * d
+    out[3, 2] = (-a[3, 0] * s3 + a[3, 1] * s1 - a[3, 2] * s0) * d
+    out[3, 3] = (a[2, 0] * s3 - a[2, 1] * s1 + a[2, 2] * s0) * d
 
 
 # ------------------------------------------------------------ symmetric n×n in place

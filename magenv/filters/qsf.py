@@ -108,7 +108,7 @@ from magenv.checks import check_bool, check_choice, check_noise, check_number, c
 from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_cov
 from magenv.filters.linalg import inv3, joseph_update, project_quaternion, quad3
 from magenv.filters.solvers import triad1
-from magenv.quaternion import GRAVITY, from_rotvec4, mul4, normalize4, rotate3
+from magenv.quaternion import GRAVITY, from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
 from magenv.trial import START_FROM_TRUTH
 
 MODE_AEKF, MODE_MAGYQ, MODE_DELAY = 0, 1, 2
@@ -257,17 +257,6 @@ def make_params(
 # ------------------------------------------------------------ small matrices
 
 
-@njit(cache=True)
-def left_matrix1(q):
-    """4×4 M(q) with ``q ⊗ p = M(q) p`` (eq. 20)."""
-    m = np.empty((4, 4))
-    m[0, 0], m[0, 1], m[0, 2], m[0, 3] = q[0], -q[1], -q[2], -q[3]
-    m[1, 0], m[1, 1], m[1, 2], m[1, 3] = q[1], q[0], -q[3], q[2]
-    m[2, 0], m[2, 1], m[2, 2], m[2, 3] = q[2], q[3], q[0], -q[1]
-    m[3, 0], m[3, 1], m[3, 2], m[3, 3] = q[3], -q[2], q[1], q[0]
-    return m
-
-
 @njit(cache=True, inline="always")
 def _put_jacobian(h, col, q, v, sign):
     """``h[:, col:col+4] = sign ·`` the 3×4 Jacobian of ``h(q) = q ⊗ v ⊗ q̄`` with respect to q = [w, u]
@@ -353,11 +342,7 @@ def _predict_cov(w, na, q, q_w):
     """``P ← F P Fᵀ`` of eqs. 19–20 on the leading na×na block of ``w.p`` (symmetric), in place: F is the
     identity but for the q rows ``[C(q̂_ω), −M(q), 0]``, so only q's rows and columns change."""
     p, r = w.p, w.m
-    # C(q̂_ω) (q1 ⊗ q2 = C(q2) q1) and M(q) as tuples of rows
-    a0, a1, a2, a3 = q_w[0], q_w[1], q_w[2], q_w[3]
-    c = ((a0, -a1, -a2, -a3), (a1, a0, a3, -a2), (a2, -a3, a0, a1), (a3, a2, -a1, a0))
-    b0, b1, b2, b3 = q[0], q[1], q[2], q[3]
-    m = ((b0, -b1, -b2, -b3), (b1, b0, -b3, b2), (b2, b3, b0, -b1), (b3, -b2, b1, b0))
+    c, m = right_matrix4(q_w), left_matrix4(q)  # q1 ⊗ q2 = C(q2) q1 = M(q1) q2 (eq. 20), rows
     for a in range(4):  # rows of F P: r[a, j] = C[a] · P[q, j] − M[a] · P[b_q, j]
         ca, ma = c[a], m[a]
         for j in range(na):
