@@ -9,7 +9,8 @@ filters, the QSF detector (at each ``MagQSF-v0`` reset) and the three QSF filter
 detector's codes, trust 1); then the bare batch kernel of each env's ``vector_entry_point`` (N envs,
 ``decision_every`` 8, a fixed action, within one episode, on bench_vector.py's trial of the env: its kernel
 limit) per fused sample.
-Each figure is the best of 5 timings after a warm-up.
+Each figure is the best of 5 timings after a warm-up, in CPU time of the process (what one free core gives:
+robust on a shared machine).
 
 ``--baseline DIR``: the same measurements on the checkout in DIR (e.g. the commit before a change:
 ``git -C REPO archive 3026d33 | tar -x -C DIR``), imported in a subprocess (``benchmarks/checkout.py``);
@@ -32,13 +33,13 @@ ENV_IDS = ("MagBlend-v0", "MagKalman-v0", "MagConstraint-v0", "MagQSF-v0", "MagV
 
 
 def best_ns(run, samples: int) -> float:
-    """Best ns per sample of ``run()`` over REPEATS timings after one warm-up call."""
+    """Best CPU ns (this process) per sample of ``run()`` over REPEATS timings after one warm-up call."""
     run()
     best = float("inf")
     for _ in range(REPEATS):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         run()
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, time.process_time() - t0)
     return best / samples * 1e9
 
 
@@ -94,7 +95,7 @@ def env_kernels(num_envs: int, k: int = 8) -> dict[str, float]:
         trial = bench_trial(full)
         vec = gym.make_vec(full, num_envs=num_envs, vectorization_mode="vector_entry_point", scenario=[trial],
                            decision_every=k)  # fmt: skip
-        if hasattr(vec.unwrapped, "_entry"):  # a vector env with a compiled batch kernel (not VQF's C++ one)
+        if vec.unwrapped.kernels:  # a vector env with a compiled batch kernel (not 3026d33's VQF on C++ objects)
             out[f"{env_id} batch kernel, N={num_envs}"] = _batch_kernel_ns(vec, trial, num_envs, k)
         vec.close()
     return out
@@ -160,7 +161,8 @@ def main(argv=None) -> int:
         runs["now"].append(measure(None, args.envs))
     best = {key: {k: min(r[k] for r in rs if k in r) for k in set().union(*rs)} for key, rs in runs.items() if rs}
     now, base = best["now"], best.get("base", {})
-    print("one 60-s dynamic_magnet trial; ns per sample, best of 5" + (f" and of {args.rounds} rounds" if base else ""))
+    rounds = f" and of {args.rounds} rounds" if base else ""
+    print(f"60-s dynamic_magnet trial (MagConstraint: constraint_test1); CPU ns per sample, best of 5{rounds}")
     if base:
         print(f"{'kernel':42s} {'baseline':>10s} {'now':>10s} {'speed-up':>9s}")
     for name, ns in now.items():

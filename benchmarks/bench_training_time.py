@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import yaml
+from bench_vector import IDS
 from stable_baselines3 import PPO
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 
@@ -32,13 +33,6 @@ from magenv import registry
 from magenv.agents import training, vec_env
 from magenv.agents.hyperparams import CONFIG_DIR
 
-IDS = {
-    "blend": "magenv/MagBlend-v0",
-    "kalman": "magenv/MagKalman-v0",
-    "constraint": "magenv/MagConstraint-v0",
-    "qsf": "magenv/MagQSF-v0",
-    "vqf": "magenv/MagVQF-v0",
-}
 RECIPE = "magenv/MagBlend-v0"  # the section --hyper blend trains every env with
 
 

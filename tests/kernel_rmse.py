@@ -5,8 +5,8 @@ current kernels to.
     .venv/bin/python tests/kernel_rmse.py [--checkout DIR] [--out tests/data/kernel_rmse.json]
 
 ``--checkout DIR`` records the code of another checkout (``benchmarks/checkout.py``): the fixture was written
-from 3026d33, the commit before the kernels were rewritten for speed (issue 49), with
-``git -C /work/main archive 3026d33 | tar -x -C DIR``.
+from 3026d33, the commit before the kernels were rewritten for speed (issue 49; 1032ca2, the main this change
+was rebased on, writes the same file), with ``git archive 3026d33 | tar -x -C DIR``.
 
 Cases (:data:`CASES`): the scenarios of the paper checks (docs/results.md) — the survey's
 (``manual_routines``, ``gait_field``), Fan's protocols under the Kalman trust rules (``dynamic_magnet``,

@@ -125,22 +125,13 @@ def is_pd(p, n, lo):
 
 
 @njit(cache=True)
-def repair_cov(p, n, floor, lo):
-    """Keep the covariance on the leading n×n block of ``p`` healthy, in place (``lo`` (≥ n, ≥ n) scratch).
-
-    Symmetrises it; if it is then not positive definite, floors its eigenvalues at ``floor``. Returns 0
-    (healthy), 1 (repaired) or −1 (non-finite: cannot be repaired — the caller must fail loudly).
-    """
+def repair_sym(p, n, floor, lo):
+    """:func:`repair_cov` of a leading block that is exactly symmetric already (the written-out updates mirror
+    one triangle): its lower triangle checked, nothing to symmetrise. Returns 0, 1 or −1 as repair_cov."""
     for i in range(n):
-        if not np.isfinite(p[i, i]):
-            return -1
-        for j in range(i + 1, n):
-            a, b = p[i, j], p[j, i]
-            if not (np.isfinite(a) and np.isfinite(b)):
+        for j in range(i + 1):
+            if not np.isfinite(p[i, j]):
                 return -1
-            m = 0.5 * (a + b)
-            p[i, j] = m
-            p[j, i] = m
     if is_pd(p, n, lo):
         return 0
     vals, vecs = np.linalg.eigh(p[:n, :n].copy())
@@ -154,6 +145,24 @@ def repair_cov(p, n, floor, lo):
             p[i, j] = m
             p[j, i] = m
     return 1
+
+
+@njit(cache=True)
+def repair_cov(p, n, floor, lo):
+    """Keep the covariance on the leading n×n block of ``p`` healthy, in place (``lo`` (≥ n, ≥ n) scratch).
+
+    Symmetrises it; if it is then not positive definite, floors its eigenvalues at ``floor``. Returns 0
+    (healthy), 1 (repaired) or −1 (non-finite: cannot be repaired — the caller must fail loudly).
+    """
+    for i in range(n):
+        for j in range(i + 1, n):
+            a, b = p[i, j], p[j, i]
+            if not (np.isfinite(a) and np.isfinite(b)):
+                return -1
+            m = 0.5 * (a + b)
+            p[i, j] = m
+            p[j, i] = m
+    return repair_sym(p, n, floor, lo)
 
 
 @njit(cache=True)
@@ -331,10 +340,10 @@ def step1(prm, state, gyr_prev, gyr, acc, mag, lo, k, t):
     if not np.isfinite(z[0]):
         # degenerate pair (e.g. acc ∥ mag): keep the prediction, as if both were replaced
         q = qp
-        status = -2 if repair_cov(p, 4, prm.cov_floor, lo) >= 0 else -1
+        status = -2 if repair_sym(p, 4, prm.cov_floor, lo) >= 0 else -1
     else:
         q = update_into(qp, p, z, prm.r, k, t)
-        status = repair_cov(p, 4, prm.cov_floor, lo)
+        status = repair_sym(p, 4, prm.cov_floor, lo)
     state.q[0], state.q[1], state.q[2], state.q[3] = q
     return acc_ok, mag_ok, status
 

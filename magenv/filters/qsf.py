@@ -105,7 +105,7 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.checks import check_bool, check_choice, check_noise, check_number, check_positive, check_site, check_vector
-from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_cov
+from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_sym
 from magenv.filters.linalg import inv3, joseph_update, project_quaternion, quad3
 from magenv.filters.solvers import triad1
 from magenv.quaternion import GRAVITY, from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
@@ -422,9 +422,9 @@ def _renormalise(x, cov, na, eps):
 
 @njit(cache=True)
 def _commit_healthy(state, w, na, cov_floor):
-    """Covariance health of ``w`` (``repair_cov``), then ``w`` → ``state``. Returns the status (−1: nothing
-    committed)."""
-    status = repair_cov(w.p, na, cov_floor, w.lo)
+    """Covariance health of ``w`` (``kalman_threshold.repair_sym``), then ``w`` → ``state``. Returns the status
+    (−1: nothing committed)."""
+    status = repair_sym(w.p, na, cov_floor, w.lo)  # every update mirrors one triangle: exactly symmetric
     if status < 0:
         return -1
     for r in range(na):
@@ -433,8 +433,14 @@ def _commit_healthy(state, w, na, cov_floor):
     x, cov = state.x, state.cov
     for r in range(N_AUGMENTED):
         x[r] = w.x[r]
-        for c in range(N_AUGMENTED):
-            cov[r, c] = w.p[r, c] if (r < na and c < na) else 0.0
+    for r in range(na):
+        for c in range(na):
+            cov[r, c] = w.p[r, c]
+    if na == N_STATE:  # keep the unused clone block tidy
+        for r in range(N_STATE, N_AUGMENTED):
+            for c in range(N_AUGMENTED):
+                cov[r, c] = 0.0
+                cov[c, r] = 0.0
     return status
 
 
@@ -445,18 +451,6 @@ def step_work(p, state, inputs, i, dt, sig, w):
     acc, mag, action, trust = inputs.acc[i], inputs.mag[i], inputs.action[i], inputs.trust[i]
     if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
         return -1
-    xs, ps = w.x, w.p
-    for r in range(N_AUGMENTED):  # copy (and symmetrise) the state into the scratch, checking it is finite
-        xs[r] = state.x[r]
-        if not np.isfinite(xs[r]):
-            return -1
-        for c in range(r, N_AUGMENTED):
-            a, b = state.cov[r, c], state.cov[c, r]
-            if not (np.isfinite(a) and np.isfinite(b)):
-                return -1
-            v = 0.5 * (a + b)
-            ps[r, c] = v
-            ps[c, r] = v
     mode = p.mode
     on, age = state.period_active[0], state.period_age[0]
     m_t0 = (state.mag_t0[0], state.mag_t0[1], state.mag_t0[2])
@@ -464,6 +458,19 @@ def step_work(p, state, inputs, i, dt, sig, w):
     active = on and mode != MODE_AEKF
     keep_clone = mode == MODE_DELAY and active and not p.update_reference  # eq. 24 literally
     na = N_AUGMENTED if (mode == MODE_DELAY and active) else N_STATE
+    xs, ps = w.x, w.p
+    for r in range(N_AUGMENTED):  # copy the state into the scratch, checking it is finite
+        xs[r] = state.x[r]
+        if not np.isfinite(xs[r]):
+            return -1
+    for r in range(na):  # the covariance's leading block, symmetrised (the rest is 0 by construction)
+        for c in range(r, na):
+            a, b = state.cov[r, c], state.cov[c, r]
+            if not (np.isfinite(a) and np.isfinite(b)):
+                return -1
+            v = 0.5 * (a + b)
+            ps[r, c] = v
+            ps[c, r] = v
     # 1. prediction, eqs. 17–19
     if i > 0:
         q = (xs[0], xs[1], xs[2], xs[3])
