@@ -8,7 +8,7 @@ trust KF of ``MagKalman-v0`` (``kalman_trust.run_k_kernel``, γ = 0.5), the Gaus
 filters, the QSF detector (at each ``MagQSF-v0`` reset) and the three QSF filters (``qsf.run_kernel`` on the
 detector's codes, trust 1); then the bare batch kernel of each env's ``vector_entry_point`` (N envs,
 ``decision_every`` 8, a fixed action, within one episode, on bench_vector.py's trial of the env: its kernel
-limit) per fused sample.
+limit) per fused sample; and each oracle (``bench_vector.oracle_rate``, 5 s of the env's trial) per sample.
 Each figure is the best of 5 timings after a warm-up, in CPU time of the process (what one free core gives:
 robust on a shared machine).
 
@@ -120,6 +120,22 @@ def _batch_kernel_ns(vec, trial, num_envs: int, k: int) -> float:
     return best_ns(loop, steps * k * num_envs)
 
 
+def oracle_kernels(seconds: float = 5.0) -> dict[str, float]:
+    """CPU ns per sample of each oracle's search (``bench_vector.oracle_rate``) on the first ``seconds`` of its
+    env's benchmark trial."""
+    import gymnasium as gym
+    from bench_vector import IDS, ORACLES, bench_trial, oracle_rate
+
+    out: dict[str, float] = {}
+    for name, env_id in IDS.items():
+        if env_id in gym.registry:
+            trial = bench_trial(env_id)
+            _, per_cpu_s, decisions = oracle_rate(ORACLES[name], trial, seconds)
+            samples = min(trial.n, int(round(seconds * trial.rate)))
+            out[f"{ORACLES[name]} (its searches per sample)"] = decisions / per_cpu_s / samples * 1e9
+    return out
+
+
 def worker(checkout: str | None, num_envs: int) -> None:
     """Print this code's (or ``checkout``'s) figures as JSON."""
     if checkout:
@@ -130,7 +146,7 @@ def worker(checkout: str | None, num_envs: int) -> None:
     from magenv.scenarios import make_trial
 
     trial = make_trial("dynamic_magnet", 0)
-    print(json.dumps({**filter_kernels(trial), **env_kernels(num_envs)}))
+    print(json.dumps({**filter_kernels(trial), **env_kernels(num_envs), **oracle_kernels()}))
 
 
 def measure(checkout: str | None, num_envs: int) -> dict[str, float]:
@@ -159,7 +175,12 @@ def main(argv=None) -> int:
         if args.baseline:
             runs["base"].append(measure(args.baseline, args.envs))
         runs["now"].append(measure(None, args.envs))
-    best = {key: {k: min(r[k] for r in rs if k in r) for k in set().union(*rs)} for key, rs in runs.items() if rs}
+    names = list(dict.fromkeys(k for rs in runs.values() for r in rs for k in r))  # in the workers' order
+    best = {
+        key: {k: min(r[k] for r in rs if k in r) for k in names if any(k in r for r in rs)}
+        for key, rs in runs.items()
+        if rs
+    }
     now, base = best["now"], best.get("base", {})
     rounds = f" and of {args.rounds} rounds" if base else ""
     print(f"60-s dynamic_magnet trial (MagConstraint: constraint_test1); CPU ns per sample, best of 5{rounds}")
