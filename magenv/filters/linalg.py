@@ -116,18 +116,15 @@ def add33(a, b):
 
 
 @njit(cache=True, inline="always")
-def sub33(a, b):
-    """``a − b`` of two 9-tuples."""
-    return (
-        a[0] - b[0], a[1] - b[1], a[2] - b[2], a[3] - b[3], a[4] - b[4], a[5] - b[5], a[6] - b[6], a[7] - b[7],
-        a[8] - b[8],
-    )  # fmt: skip
-
-
-@njit(cache=True, inline="always")
 def scale33(s, a):
     """``s·a`` of a 9-tuple."""
     return (s * a[0], s * a[1], s * a[2], s * a[3], s * a[4], s * a[5], s * a[6], s * a[7], s * a[8])
+
+
+@njit(cache=True, inline="always")
+def sub33(a, b):
+    """``a − b`` of two 9-tuples (``a + (−1)·b``: the same numbers, negation is exact)."""
+    return add33(a, scale33(-1.0, b))
 
 
 @njit(cache=True, inline="always")
