@@ -32,9 +32,12 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_sim.py
 	$(BIN)/python benchmarks/bench_env.py
 	$(BIN)/python benchmarks/bench_vector.py
+	$(BIN)/python benchmarks/bench_kernels.py
 	$(BIN)/python benchmarks/bench_training_time.py
 	$(BIN)/python benchmarks/bench_learning.py
 	$(BIN)/python benchmarks/bench_memory.py
 
 clean:
 	rm -rf $(VENV) runs results site .pytest_cache
+	# numba's cache files: a cached kernel keeps the code it inlined from other files when only those change
+	find . -name '*.nbi' -delete -o -name '*.nbc' -delete

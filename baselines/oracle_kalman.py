@@ -72,16 +72,14 @@ DECISION_EVERY = 8  # samples per decision (the env's default)
 
 
 @njit(cache=True)
-def rule_gamma(params, state, sensors, mdist, j, scales, peek_state, peek):
-    """The continuation rule's γ at sample j (≥ 1) from ``state`` (left unchanged; the peek works on
-    ``peek_state``, writing ``peek``). ``scales`` = (σ_d µT, σ_m µT, σ_θ °), inf = term absent."""
+def rule_gamma(params, state, sensors, mdist, j, scales, peek):
+    """The continuation rule's γ at sample j (≥ 1) from ``state`` (left unchanged; the peek writes ``peek``).
+    ``scales`` = (σ_d µT, σ_m µT, σ_θ °), inf = term absent."""
     a = mdist[j] / scales[0]
     s = a * a
     if np.isfinite(scales[1]) or np.isfinite(scales[2]):
         gyr, acc, mag = sensors
-        peek_state.q[:] = state.q
-        peek_state.p[:, :] = state.p
-        if kt.step1(params, peek_state, gyr[j - 1], gyr[j], acc[j], mag[j], 0.0, peek) < 0:
+        if kt.peek1(params, state, gyr[j - 1], gyr[j], acc[j], mag[j], peek) < 0:
             return 0.0
         b = peek[SIG.mag_norm_dev] / scales[1]
         c = peek[SIG.dip_dev] / scales[2]
@@ -90,11 +88,10 @@ def rule_gamma(params, state, sensors, mdist, j, scales, peek_state, peek):
 
 
 @njit(cache=True)
-def candidate_costs(params, state, sensors, q_true, mdist, start, horizon, k, cands, scales, scratch, peek_state,
-                    sig, costs):  # fmt: skip
+def candidate_costs(params, state, sensors, q_true, mdist, start, horizon, k, cands, scales, scratch, sig, costs):
     """``costs[c]`` = Σ (total error, °)² over samples start … start+horizon−1 of candidate ``cands[c]``
     (inf if the filter fails). Each roll-out starts from a copy of ``state`` (``kalman_trust.State``, left
-    unchanged) held in ``scratch``; ``peek_state`` and ``sig`` (NSIG,) are working space."""
+    unchanged) held in ``scratch``; ``sig`` (NSIG,) is working space."""
     gyr, acc, mag = sensors
     stop = min(gyr.shape[0], start + horizon)
     for c in range(cands.shape[0]):
@@ -105,7 +102,7 @@ def candidate_costs(params, state, sensors, q_true, mdist, start, horizon, k, ca
         for i in range(start, stop):
             off = i - start
             if off >= k and off % k == 0:
-                gamma = rule_gamma(params, scratch, sensors, mdist, i, scales, peek_state, sig)
+                gamma = rule_gamma(params, scratch, sensors, mdist, i, scales, sig)
             if kt.step1(params, scratch, gyr[i - 1], gyr[i], acc[i], mag[i], gamma, sig) < 0:
                 cost = np.inf
                 break
@@ -271,12 +268,11 @@ class KalmanOracle:
         horizon = int(round(self.horizon_s * runner.trial.rate))
         state = runner.state
         scratch = kt.State(np.empty_like(state.q), np.empty_like(state.p))
-        peek = kt.State(np.empty_like(state.q), np.empty_like(state.p))
         costs, sig = np.empty(gammas.size), np.empty(kt.NSIG)
         best = np.full(gammas.size, np.inf)
         for scales in self.continuation_scales:
             candidate_costs(runner.params, state, runner.sensors, runner.q_true, runner.mdist, runner.pos, horizon,
-                            self.decision_every, gammas, scales, scratch, peek, sig, costs)  # fmt: skip
+                            self.decision_every, gammas, scales, scratch, sig, costs)  # fmt: skip
             np.minimum(best, costs, out=best)
         best[refused] = np.inf
         return best

@@ -12,7 +12,11 @@ Conventions (used everywhere in magenv, converted only at the edges):
 
 Each operation exists once, as a numba kernel on single quaternions (names
 ending in ``1``, for use inside other kernels), and as a broadcasting NumPy
-ufunc built from that kernel (for arrays ``(..., 4)``).
+ufunc built from that kernel (for arrays ``(..., 4)``). The kernels the
+filters' sample loops call most also come as tuple kernels (names ending in
+the tuple's length: ``mul4``, ``normalize4``, ``rotate3``, ``rotate_inv3``,
+``from_rotvec4``, and the product matrices ``left_matrix4``, ``right_matrix4``),
+which allocate nothing; the ``1`` kernels are built on them.
 """
 
 from __future__ import annotations
@@ -27,13 +31,43 @@ GRAVITY = 9.81  # m/s², magnitude used throughout magenv
 
 
 @njit(cache=True, inline="always")
+def mul4(a, b):
+    """Hamilton product ``a ⊗ b`` of two quaternions (4-tuples or (4,) arrays) as a 4-tuple (no allocation)."""
+    return (
+        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
+    )
+
+
+@njit(cache=True, inline="always")
+def left_matrix4(q):
+    """Rows (a 4-tuple of 4-tuples) of the 4×4 M(q) with ``q ⊗ p = M(q) p``."""
+    return (
+        (q[0], -q[1], -q[2], -q[3]),
+        (q[1], q[0], -q[3], q[2]),
+        (q[2], q[3], q[0], -q[1]),
+        (q[3], -q[2], q[1], q[0]),
+    )
+
+
+@njit(cache=True, inline="always")
+def right_matrix4(p):
+    """Rows (a 4-tuple of 4-tuples) of the 4×4 C(p) with ``q ⊗ p = C(p) q``."""
+    return (
+        (p[0], -p[1], -p[2], -p[3]),
+        (p[1], p[0], p[3], -p[2]),
+        (p[2], -p[3], p[0], p[1]),
+        (p[3], p[2], -p[1], p[0]),
+    )
+
+
+@njit(cache=True, inline="always")
 def mul1(a, b):
     """Hamilton product ``a ⊗ b`` of two quaternions (4,)."""
     out = np.empty(4)
-    out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3]
-    out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2]
-    out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1]
-    out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0]
+    out[0], out[1], out[2], out[3] = mul4(a, b)
     return out
 
 
@@ -41,6 +75,15 @@ def mul1(a, b):
 def conj1(q):
     """Conjugate (inverse of a unit quaternion)."""
     return np.array([q[0], -q[1], -q[2], -q[3]])
+
+
+@njit(cache=True, inline="always")
+def normalize4(q):
+    """Unit quaternion along ``q`` (4-tuple or (4,) array) as a 4-tuple; a zero quaternion gives identity."""
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if n == 0.0:
+        return 1.0, 0.0, 0.0, 0.0
+    return q[0] / n, q[1] / n, q[2] / n, q[3] / n
 
 
 @njit(cache=True, inline="always")
@@ -53,40 +96,55 @@ def normalize1(q):
 
 
 @njit(cache=True, inline="always")
-def rotate1(q, v):
-    """Rotate a 3-vector from the sensor to the earth frame: ``q ⊗ v ⊗ q*``."""
+def rotate3(q, v):
+    """``q ⊗ v ⊗ q*`` (sensor → earth) of a 3-vector as a 3-tuple; q, v tuples or arrays (no allocation)."""
     w, x, y, z = q[0], q[1], q[2], q[3]
     # v + 2·r × (r × v + w·v), r = (x, y, z)
     tx = y * v[2] - z * v[1] + w * v[0]
     ty = z * v[0] - x * v[2] + w * v[1]
     tz = x * v[1] - y * v[0] + w * v[2]
+    return v[0] + 2.0 * (y * tz - z * ty), v[1] + 2.0 * (z * tx - x * tz), v[2] + 2.0 * (x * ty - y * tx)
+
+
+@njit(cache=True, inline="always")
+def rotate1(q, v):
+    """Rotate a 3-vector from the sensor to the earth frame: ``q ⊗ v ⊗ q*``."""
     out = np.empty(3)
-    out[0] = v[0] + 2.0 * (y * tz - z * ty)
-    out[1] = v[1] + 2.0 * (z * tx - x * tz)
-    out[2] = v[2] + 2.0 * (x * ty - y * tx)
+    out[0], out[1], out[2] = rotate3(q, v)
     return out
+
+
+@njit(cache=True, inline="always")
+def rotate_inv3(q, v):
+    """``q* ⊗ v ⊗ q`` (earth → sensor) of a 3-vector as a 3-tuple (no allocation)."""
+    return rotate3((q[0], -q[1], -q[2], -q[3]), v)
 
 
 @njit(cache=True, inline="always")
 def rotate_inv1(q, v):
     """Rotate a 3-vector from the earth to the sensor frame: ``q* ⊗ v ⊗ q``."""
-    return rotate1(conj1(q), v)
+    out = np.empty(3)
+    out[0], out[1], out[2] = rotate_inv3(q, v)
+    return out
 
 
 @njit(cache=True, inline="always")
-def from_rotvec1(r):
-    """Quaternion of the rotation vector ``r`` (axis · angle, rad)."""
+def from_rotvec4(r):
+    """Quaternion of the rotation vector ``r`` (axis · angle, rad; 3-tuple or array) as a 4-tuple."""
     angle = np.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
-    out = np.empty(4)
-    out[0] = np.cos(0.5 * angle)
     # sin(a/2)/a → 1/2 for small a (Taylor to 4th order)
     if angle < 1e-6:
         s = 0.5 - angle * angle / 48.0
     else:
         s = np.sin(0.5 * angle) / angle
-    out[1] = r[0] * s
-    out[2] = r[1] * s
-    out[3] = r[2] * s
+    return np.cos(0.5 * angle), r[0] * s, r[1] * s, r[2] * s
+
+
+@njit(cache=True, inline="always")
+def from_rotvec1(r):
+    """Quaternion of the rotation vector ``r`` (axis · angle, rad)."""
+    out = np.empty(4)
+    out[0], out[1], out[2], out[3] = from_rotvec4(r)
     return out
 
 

@@ -333,7 +333,8 @@ def test_gauss_markov_split_a9_a10():
     np.testing.assert_allclose(r_pred, r - np.cross(omega, r) * dt, atol=1e-3)
     y = r_pred + c_a * d  # a measurement equal to the prediction (A10) leaves the state at F x (A9)
     vp = VecParams(dt=dt, sigma_gyr=0.01, sigma_y=0.15, c_a=c_a, c_b=1.0, p0_ref=1.0, cov_floor=1e-14)
-    x, p, gain, status = vec_step1(vp, np.r_[r, d], np.eye(6), omega, y)
+    x, p = np.r_[r, d], np.eye(6)
+    gain, status = vec_step1(vp, x, p, omega, y, np.empty((6, 6)))
     np.testing.assert_allclose(x, np.r_[r_pred, c_a * d], atol=1e-12)
     assert status == 0 and 0 < gain < 1
     np.testing.assert_array_equal(p, p.T)

@@ -156,9 +156,12 @@ def model_disturbance(vp, sensors, out):
     or the first bad sample."""
     gyr, mag = sensors.gyr, sensors.mag
     x, p = vec_init(vp, mag[0])
+    lo = np.empty((6, 6))
     out[0] = 0.0
     for k in range(1, gyr.shape[0]):
-        x, p, _, st = vec_step1(vp, x, p, 0.5 * (gyr[k - 1] + gyr[k]), mag[k])
+        g0, g1 = gyr[k - 1], gyr[k]
+        omega = (0.5 * (g0[0] + g1[0]), 0.5 * (g0[1] + g1[1]), 0.5 * (g0[2] + g1[2]))
+        _, st = vec_step1(vp, x, p, omega, mag[k], lo)
         if st < 0:
             return k
         out[k] = np.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
@@ -185,19 +188,10 @@ def advance(params, state, sensors, truth, mdist, out, gamma, start, stop):
         return status, repairs
     out.trust[start:stop] = gamma
     error_sums(out.est, truth.q_true, truth.dist, start, stop, out.err)  # against truth, as magenv.metrics
-    # peek at the next sample: prediction + acc update + mag innovation, γ = 0, on copies
+    # peek at the next sample: prediction + acc update + mag innovation, γ = 0, state unchanged
     if stop < n:
         gyr, acc, mag = sensors
-        st = kt.step1(
-            params,
-            kt.State(state.q.copy(), state.p.copy()),
-            gyr[stop - 1],
-            gyr[stop],
-            acc[stop],
-            mag[stop],
-            0.0,
-            out.peek,
-        )
+        st = kt.peek1(params, state, gyr[stop - 1], gyr[stop], acc[stop], mag[stop], out.peek)
         if st < 0:
             return stop, repairs
         j = stop

@@ -53,7 +53,7 @@ from numba import njit
 
 from magenv.checks import check_bool, check_number, check_positive, check_vector
 from magenv.filters.madgwick import ecompass1
-from magenv.quaternion import earth_field, normalize1, rotate, rotate1
+from magenv.quaternion import earth_field, normalize1, rotate, rotate3
 from magenv.trial import Trial
 
 #: The paper's parameters, found by CMA-ES (§3.1).
@@ -193,11 +193,11 @@ def _dfdq(q, v, jac, row):
 
 @njit(cache=True, inline="always")
 def _unit(v):
-    """(v/‖v‖, ‖v‖); (0, 0) for a zero vector."""
+    """(v/‖v‖ as a 3-tuple, ‖v‖); (0, 0) for a zero vector."""
     n = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     if n == 0.0:
-        return v * 0.0, 0.0
-    return v / n, n
+        return (v[0] * 0.0, v[1] * 0.0, v[2] * 0.0), 0.0
+    return (v[0] / n, v[1] / n, v[2] / n), n
 
 
 @njit(cache=True)
@@ -212,20 +212,14 @@ def gn_step(q, seen, ref, w, con, jac, dq):
     _dfdq(q, seen.gravity, jac, 0)
     _dfdq(q, seen.field, jac, 3)
     _dfdq(q, seen.joint, jac, 6)
-    fa = rotate1(q, seen.gravity)  # C(q)v for a unit q
-    fm = rotate1(q, seen.field)
-    fh = rotate1(q, seen.joint)
+    fa = rotate3(q, seen.gravity)  # C(q)v for a unit q
+    fm = rotate3(q, seen.field)
+    fh = rotate3(q, seen.joint)
     u, nref, p = ref.gravity, ref.field, ref.joint
-    eps = np.empty(9)
-    for a in range(3):
-        eps[a] = u[a] - fa[a]
-        eps[3 + a] = nref[a] - fm[a]
-        eps[6 + a] = p[a] - fh[a]
-    wt = np.empty(9)
-    for a in range(3):
-        wt[a] = 1.0
-        wt[3 + a] = 1.0 - w
-        wt[6 + a] = con * w
+    eps = (u[0] - fa[0], u[1] - fa[1], u[2] - fa[2], nref[0] - fm[0], nref[1] - fm[1], nref[2] - fm[2],
+           p[0] - fh[0], p[1] - fh[1], p[2] - fh[2])  # fmt: skip
+    wm, wc = 1.0 - w, con * w
+    wt = (1.0, 1.0, 1.0, wm, wm, wm, wc, wc, wc)
     # J = −jac, so −(JᵀWJ)⁻¹JᵀWε = (jacᵀW jac)⁻¹ jacᵀWε   (eq. 14)
     A = np.zeros((4, 5))
     for r in range(4):
@@ -286,10 +280,11 @@ def gain_rule(w, step, th2, th3, kmin, kmax):
 
 @njit(cache=True, inline="always")
 def mag_deviation(q, mag, p):
-    """eq. 16's field deviation ‖C(q)y_M − m_E‖/m0 of one magnetometer sample ``mag`` (3,) µT; and C(q)y_M."""
+    """eq. 16's field deviation ‖C(q)y_M − m_E‖/m0 of one magnetometer sample ``mag`` (3,) µT; and C(q)y_M
+    (a 3-tuple)."""
     m0 = p.field_norm
     n = p.field_dir
-    mE = rotate1(q, mag)
+    mE = rotate3(q, mag)
     dev = np.sqrt((mE[0] - n[0] * m0) ** 2 + (mE[1] - n[1] * m0) ** 2 + (mE[2] - n[2] * m0) ** 2) / m0
     return dev, mE
 

@@ -52,12 +52,12 @@ from magenv.filters.kalman_threshold import (
     SIGMA_MAG,
     FilterError,
     finite3,
-    repair_cov1,
-    skew1,
+    repair_cov,
 )
+from magenv.filters.linalg import add33, diag3, inv3, mul33, mul33t, mulsym33t, mv3, sandwich3, scale33, skew3, sub33
 from magenv.filters.sensors import Sensors
-from magenv.filters.solvers import Solver, make_solver, solve1
-from magenv.quaternion import from_rotvec1, rotate_inv1
+from magenv.filters.solvers import Solver, make_solver, solve1, solve4
+from magenv.quaternion import from_rotvec4, rotate_inv3
 
 C_A = 0.1  # GM correlation per sample (survey)
 C_B = 1.0  # GM driving-noise std per sample, sensor unit (survey)
@@ -117,52 +117,71 @@ def vec_init(vp, y0):
     return x, p
 
 
+@njit(cache=True, inline="always")
+def _block(p, r0, c0):
+    """The 3×3 block of ``p`` at rows r0…r0+2, columns c0…c0+2, as a 9-tuple."""
+    return (
+        p[r0, c0], p[r0, c0 + 1], p[r0, c0 + 2], p[r0 + 1, c0], p[r0 + 1, c0 + 1], p[r0 + 1, c0 + 2], p[r0 + 2, c0],
+        p[r0 + 2, c0 + 1], p[r0 + 2, c0 + 2],
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def _put_block(m, p, r0, c0):
+    for i in range(3):
+        for j in range(3):
+            p[r0 + i, c0 + j] = m[3 * i + j]
+
+
 @njit(cache=True)
-def vec_step1(vp, x, p, omega, y):
-    """One predict (A9) + update (A10) of the reference/disturbance split with parameters ``vp`` (:class:`VecParams`).
+def vec_step1(vp, x, p, omega, y, lo):
+    """One predict (A9) + update (A10) of the reference/disturbance split with parameters ``vp`` (:class:`VecParams`),
+    in place.
 
     Args:
-        x: (6,) state [r; d] (sensor frame). p: (6, 6) covariance.
-        omega: (3,) rate, rad/s. y: (3,) sensor sample.
-    Returns ``(x, P, gain_r, status)``: gain_r = trace of the reference-vector
-    gain block / 3 (how strongly this sample moved r), status as repair_cov1.
+        x: (6,) state [r; d] (sensor frame). p: (6, 6) covariance. Both updated in place (left undefined
+            when the step fails).
+        omega: (3,) rate, rad/s. y: (3,) sensor sample. lo: (6, 6) scratch.
+    Returns ``(gain_r, status)``: gain_r = trace of the reference-vector gain block / 3 (how strongly this
+    sample moved r), status as ``repair_cov``. Written out in 3×3 blocks (``magenv.filters.linalg``): P =
+    [[A, B], [Bᵀ, D]], K = [K_r; K_d]; nothing is allocated.
     """
     dt, c_a, c_b, sigma_y = vp.dt, vp.c_a, vp.c_b, vp.sigma_y
-    dq = from_rotvec1(omega * dt)
+    dq = from_rotvec4((omega[0] * dt, omega[1] * dt, omega[2] * dt))
     # A9: rotation matrix of r ↦ δq* ⊗ r ⊗ δq (columns = images of the unit vectors)
-    rot = np.empty((3, 3))
-    e = np.zeros(3)
-    for j in range(3):
-        e[:] = 0.0
-        e[j] = 1.0
-        rot[:, j] = rotate_inv1(dq, e)
-    f = np.zeros((6, 6))
-    f[:3, :3] = rot
-    for i in range(3):
-        f[3 + i, 3 + i] = c_a
-    gx = skew1(x[:3])
-    qn = np.zeros((6, 6))
+    c0, c1, c2 = rotate_inv3(dq, (1.0, 0.0, 0.0)), rotate_inv3(dq, (0.0, 1.0, 0.0)), rotate_inv3(dq, (0.0, 0.0, 1.0))
+    rot = (c0[0], c1[0], c2[0], c0[1], c1[1], c2[1], c0[2], c1[2], c2[2])
+    gx = skew3((x[0], x[1], x[2]))
     sg = dt * vp.sigma_gyr
-    qn[:3, :3] = (sg * sg) * (gx @ gx.T)  # A9: G_gyr = T_s [r×]
-    for i in range(3):
-        qn[3 + i, 3 + i] = c_b * c_b
-    xp = f @ x
-    pp = f @ p @ f.T + qn
-    # A10: H = [I I]
-    ph = pp[:, :3] + pp[:, 3:]  # P Hᵀ (6×3)
-    s = ph[:3, :] + ph[3:, :]  # H P Hᵀ
-    for i in range(3):
-        s[i, i] += sigma_y * sigma_y
-    k = ph @ np.linalg.inv(s)
-    nu = y - xp[:3] - xp[3:]
-    xn = xp + k @ nu
-    ikh = np.eye(6)
-    ikh[:, :3] -= k
-    ikh[:, 3:] -= k
-    pn = ikh @ pp @ ikh.T + (sigma_y * sigma_y) * (k @ k.T)  # Joseph form
-    status = repair_cov1(pn, vp.cov_floor)
-    gain_r = (k[0, 0] + k[1, 1] + k[2, 2]) / 3.0
-    return xn, pn, gain_r, status
+    xr = mv3(rot, (x[0], x[1], x[2]))
+    xd = (c_a * x[3], c_a * x[4], c_a * x[5])
+    # F P Fᵀ + Q: F = diag(rot, c_a I), Q = diag((T_s σ_g)² [r×][r×]ᵀ, c_b² I)   (A9: G_gyr = T_s [r×])
+    a = add33(sandwich3(rot, _block(p, 0, 0)), scale33(sg * sg, mulsym33t(gx, gx)))
+    b = scale33(c_a, mul33(rot, _block(p, 0, 3)))
+    d = add33(scale33(c_a, scale33(c_a, _block(p, 3, 3))), diag3(c_b * c_b))
+    bt = (b[0], b[3], b[6], b[1], b[4], b[7], b[2], b[5], b[8])
+    # A10: H = [I I]; C = P Hᵀ = [A + B; Bᵀ + D]
+    cr, cd = add33(a, b), add33(bt, d)
+    s = add33(add33(cr, cd), diag3(sigma_y * sigma_y))
+    s_inv = inv3(s)
+    kr, kd = mul33(cr, s_inv), mul33(cd, s_inv)
+    nu = (y[0] - xr[0] - xd[0], y[1] - xr[1] - xd[1], y[2] - xr[2] - xd[2])
+    dr, dd = mv3(kr, nu), mv3(kd, nu)
+    x[0], x[1], x[2] = xr[0] + dr[0], xr[1] + dr[1], xr[2] + dr[2]
+    x[3], x[4], x[5] = xd[0] + dd[0], xd[1] + dd[1], xd[2] + dd[2]
+    # Joseph form through its factors: M = P − K Cᵀ (= (I − KH) P), P' = M − (M Hᵀ) Kᵀ + σ² K Kᵀ
+    r2 = sigma_y * sigma_y
+    m_rr, m_rd = sub33(a, mul33t(kr, cr)), sub33(b, mul33t(kr, cd))
+    m_dr, m_dd = sub33(bt, mul33t(kd, cr)), sub33(d, mul33t(kd, cd))
+    n_r, n_d = add33(m_rr, m_rd), add33(m_dr, m_dd)
+    _put_block(add33(sub33(m_rr, mulsym33t(n_r, kr)), scale33(r2, mulsym33t(kr, kr))), p, 0, 0)
+    p_rd = add33(sub33(m_rd, mul33t(n_r, kd)), scale33(r2, mul33t(kr, kd)))
+    _put_block(p_rd, p, 0, 3)
+    _put_block((p_rd[0], p_rd[3], p_rd[6], p_rd[1], p_rd[4], p_rd[7], p_rd[2], p_rd[5], p_rd[8]), p, 3, 0)
+    _put_block(add33(sub33(m_dd, mulsym33t(n_d, kd)), scale33(r2, mulsym33t(kd, kd))), p, 3, 3)
+    status = repair_cov(p, 6, vp.cov_floor, lo)
+    gain_r = (kr[0] + kr[4] + kr[8]) / 3.0
+    return gain_r, status
 
 
 @njit(cache=True)
@@ -178,6 +197,7 @@ def run_kernel(prm, sensors, q_out, x_acc, x_mag, gain_mag):
         return 0, 0
     xa, pa = vec_init(prm.acc, acc[0])
     xm, pm = vec_init(prm.mag, mag[0])
+    lo = np.empty((6, 6))
     q = solve1(prm.solver, xa[:3], xm[:3], prm.g_ref, prm.h_ref)
     if not np.isfinite(q[0]):
         return 0, 0
@@ -189,16 +209,17 @@ def run_kernel(prm, sensors, q_out, x_acc, x_mag, gain_mag):
     for k in range(1, n):
         if not (finite3(gyr[k]) and finite3(acc[k]) and finite3(mag[k])):
             return k, repairs
-        omega = 0.5 * (gyr[k - 1] + gyr[k])
-        xa, pa, _, sa = vec_step1(prm.acc, xa, pa, omega, acc[k])
-        xm, pm, gm, sm = vec_step1(prm.mag, xm, pm, omega, mag[k])
+        g0, g1 = gyr[k - 1], gyr[k]
+        omega = (0.5 * (g0[0] + g1[0]), 0.5 * (g0[1] + g1[1]), 0.5 * (g0[2] + g1[2]))
+        _, sa = vec_step1(prm.acc, xa, pa, omega, acc[k], lo)
+        gm, sm = vec_step1(prm.mag, xm, pm, omega, mag[k], lo)
         if sa < 0 or sm < 0:
             return k, repairs
         repairs += sa + sm
-        qk = solve1(prm.solver, xa[:3], xm[:3], prm.g_ref, prm.h_ref)
+        qk = solve4(prm.solver, xa[:3], xm[:3], prm.g_ref, prm.h_ref)
         if not np.isfinite(qk[0]):
             return k, repairs
-        q_out[k] = qk
+        q_out[k, 0], q_out[k, 1], q_out[k, 2], q_out[k, 3] = qk
         x_acc[k] = xa
         x_mag[k] = xm
         gain_mag[k] = gm

@@ -51,9 +51,10 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.checks import check_noise, check_positive, check_site
+from magenv.filters.linalg import inv4, is_pd3, mat3, store3
 from magenv.filters.sensors import Sensors
-from magenv.filters.solvers import Solver, make_solver, solve1
-from magenv.quaternion import GRAVITY, align1, from_rotvec1, mul1, normalize1, rotate_inv1
+from magenv.filters.solvers import Solver, make_solver, solve1, solve4
+from magenv.quaternion import GRAVITY, from_rotvec4, mul4, normalize4, right_matrix4, rotate_inv3
 
 # Survey noise (§4) and Table A1.
 SIGMA_GYR = np.deg2rad(0.5)  # rad/s
@@ -102,56 +103,89 @@ class State(NamedTuple):
 
 
 @njit(cache=True)
-def _is_pd(p):
-    """Cholesky test: True if the symmetric matrix ``p`` is positive definite."""
-    n = p.shape[0]
-    lo = np.zeros((n, n))
+def is_pd(p, n, lo):
+    """Cholesky test: True if the leading n×n block of the symmetric matrix ``p`` is positive definite;
+    ``lo`` (≥ n, ≥ n) is scratch for the factor (its diagonal holds the reciprocals of L's)."""
     for j in range(n):
+        lj = lo[j]
         s = p[j, j]
         for k in range(j):
-            s -= lo[j, k] * lo[j, k]
+            s -= lj[k] * lj[k]
         if not (s > 0.0):
             return False
-        lo[j, j] = np.sqrt(s)
+        inv = 1.0 / np.sqrt(s)
+        lj[j] = inv
         for i in range(j + 1, n):
+            li = lo[i]
             s = p[i, j]
             for k in range(j):
-                s -= lo[i, k] * lo[j, k]
-            lo[i, j] = s / lo[j, j]
+                s -= li[k] * lj[k]
+            li[j] = s * inv
     return True
 
 
 @njit(cache=True)
-def repair_cov1(p, floor):
-    """Keep a covariance healthy, in place.
-
-    Symmetrises ``p``; if it is then not positive definite, floors its
-    eigenvalues at ``floor``. Returns 0 (healthy), 1 (repaired) or −1
-    (non-finite: cannot be repaired — the caller must fail loudly).
-    """
-    n = p.shape[0]
+def repair_sym(p, n, floor, lo):
+    """:func:`repair_cov` of a leading block that is exactly symmetric already (the written-out updates mirror
+    one triangle): its lower triangle checked, nothing to symmetrise. Returns 0, 1 or −1 as repair_cov."""
     for i in range(n):
-        for j in range(n):
+        for j in range(i + 1):
             if not np.isfinite(p[i, j]):
                 return -1
-    for i in range(n):
-        for j in range(i + 1, n):
-            m = 0.5 * (p[i, j] + p[j, i])
-            p[i, j] = m
-            p[j, i] = m
-    if _is_pd(p):
+    if is_pd(p, n, lo):
         return 0
-    vals, vecs = np.linalg.eigh(p)
+    vals, vecs = np.linalg.eigh(p[:n, :n].copy())
     for k in range(n):
         if vals[k] < floor:
             vals[k] = floor
-    p[:, :] = (vecs * vals) @ vecs.T
+    p[:n, :n] = (vecs * vals) @ vecs.T
     for i in range(n):
         for j in range(i + 1, n):
             m = 0.5 * (p[i, j] + p[j, i])
             p[i, j] = m
             p[j, i] = m
     return 1
+
+
+@njit(cache=True)
+def repair_cov(p, n, floor, lo):
+    """Keep the covariance on the leading n×n block of ``p`` healthy, in place (``lo`` (≥ n, ≥ n) scratch).
+
+    Symmetrises it; if it is then not positive definite, floors its eigenvalues at ``floor``. Returns 0
+    (healthy), 1 (repaired) or −1 (non-finite: cannot be repaired — the caller must fail loudly).
+    """
+    for i in range(n):
+        for j in range(i + 1, n):
+            a, b = p[i, j], p[j, i]
+            if not (np.isfinite(a) and np.isfinite(b)):
+                return -1
+            m = 0.5 * (a + b)
+            p[i, j] = m
+            p[j, i] = m
+    return repair_sym(p, n, floor, lo)
+
+
+@njit(cache=True)
+def repair_cov1(p, floor):
+    """:func:`repair_cov` of the whole square matrix ``p``."""
+    return repair_cov(p, p.shape[0], floor, np.empty_like(p))
+
+
+@njit(cache=True)
+def repair_cov3(p, floor):
+    """:func:`repair_cov1` of a 3×3 covariance given as a 9-tuple ``p`` (``magenv.filters.linalg``).
+    Returns ``(status, p')``, p' a 9-tuple (``p`` where not finite, status −1)."""
+    for v in p:
+        if not np.isfinite(v):
+            return -1, p
+    m01, m02, m12 = 0.5 * (p[1] + p[3]), 0.5 * (p[2] + p[6]), 0.5 * (p[5] + p[7])
+    m = (p[0], m01, m02, m01, p[4], m12, m02, m12, p[8])
+    if is_pd3(m):
+        return 0, m
+    out = np.empty((3, 3))
+    store3(m, out)
+    status = repair_cov1(out, floor)
+    return status, mat3(out)
 
 
 @njit(cache=True, inline="always")
@@ -162,70 +196,107 @@ def finite3(v):
 # ------------------------------------------------------------------ kernels
 
 
-@njit(cache=True)
-def right_matrix1(p):
-    """4×4 matrix M with ``q ⊗ p = M q`` (scalar-first)."""
-    m = np.empty((4, 4))
-    m[0, 0], m[0, 1], m[0, 2], m[0, 3] = p[0], -p[1], -p[2], -p[3]
-    m[1, 0], m[1, 1], m[1, 2], m[1, 3] = p[1], p[0], p[3], -p[2]
-    m[2, 0], m[2, 1], m[2, 2], m[2, 3] = p[2], -p[3], p[0], p[1]
-    m[3, 0], m[3, 1], m[3, 2], m[3, 3] = p[3], p[2], -p[1], p[0]
-    return m
-
-
-@njit(cache=True)
-def skew1(v):
-    """3×3 cross-product matrix [v]× with ``[v]× u = v × u``."""
-    m = np.zeros((3, 3))
-    m[0, 1], m[0, 2] = -v[2], v[1]
-    m[1, 0], m[1, 2] = v[2], -v[0]
-    m[2, 0], m[2, 1] = -v[1], v[0]
-    return m
+@njit(cache=True, inline="always")
+def _xi_rows(q):
+    """Rows of the 4×3 matrix Ξ(q) with ``q ⊗ [0, n] = Ξ n`` (survey A6, scalar first)."""
+    return (-q[1], -q[2], -q[3]), (q[0], -q[3], q[2]), (q[3], q[0], -q[1]), (-q[2], q[1], q[0])
 
 
 @njit(cache=True)
 def xi1(q):
     """4×3 matrix Ξ(q) with ``q ⊗ [0, n] = Ξ n`` (survey A6, scalar first)."""
     x = np.empty((4, 3))
-    x[0, 0], x[0, 1], x[0, 2] = -q[1], -q[2], -q[3]
-    x[1, 0], x[1, 1], x[1, 2] = q[0], -q[3], q[2]
-    x[2, 0], x[2, 1], x[2, 2] = q[3], q[0], -q[1]
-    x[3, 0], x[3, 1], x[3, 2] = -q[2], q[1], q[0]
+    for i, row in enumerate(_xi_rows(q)):
+        x[i, 0], x[i, 1], x[i, 2] = row
     return x
+
+
+@njit(cache=True)
+def predict_into(q, p, gyr, dt, sigma_gyr, p_out, t):
+    """Gyro prediction (A1, A3–A6) written out: ``p_out`` (4, 4) ← Φ P Φᵀ + (T_s/2)² σ² Ξ Ξᵀ (``p_out`` may be
+    ``p``; ``t`` (4, 4) scratch); returns the a-priori q as a 4-tuple. ``gyr`` rad/s, sensor frame."""
+    dq = from_rotvec4((gyr[0] * dt, gyr[1] * dt, gyr[2] * dt))
+    phi = right_matrix4(dq)  # A3: q ⊗ δq = Φ q (exact)
+    xi = _xi_rows(q)  # A6
+    g = 0.5 * dt * sigma_gyr
+    q_new = normalize4(mul4(q, dq))  # A1
+    for i in range(4):
+        fi = phi[i]
+        for j in range(4):
+            t[i, j] = fi[0] * p[0, j] + fi[1] * p[1, j] + fi[2] * p[2, j] + fi[3] * p[3, j]
+    for i in range(4):  # A4: Q = (Ts/2)² σ² Ξ Ξᵀ
+        xa = xi[i]
+        for j in range(i, 4):
+            fj, xb = phi[j], xi[j]
+            v = (t[i, 0] * fj[0] + t[i, 1] * fj[1] + t[i, 2] * fj[2] + t[i, 3] * fj[3]) + (g * g) * (
+                xa[0] * xb[0] + xa[1] * xb[1] + xa[2] * xb[2]
+            )
+            p_out[i, j] = v
+            p_out[j, i] = v
+    return q_new
 
 
 @njit(cache=True)
 def predict1(q, p, gyr, dt, sigma_gyr):
     """Gyro prediction (A1, A3–A6): returns the a-priori ``(q, P)``; ``gyr`` rad/s, sensor frame."""
-    dq = from_rotvec1(gyr * dt)
-    phi = right_matrix1(dq)  # A3 (exact)
-    xi = xi1(q)  # A6
-    g = 0.5 * dt * sigma_gyr
-    q_new = normalize1(mul1(q, dq))  # A1
-    p_new = phi @ p @ phi.T + (g * g) * (xi @ xi.T)  # A4: Q = (Ts/2)² σ² Ξ Ξᵀ
-    return q_new, p_new
+    p_new = np.empty((4, 4))
+    q_new = predict_into(q, p, gyr, dt, sigma_gyr, p_new, np.empty((4, 4)))
+    return np.array(q_new), p_new
+
+
+@njit(cache=True)
+def update_into(q, p, z, r, k, t):
+    """Kalman update with a measured quaternion ``z`` (A2: H = I₄, R = r·I₄), Joseph form, written out: P
+    (4, 4) updated in place (``k``, ``t`` (4, 4) scratch); returns the normalised a-posteriori q (4-tuple)."""
+    if q[0] * z[0] + q[1] * z[1] + q[2] * z[2] + q[3] * z[3] < 0.0:  # z on the hemisphere of the prior
+        z = (-z[0], -z[1], -z[2], -z[3])
+    for i in range(4):  # S = P + r I, into k
+        for j in range(4):
+            k[i, j] = p[i, j] + (r if i == j else 0.0)
+    inv4(k, t)  # t = S⁻¹
+    for i in range(4):  # K = P S⁻¹
+        for j in range(4):
+            k[i, j] = p[i, 0] * t[0, j] + p[i, 1] * t[1, j] + p[i, 2] * t[2, j] + p[i, 3] * t[3, j]
+    dz = (z[0] - q[0], z[1] - q[1], z[2] - q[2], z[3] - q[3])
+    q_new = (
+        q[0] + (k[0, 0] * dz[0] + k[0, 1] * dz[1] + k[0, 2] * dz[2] + k[0, 3] * dz[3]),
+        q[1] + (k[1, 0] * dz[0] + k[1, 1] * dz[1] + k[1, 2] * dz[2] + k[1, 3] * dz[3]),
+        q[2] + (k[2, 0] * dz[0] + k[2, 1] * dz[1] + k[2, 2] * dz[2] + k[2, 3] * dz[3]),
+        q[3] + (k[3, 0] * dz[0] + k[3, 1] * dz[1] + k[3, 2] * dz[2] + k[3, 3] * dz[3]),
+    )
+    for i in range(4):  # T = (I − K) P
+        for j in range(4):
+            t[i, j] = (
+                ((1.0 if i == 0 else 0.0) - k[i, 0]) * p[0, j]
+                + ((1.0 if i == 1 else 0.0) - k[i, 1]) * p[1, j]
+                + ((1.0 if i == 2 else 0.0) - k[i, 2]) * p[2, j]
+                + ((1.0 if i == 3 else 0.0) - k[i, 3]) * p[3, j]
+            )
+    for i in range(4):  # P' = T (I − K)ᵀ + r K Kᵀ, upper triangle
+        for j in range(i, 4):
+            v = (
+                t[i, 0] * ((1.0 if j == 0 else 0.0) - k[j, 0])
+                + t[i, 1] * ((1.0 if j == 1 else 0.0) - k[j, 1])
+                + t[i, 2] * ((1.0 if j == 2 else 0.0) - k[j, 2])
+                + t[i, 3] * ((1.0 if j == 3 else 0.0) - k[j, 3])
+            ) + r * (k[i, 0] * k[j, 0] + k[i, 1] * k[j, 1] + k[i, 2] * k[j, 2] + k[i, 3] * k[j, 3])
+            p[i, j] = v
+            p[j, i] = v
+    return normalize4(q_new)
 
 
 @njit(cache=True)
 def update1(q, p, z, r):
     """Kalman update with a measured quaternion ``z`` (A2: H = I₄, R = r·I₄), Joseph form."""
-    z = align1(z, q)
-    s = p.copy()
-    for i in range(4):
-        s[i, i] += r
-    k = p @ np.linalg.inv(s)
-    q_new = q + k @ (z - q)
-    ikh = -k
-    for i in range(4):
-        ikh[i, i] += 1.0
-    p_new = ikh @ p @ ikh.T + r * (k @ k.T)
-    return normalize1(q_new), p_new
+    p_new = p.copy()
+    q_new = update_into(q, p_new, z, r, np.empty((4, 4)), np.empty((4, 4)))
+    return np.array(q_new), p_new
 
 
 @njit(cache=True)
 def select1(prm, q_prior, acc, mag):
     """Vector selector (A7–A8) for ``prm`` (:class:`Params`). Returns ``(s_g, s_h, acc_ok, mag_ok)``, unit
-    vectors, sensor frame."""
+    vectors (3-tuples), sensor frame."""
     g_ref, h_ref = prm.g_ref, prm.h_ref
     na = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
     nm = np.sqrt(mag[0] ** 2 + mag[1] ** 2 + mag[2] ** 2)
@@ -233,41 +304,48 @@ def select1(prm, q_prior, acc, mag):
     nh = np.sqrt(h_ref[0] ** 2 + h_ref[1] ** 2 + h_ref[2] ** 2)
     acc_ok = abs(na - ng) < prm.th_acc  # A7
     if acc_ok:
-        s_g = acc / na
+        s_g = (acc[0] / na, acc[1] / na, acc[2] / na)
     else:
-        s_g = rotate_inv1(q_prior, g_ref) / ng
+        g = rotate_inv3(q_prior, g_ref)
+        s_g = (g[0] / ng, g[1] / ng, g[2] / ng)
     mag_ok = abs(nm - prm.m0) < prm.th_mag and nm > 0.0  # A8, norm test
     if mag_ok:
-        m_hat = mag / nm
+        m_hat = (mag[0] / nm, mag[1] / nm, mag[2] / nm)
         sd = -(s_g[0] * m_hat[0] + s_g[1] * m_hat[1] + s_g[2] * m_hat[2])
         dip = np.arcsin(min(1.0, max(-1.0, sd)))
         mag_ok = abs(dip - prm.dip0) < prm.th_dip  # A8, dip test
     if mag_ok:
-        s_h = mag / nm
+        s_h = (mag[0] / nm, mag[1] / nm, mag[2] / nm)
     else:
-        s_h = rotate_inv1(q_prior, h_ref) / nh
+        h = rotate_inv3(q_prior, h_ref)
+        s_h = (h[0] / nh, h[1] / nh, h[2] / nh)
     return s_g, s_h, acc_ok, mag_ok
 
 
 @njit(cache=True)
-def step1(prm, state, gyr_prev, gyr, acc, mag):
-    """One full step (gyr_prev, gyr rad/s; acc m/s²; mag µT): predict, select, solve, update.
+def step1(prm, state, gyr_prev, gyr, acc, mag, lo, k, t):
+    """One full step (gyr_prev, gyr rad/s; acc m/s²; mag µT): predict, select, solve, update — in place on
+    ``state`` (``lo``, ``k``, ``t`` (4, 4) scratch; on a failure the state is left undefined).
 
-    Returns ``(state, acc_ok, mag_ok, status)``; status 0 ok, 1 covariance repaired,
-    −1 non-finite input/covariance, −2 degenerate solver input (the prediction is kept).
+    Returns ``(acc_ok, mag_ok, status)``; status 0 ok, 1 covariance repaired, −1 non-finite input/covariance,
+    −2 degenerate solver input (the prediction is kept).
     """
     if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag)):
-        return state, False, False, -1
-    qp, pp = predict1(state.q, state.p, 0.5 * (gyr_prev + gyr), prm.dt, prm.sigma_gyr)
+        return False, False, -1
+    p = state.p
+    w = (0.5 * (gyr_prev[0] + gyr[0]), 0.5 * (gyr_prev[1] + gyr[1]), 0.5 * (gyr_prev[2] + gyr[2]))
+    qp = predict_into(state.q, p, w, prm.dt, prm.sigma_gyr, p, t)
     s_g, s_h, acc_ok, mag_ok = select1(prm, qp, acc, mag)
-    z = solve1(prm.solver, s_g, s_h, prm.g_ref, prm.h_ref)
+    z = solve4(prm.solver, s_g, s_h, prm.g_ref, prm.h_ref)
     if not np.isfinite(z[0]):
         # degenerate pair (e.g. acc ∥ mag): keep the prediction, as if both were replaced
-        status = repair_cov1(pp, prm.cov_floor)
-        return State(qp, pp), acc_ok, mag_ok, -2 if status >= 0 else -1
-    qn, pn = update1(qp, pp, z, prm.r)
-    status = repair_cov1(pn, prm.cov_floor)
-    return State(qn, pn), acc_ok, mag_ok, status
+        q = qp
+        status = -2 if repair_sym(p, 4, prm.cov_floor, lo) >= 0 else -1
+    else:
+        q = update_into(qp, p, z, prm.r, k, t)
+        status = repair_sym(p, 4, prm.cov_floor, lo)
+    state.q[0], state.q[1], state.q[2], state.q[3] = q
+    return acc_ok, mag_ok, status
 
 
 @njit(cache=True)
@@ -285,19 +363,20 @@ def run_kernel(prm, sensors, q_out, acc_ok, mag_ok):
     if not np.isfinite(q[0]):
         return 0, 0
     state = State(q, np.eye(4) * prm.p0)
+    lo, k, t = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
     q_out[0] = q
     acc_ok[0] = True
     mag_ok[0] = True
     repairs = 0
-    for k in range(1, n):
-        state, a_ok, m_ok, status = step1(prm, state, gyr[k - 1], gyr[k], acc[k], mag[k])
+    for i in range(1, n):
+        a_ok, m_ok, status = step1(prm, state, gyr[i - 1], gyr[i], acc[i], mag[i], lo, k, t)
         if status == -1:
-            return k, repairs
+            return i, repairs
         if status == 1:
             repairs += 1
-        q_out[k] = state.q
-        acc_ok[k] = a_ok
-        mag_ok[k] = m_ok
+        q_out[i] = state.q
+        acc_ok[i] = a_ok
+        mag_ok[i] = m_ok
     return OK, repairs
 
 

@@ -77,12 +77,26 @@ from magenv.filters.kalman_threshold import (
     TH_ACC,
     FilterError,
     finite3,
-    repair_cov1,
-    skew1,
+    repair_cov3,
+)
+from magenv.filters.linalg import (
+    add33,
+    diag3,
+    innovation_cov3,
+    inv3,
+    joseph3,
+    mat3,
+    mul33,
+    mul33t,
+    mv3,
+    quad3,
+    scale33,
+    skew3,
+    store3,
 )
 from magenv.filters.sensors import Sensors
 from magenv.filters.solvers import triad1
-from magenv.quaternion import from_rotvec1, mul1, normalize1, rotate1
+from magenv.quaternion import from_rotvec4, mul4, normalize4, rotate3
 
 SIGNALS = (
     "nu_e",
@@ -179,10 +193,75 @@ def init_kernel(params, acc0, mag0, state):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _apply(q, dtheta):
-    """q ← exp(δθ) ⊗ q (earth-frame correction)."""
-    return normalize1(mul1(from_rotvec1(dtheta), q))
+    """q ← exp(δθ) ⊗ q (earth-frame correction), 4-tuples."""
+    return normalize4(mul4(from_rotvec4(dtheta), q))
+
+
+@njit(cache=True, inline="always")
+def _update(p, h, nu, s_inv, r, gain, heading_only):
+    """Kalman update of the error δθ (P 9-tuple) by a 3-component measurement (H 9-tuple, innovation ν, S⁻¹
+    of S = H P Hᵀ + r I) with gain ``gain``·K (only K's z row with ``heading_only``). Returns ``(δθ, P')``,
+    Joseph form."""
+    k = mul33(mul33t(p, h), s_inv)
+    if heading_only:
+        k = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, k[6], k[7], k[8])
+    k = scale33(gain, k)
+    return mv3(k, nu), joseph3(p, k, h, r)
+
+
+@njit(cache=True)
+def _step(params, q, p, gyr_prev, gyr, acc, mag, trust, sig):
+    """One sample from the estimate ``q`` (4,) and covariance ``p`` (3, 3) (read only); writes ``sig``.
+    Returns ``(status, q', P')`` (4- and 9-tuples), status as :func:`step1`. Allocates nothing
+    (``magenv.filters.linalg``) but in a covariance repair."""
+    if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
+        return -1, (1.0, 0.0, 0.0, 0.0), diag3(0.0)
+    sg, sa, sm, dt = params.sigma_gyr, params.sigma_acc, params.sigma_mag, params.dt
+    g_ref, h_ref = params.g_ref, params.h_ref
+    pt = mat3(p)
+    # 1. prediction
+    w = (0.5 * (gyr_prev[0] + gyr[0]) * dt, 0.5 * (gyr_prev[1] + gyr[1]) * dt, 0.5 * (gyr_prev[2] + gyr[2]) * dt)
+    qn = normalize4(mul4(q, from_rotvec4(w)))
+    pt = add33(pt, diag3((sg * dt) ** 2))
+    # 2. accelerometer update (gated, A7)
+    na = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
+    ng = np.sqrt(g_ref[0] ** 2 + g_ref[1] ** 2 + g_ref[2] ** 2)
+    acc_used = abs(na - ng) < params.th_acc
+    if acc_used:
+        h = skew3(g_ref)
+        a_e = rotate3(qn, acc)
+        nu = (a_e[0] - g_ref[0], a_e[1] - g_ref[1], a_e[2] - g_ref[2])
+        dtheta, pt = _update(pt, h, nu, inv3(innovation_cov3(pt, h, sa * sa)), sa * sa, 1.0, False)
+        qn = _apply(qn, dtheta)
+    # 3. magnetometer update scaled by trust
+    h = skew3(h_ref)
+    m_e = rotate3(qn, mag)
+    nu = (m_e[0] - h_ref[0], m_e[1] - h_ref[1], m_e[2] - h_ref[2])
+    s = innovation_cov3(pt, h, sm * sm)
+    s_inv = inv3(s)
+    if trust > 0.0:
+        dtheta, pt = _update(pt, h, nu, s_inv, sm * sm, trust, params.heading_only)
+        qn = _apply(qn, dtheta)
+    status, pt = repair_cov3(pt, params.cov_floor)
+    if status < 0:
+        return -1, qn, pt
+    nm = np.sqrt(mag[0] ** 2 + mag[1] ** 2 + mag[2] ** 2)
+    sig[SIG.nu_e] = nu[0]
+    sig[SIG.nu_n] = nu[1]
+    sig[SIG.nu_u] = nu[2]
+    sig[SIG.nu_norm] = np.sqrt(nu[0] ** 2 + nu[1] ** 2 + nu[2] ** 2)
+    sig[SIG.nis] = quad3(nu, s_inv)
+    sig[SIG.s_trace] = s[0] + s[4] + s[8]
+    sig[SIG.p_trace] = pt[0] + pt[4] + pt[8]
+    sig[SIG.heading_std] = np.sqrt(pt[8])
+    sig[SIG.mag_norm_dev] = nm - params.m0
+    sig[SIG.dip_dev] = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -m_e[2] / nm))) - params.dip0) if nm > 0.0 else np.nan
+    sig[SIG.acc_norm_dev] = na - ng
+    sig[SIG.acc_used] = 1.0 if acc_used else 0.0
+    sig[SIG.trust] = trust
+    return status, qn, pt
 
 
 @njit(cache=True)
@@ -192,68 +271,19 @@ def step1(params, state, gyr_prev, gyr, acc, mag, trust, sig):
     Writes ``sig`` (NSIG,). Returns 0 ok, 1 covariance repaired, −1 non-finite input or covariance
     (``state`` then stays at the previous sample).
     """
-    if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
-        return -1
-    sg, sa, sm, dt = params.sigma_gyr, params.sigma_acc, params.sigma_mag, params.dt
-    g_ref, h_ref = params.g_ref, params.h_ref
-    q, p_in = state.q, state.p
-    p = p_in.copy()  # work on a copy: on failure the caller's state stays at the previous sample
-    # 1. prediction
-    qn = normalize1(mul1(q, from_rotvec1(0.5 * (gyr_prev + gyr) * dt)))
-    qv = (sg * dt) ** 2
-    for i in range(3):
-        p[i, i] += qv
-    # 2. accelerometer update (gated, A7)
-    na = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
-    ng = np.sqrt(g_ref[0] ** 2 + g_ref[1] ** 2 + g_ref[2] ** 2)
-    acc_used = abs(na - ng) < params.th_acc
-    if acc_used:
-        h = skew1(g_ref)
-        nu = rotate1(qn, acc) - g_ref
-        s = h @ p @ h.T
-        for i in range(3):
-            s[i, i] += sa * sa
-        k = p @ h.T @ np.linalg.inv(s)
-        qn = _apply(qn, k @ nu)
-        ikh = np.eye(3) - k @ h
-        p = ikh @ p @ ikh.T + (sa * sa) * (k @ k.T)
-    # 3. magnetometer update scaled by trust
-    h = skew1(h_ref)
-    m_e = rotate1(qn, mag)
-    nu = m_e - h_ref
-    s = h @ p @ h.T
-    for i in range(3):
-        s[i, i] += sm * sm
-    s_inv = np.linalg.inv(s)
-    if trust > 0.0:
-        k = p @ h.T @ s_inv
-        if params.heading_only:
-            k[0, :] = 0.0
-            k[1, :] = 0.0
-        k = trust * k
-        qn = _apply(qn, k @ nu)
-        ikh = np.eye(3) - k @ h
-        p = ikh @ p @ ikh.T + (sm * sm) * (k @ k.T)
-    status = repair_cov1(p, params.cov_floor)
-    if status < 0:
-        return -1
-    q[:] = qn
-    p_in[:, :] = p
-    nm = np.sqrt(mag[0] ** 2 + mag[1] ** 2 + mag[2] ** 2)
-    sig[SIG.nu_e] = nu[0]
-    sig[SIG.nu_n] = nu[1]
-    sig[SIG.nu_u] = nu[2]
-    sig[SIG.nu_norm] = np.sqrt(nu[0] ** 2 + nu[1] ** 2 + nu[2] ** 2)
-    sig[SIG.nis] = nu @ s_inv @ nu
-    sig[SIG.s_trace] = s[0, 0] + s[1, 1] + s[2, 2]
-    sig[SIG.p_trace] = p[0, 0] + p[1, 1] + p[2, 2]
-    sig[SIG.heading_std] = np.sqrt(p[2, 2])
-    sig[SIG.mag_norm_dev] = nm - params.m0
-    sig[SIG.dip_dev] = np.rad2deg(np.arcsin(min(1.0, max(-1.0, -m_e[2] / nm))) - params.dip0) if nm > 0.0 else np.nan
-    sig[SIG.acc_norm_dev] = na - ng
-    sig[SIG.acc_used] = 1.0 if acc_used else 0.0
-    sig[SIG.trust] = trust
+    status, qn, pt = _step(params, state.q, state.p, gyr_prev, gyr, acc, mag, trust, sig)
+    if status >= 0:
+        q = state.q
+        q[0], q[1], q[2], q[3] = qn
+        store3(pt, state.p)
     return status
+
+
+@njit(cache=True)
+def peek1(params, state, gyr_prev, gyr, acc, mag, sig):
+    """The a-priori signals of a sample: :func:`step1` at γ = 0 writing only ``sig``, ``state`` unchanged.
+    Returns the status."""
+    return _step(params, state.q, state.p, gyr_prev, gyr, acc, mag, 0.0, sig)[0]
 
 
 @njit(cache=True)

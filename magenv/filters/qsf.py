@@ -105,9 +105,10 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.checks import check_bool, check_choice, check_noise, check_number, check_positive, check_site, check_vector
-from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_cov1, right_matrix1
+from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_sym
+from magenv.filters.linalg import inv3, joseph_update, project_quaternion, quad3
 from magenv.filters.solvers import triad1
-from magenv.quaternion import GRAVITY, from_rotvec1, mul1, normalize1, rotate1
+from magenv.quaternion import GRAVITY, from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
 from magenv.trial import START_FROM_TRUTH
 
 MODE_AEKF, MODE_MAGYQ, MODE_DELAY = 0, 1, 2
@@ -256,142 +257,235 @@ def make_params(
 # ------------------------------------------------------------ small matrices
 
 
-@njit(cache=True)
-def left_matrix1(q):
-    """4×4 M(q) with ``q ⊗ p = M(q) p`` (eq. 20)."""
-    m = np.empty((4, 4))
-    m[0, 0], m[0, 1], m[0, 2], m[0, 3] = q[0], -q[1], -q[2], -q[3]
-    m[1, 0], m[1, 1], m[1, 2], m[1, 3] = q[1], q[0], -q[3], q[2]
-    m[2, 0], m[2, 1], m[2, 2], m[2, 3] = q[2], q[3], q[0], -q[1]
-    m[3, 0], m[3, 1], m[3, 2], m[3, 3] = q[3], -q[2], q[1], q[0]
-    return m
+@njit(cache=True, inline="always")
+def _put_jacobian(h, col, q, v, sign):
+    """``h[:, col:col+4] = sign ·`` the 3×4 Jacobian of ``h(q) = q ⊗ v ⊗ q̄`` with respect to q = [w, u]
+    (eqs. 12, 14): ``∂h/∂w = 2(w v + u × v)``, ``∂h/∂u = 2((u·v) I + u vᵀ − v uᵀ − w [v×])``."""
+    w, ux, uy, uz = q[0], q[1], q[2], q[3]
+    v0, v1, v2 = v[0], v[1], v[2]
+    cx = uy * v2 - uz * v1
+    cy = uz * v0 - ux * v2
+    cz = ux * v1 - uy * v0
+    uv = ux * v0 + uy * v1 + uz * v2
+    s2 = 2.0 * sign
+    h[0, col] = s2 * (w * v0 + cx)
+    h[1, col] = s2 * (w * v1 + cy)
+    h[2, col] = s2 * (w * v2 + cz)
+    h[0, col + 1] = s2 * (ux * v0 - v0 * ux + uv)
+    h[0, col + 2] = s2 * (ux * v1 - v0 * uy) + s2 * w * v2
+    h[0, col + 3] = s2 * (ux * v2 - v0 * uz) - s2 * w * v1
+    h[1, col + 1] = s2 * (uy * v0 - v1 * ux) - s2 * w * v2
+    h[1, col + 2] = s2 * (uy * v1 - v1 * uy + uv)
+    h[1, col + 3] = s2 * (uy * v2 - v1 * uz) + s2 * w * v0
+    h[2, col + 1] = s2 * (uz * v0 - v2 * ux) + s2 * w * v1
+    h[2, col + 2] = s2 * (uz * v1 - v2 * uy) - s2 * w * v0
+    h[2, col + 3] = s2 * (uz * v2 - v2 * uz + uv)
 
 
 @njit(cache=True)
 def rot_jacobian1(q, v):
     """3×4 Jacobian of ``h(q) = q ⊗ v ⊗ q̄`` with respect to q = [w, u] (eqs. 12, 14)."""
-    w, ux, uy, uz = q[0], q[1], q[2], q[3]
     j = np.empty((3, 4))
-    cx = uy * v[2] - uz * v[1]
-    cy = uz * v[0] - ux * v[2]
-    cz = ux * v[1] - uy * v[0]
-    j[0, 0] = 2.0 * (w * v[0] + cx)
-    j[1, 0] = 2.0 * (w * v[1] + cy)
-    j[2, 0] = 2.0 * (w * v[2] + cz)
-    uv = ux * v[0] + uy * v[1] + uz * v[2]
-    u = (ux, uy, uz)
-    for r in range(3):
-        for c in range(3):
-            val = u[r] * v[c] - v[r] * u[c]
-            if r == c:
-                val += uv
-            j[r, 1 + c] = 2.0 * val
-    # − w [v×]
-    j[0, 2] += 2.0 * w * v[2]
-    j[0, 3] -= 2.0 * w * v[1]
-    j[1, 1] -= 2.0 * w * v[2]
-    j[1, 3] += 2.0 * w * v[0]
-    j[2, 1] += 2.0 * w * v[1]
-    j[2, 2] -= 2.0 * w * v[0]
+    _put_jacobian(j, 0, q, v, 1.0)
     return j
 
 
-@njit(cache=True)
-def heading_row1(q):
-    """Row e (4,) with earth-frame heading error ≈ e · δq (δθ_E = 2 vec(δq ⊗ q̄))."""
-    m = right_matrix1(np.array([q[0], -q[1], -q[2], -q[3]]))
-    return 2.0 * m[3]
+@njit(cache=True, inline="always")
+def heading_row4(q):
+    """Row e (4-tuple) with earth-frame heading error ≈ e · δq (δθ_E = 2 vec(δq ⊗ q̄))."""
+    return -2.0 * q[3], -2.0 * q[2], 2.0 * q[1], 2.0 * q[0]
 
 
 # ------------------------------------------------------------ kernel pieces
 
 
+class Work(NamedTuple):
+    """Scratch of the step kernel, allocated once per :func:`run_kernel` call (:func:`work`)."""
+
+    x: np.ndarray  # (N_AUGMENTED,) the state being updated, committed to State if healthy
+    p: np.ndarray  # (N_AUGMENTED, N_AUGMENTED) its covariance
+    h: np.ndarray  # (3, N_AUGMENTED) measurement Jacobian (nonzero columns: q and one more block)
+    hp: np.ndarray  # (3, N_AUGMENTED) H P
+    kt: np.ndarray  # (3, N_AUGMENTED) the gain, transposed
+    m: np.ndarray  # (4, N_AUGMENTED) the prediction's rows of F P; the Joseph update's G (3 rows)
+    lo: np.ndarray  # (N_AUGMENTED, N_AUGMENTED) Cholesky factor of the health test
+
+
+_N = N_AUGMENTED
+_WORK_ENDS = np.cumsum(np.array((_N, _N * _N, 3 * _N, 3 * _N, 3 * _N, 4 * _N, _N * _N)))
+
+
 @njit(cache=True)
-def _kalman_update(x, cov, na, nu, h, r_diag, gain_scale):
-    """Joseph-form EKF update of the first ``na`` states of x and cov, in place; returns (K (na, m), S⁻¹)."""
-    m = nu.shape[0]
-    p = cov[:na, :na].copy()
-    pht = p @ h.T
-    s = h @ pht
-    for i in range(m):
-        s[i, i] += r_diag
-    s_inv = np.linalg.inv(s)
-    k = gain_scale * (pht @ s_inv)
-    dx = k @ nu
-    for i in range(na):
-        x[i] += dx[i]
-    ikh = np.eye(na) - k @ h
-    p = ikh @ p @ ikh.T + r_diag * (k @ k.T)
-    cov[:na, :na] = p
-    return k, s_inv
+def work():
+    """A :class:`Work` (one allocation, carved into views; not initialised: each step writes before it reads)."""
+    n, o = _N, _WORK_ENDS
+    buf = np.empty(o[-1])
+    return Work(
+        buf[0 : o[0]],
+        buf[o[0] : o[1]].reshape(n, n),
+        buf[o[1] : o[2]].reshape(3, n),
+        buf[o[2] : o[3]].reshape(3, n),
+        buf[o[3] : o[4]].reshape(3, n),
+        buf[o[4] : o[5]].reshape(4, n),
+        buf[o[5] : o[6]].reshape(n, n),
+    )
+
+
+@njit(cache=True, inline="always")
+def _hcol(t, c2):
+    """Column of H's t-th nonzero column: q (0…3), then the block starting at c2."""
+    return t if t < 4 else c2 + t - 4
+
+
+@njit(cache=True)
+def _predict_cov(w, na, q, q_w):
+    """``P ← F P Fᵀ`` of eqs. 19–20 on the leading na×na block of ``w.p`` (symmetric), in place: F is the
+    identity but for the q rows ``[C(q̂_ω), −M(q), 0]``, so only q's rows and columns change."""
+    p, r = w.p, w.m
+    c, m = right_matrix4(q_w), left_matrix4(q)  # q1 ⊗ q2 = C(q2) q1 = M(q1) q2 (eq. 20), rows
+    for a in range(4):  # rows of F P: r[a, j] = C[a] · P[q, j] − M[a] · P[b_q, j]
+        ca, ma = c[a], m[a]
+        for j in range(na):
+            r[a, j] = (ca[0] * p[0, j] + ca[1] * p[1, j] + ca[2] * p[2, j] + ca[3] * p[3, j]) - (
+                ma[0] * p[4, j] + ma[1] * p[5, j] + ma[2] * p[6, j] + ma[3] * p[7, j]
+            )
+    for a in range(4):  # the q block of (F P) Fᵀ, upper triangle
+        for b in range(a, 4):
+            cb, mb = c[b], m[b]
+            v = (r[a, 0] * cb[0] + r[a, 1] * cb[1] + r[a, 2] * cb[2] + r[a, 3] * cb[3]) - (
+                r[a, 4] * mb[0] + r[a, 5] * mb[1] + r[a, 6] * mb[2] + r[a, 7] * mb[3]
+            )
+            p[a, b] = v
+            p[b, a] = v
+    for a in range(4):
+        for j in range(4, na):
+            v = r[a, j]
+            p[a, j] = v
+            p[j, a] = v
+
+
+@njit(cache=True)
+def _kalman_update(w, na, c2, n2, nu, r_diag, gain):
+    """Joseph-form EKF update of the first na states of ``w.x``, ``w.p`` by a 3-component measurement with
+    innovation ``nu`` (3-tuple), R = r_diag·I and gain ``gain``·K; ``w.h`` holds H, nonzero only in the q
+    columns and ``n2`` columns from ``c2``. Returns ``(S⁻¹, |Δq|)`` (9-tuple; the norm of q's correction)."""
+    p, h, hp, kt = w.p, w.h, w.hp, w.kt
+    for mm in range(3):  # H P, row by row (contiguous, summed over H's nonzero columns in order)
+        hm = hp[mm]
+        for j in range(na):
+            hm[j] = 0.0
+        for t in range(4 + n2):
+            col = _hcol(t, c2)
+            f = h[mm, col]
+            pc = p[col]
+            for j in range(na):
+                hm[j] += f * pc[j]
+    s00 = s01 = s02 = s11 = s12 = s22 = 0.0
+    for t in range(4 + n2):  # S = H P Hᵀ + R, upper triangle
+        col = _hcol(t, c2)
+        s00 += hp[0, col] * h[0, col]
+        s01 += hp[0, col] * h[1, col]
+        s02 += hp[0, col] * h[2, col]
+        s11 += hp[1, col] * h[1, col]
+        s12 += hp[1, col] * h[2, col]
+        s22 += hp[2, col] * h[2, col]
+    s = (s00 + r_diag, s01, s02, s01, s11 + r_diag, s12, s02, s12, s22 + r_diag)
+    s_inv = inv3(s)
+    for j in range(na):  # Kᵀ = gain · S⁻¹ H P (K = gain · P Hᵀ S⁻¹, P Hᵀ = (H P)ᵀ)
+        h0, h1, h2 = hp[0, j], hp[1, j], hp[2, j]
+        kt[0, j] = gain * (h0 * s_inv[0] + h1 * s_inv[3] + h2 * s_inv[6])
+        kt[1, j] = gain * (h0 * s_inv[1] + h1 * s_inv[4] + h2 * s_inv[7])
+        kt[2, j] = gain * (h0 * s_inv[2] + h1 * s_inv[5] + h2 * s_inv[8])
+    x = w.x
+    corr = 0.0
+    for j in range(na):
+        before = x[j]
+        x[j] += kt[0, j] * nu[0] + kt[1, j] * nu[1] + kt[2, j] * nu[2]
+        if j < 4:
+            corr += (x[j] - before) ** 2
+    joseph_update(p, na, hp, kt, s, w.m)
+    return s_inv, np.sqrt(corr)
 
 
 @njit(cache=True)
 def _renormalise(x, cov, na, eps):
-    """Normalise q (and the clone) and project the covariance on the unit-sphere tangent."""
-    t = np.eye(na)
+    """Normalise q (and the clone) and project the covariance on the unit-sphere tangent
+    (``linalg.project_quaternion``)."""
     for off in (ORIENTATION.start, CLONE.start):
         if off + 4 > na:
             continue
         qn = np.sqrt(x[off] ** 2 + x[off + 1] ** 2 + x[off + 2] ** 2 + x[off + 3] ** 2)
         for i in range(4):
             x[off + i] /= qn
-        for i in range(4):
-            for j in range(4):
-                t[off + i, off + j] = (1.0 if i == j else 0.0) - x[off + i] * x[off + j]
-    p = t @ cov[:na, :na].copy() @ t.T
-    for off in (ORIENTATION.start, CLONE.start):
-        if off + 4 > na:
-            continue
-        for i in range(4):
-            for j in range(4):
-                p[off + i, off + j] += eps * x[off + i] * x[off + j]
-    cov[:na, :na] = p
+        project_quaternion(cov, na, x[off : off + 4], off, eps)
 
 
-@njit(cache=True, inline="always")
-def step1(p, state, inputs, i, dt, sig):
-    """Sample i of ``inputs`` (:class:`Inputs`) in place on ``state`` (:class:`State`); writes ``sig`` (N_SIGNALS,).
+@njit(cache=True)
+def _commit_healthy(state, w, na, cov_floor):
+    """Covariance health of ``w`` (``kalman_threshold.repair_sym``), then ``w`` → ``state``. Returns the status
+    (−1: nothing committed)."""
+    status = repair_sym(w.p, na, cov_floor, w.lo)  # every update mirrors one triangle: exactly symmetric
+    if status < 0:
+        return -1
+    for r in range(na):
+        if not np.isfinite(w.x[r]):
+            return -1
+    x, cov = state.x, state.cov
+    for r in range(N_AUGMENTED):
+        x[r] = w.x[r]
+    for r in range(na):
+        for c in range(na):
+            cov[r, c] = w.p[r, c]
+    if na == N_STATE:  # keep the unused clone block tidy
+        for r in range(N_STATE, N_AUGMENTED):
+            for c in range(N_AUGMENTED):
+                cov[r, c] = 0.0
+                cov[c, r] = 0.0
+    return status
 
-    The gyro prediction runs from sample i − 1 (none for i = 0). ``inputs.action[i]`` is MAG_NONE /
-    MAG_START / MAG_KEEP (ignored by the AEKF, which always updates), ``inputs.trust[i]`` ∈ [0, 1] scales
-    the magnetic gain. Returns 0 ok, 1 covariance repaired, −1 non-finite input or covariance (state unchanged).
-    """
+
+@njit(cache=True)
+def step_work(p, state, inputs, i, dt, sig, w):
+    """:func:`step1` with the scratch ``w`` (:class:`Work`)."""
     gyr_prev, gyr = inputs.gyr[i - 1 if i > 0 else 0], inputs.gyr[i]
     acc, mag, action, trust = inputs.acc[i], inputs.mag[i], inputs.action[i], inputs.trust[i]
     if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
         return -1
-    for r in range(N_AUGMENTED):
-        if not np.isfinite(state.x[r]):
-            return -1
-        for c in range(N_AUGMENTED):
-            if not np.isfinite(state.cov[r, c]):
-                return -1
     mode = p.mode
-    xs = state.x.copy()  # worked on, committed to state at the end if healthy
-    ps = state.cov.copy()
     on, age = state.period_active[0], state.period_age[0]
-    mag_t0, mag_ref = state.mag_t0, state.mag_ref  # rebound (never written) until the commit
+    m_t0 = (state.mag_t0[0], state.mag_t0[1], state.mag_t0[2])
+    m_ref = (state.mag_ref[0], state.mag_ref[1], state.mag_ref[2])
     active = on and mode != MODE_AEKF
     keep_clone = mode == MODE_DELAY and active and not p.update_reference  # eq. 24 literally
     na = N_AUGMENTED if (mode == MODE_DELAY and active) else N_STATE
+    xs, ps = w.x, w.p
+    for r in range(N_AUGMENTED):  # copy the state into the scratch, checking it is finite
+        xs[r] = state.x[r]
+        if not np.isfinite(xs[r]):
+            return -1
+    for r in range(na):  # the covariance's leading block, symmetrised (the rest is 0 by construction)
+        for c in range(r, na):
+            a, b = state.cov[r, c], state.cov[c, r]
+            if not (np.isfinite(a) and np.isfinite(b)):
+                return -1
+            v = 0.5 * (a + b)
+            ps[r, c] = v
+            ps[c, r] = v
     # 1. prediction, eqs. 17–19
     if i > 0:
-        q = xs[ORIENTATION].copy()
-        q_yg = from_rotvec1(0.5 * (gyr_prev + gyr) * dt)
-        q_w = normalize1(q_yg - xs[GYRO_BIAS])
-        xs[ORIENTATION] = mul1(q, q_w)
-        f = np.eye(na)
-        f[ORIENTATION, ORIENTATION] = right_matrix1(q_w)
-        f[ORIENTATION, GYRO_BIAS] = -left_matrix1(q)
-        pp = f @ ps[:na, :na].copy() @ f.T
+        q = (xs[0], xs[1], xs[2], xs[3])
+        q_yg = from_rotvec4(
+            (0.5 * (gyr_prev[0] + gyr[0]) * dt, 0.5 * (gyr_prev[1] + gyr[1]) * dt, 0.5 * (gyr_prev[2] + gyr[2]) * dt)
+        )
+        q_w = normalize4((q_yg[0] - xs[4], q_yg[1] - xs[5], q_yg[2] - xs[6], q_yg[3] - xs[7]))
+        xs[0], xs[1], xs[2], xs[3] = mul4(q, q_w)
+        _predict_cov(w, na, q, q_w)
         qg = (0.5 * p.sigma_gyr * dt) ** 2
         for r in range(4):
-            pp[r, r] += qg
-            pp[GYRO_BIAS.start + r, GYRO_BIAS.start + r] += (0.5 * dt * p.sigma_bias_walk) ** 2 * dt
+            ps[r, r] += qg
+            ps[GYRO_BIAS.start + r, GYRO_BIAS.start + r] += (0.5 * dt * p.sigma_bias_walk) ** 2 * dt
         for r in range(3):
-            pp[ACC_BIAS.start + r, ACC_BIAS.start + r] += p.sigma_acc_bias_walk**2 * dt
-        ps[:na, :na] = pp
+            ps[ACC_BIAS.start + r, ACC_BIAS.start + r] += p.sigma_acc_bias_walk**2 * dt
         if active:
             age += dt
     # 2. accelerometer update (gated)
@@ -399,23 +493,21 @@ def step1(p, state, inputs, i, dt, sig):
     g_norm = np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     na_ = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
     acc_used = abs(na_ - g_norm) < p.th_acc
+    h = w.h
     if acc_used:
-        q = xs[ORIENTATION].copy()
-        v = acc - xs[ACC_BIAS]
-        h = np.zeros((3, na))
-        h[:, ORIENTATION] = rot_jacobian1(q, v)
+        q = (xs[0], xs[1], xs[2], xs[3])
+        v = (acc[0] - xs[8], acc[1] - xs[9], acc[2] - xs[10])
+        _put_jacobian(h, 0, q, v, 1.0)
         for c in range(3):  # ∂/∂b_a of q ⊗ (y_a − b_a) ⊗ q̄ = −R(q), column c = −R e_c
-            e = np.zeros(3)
-            e[c] = 1.0
-            h[:, ACC_BIAS.start + c] = -rotate1(q, e)
+            e = rotate3(q, (1.0 if c == 0 else 0.0, 1.0 if c == 1 else 0.0, 1.0 if c == 2 else 0.0))
+            h[0, ACC_BIAS.start + c], h[1, ACC_BIAS.start + c], h[2, ACC_BIAS.start + c] = -e[0], -e[1], -e[2]
         dev = p.acc_adaptive * (na_ - g_norm)
-        nu = rotate1(q, v)
-        for c in range(3):
-            nu[c] = g[c] - nu[c]  # z − h(x), z = g_ENU
-        _kalman_update(xs, ps, na, nu, h, p.sigma_acc**2 + dev * dev, 1.0)
+        a_e = rotate3(q, v)
+        nu = (g[0] - a_e[0], g[1] - a_e[1], g[2] - a_e[2])  # z − h(x), z = g_ENU
+        _kalman_update(w, na, ACC_BIAS.start, 3, nu, p.sigma_acc**2 + dev * dev, 1.0)
         _renormalise(xs, ps, na, p.radial_eps)
         if active and mode == MODE_DELAY and p.update_reference:
-            mag_ref = rotate1(xs[CLONE], mag_t0)
+            m_ref = rotate3(xs[CLONE], m_t0)
     # 3. magnetic update
     sm2 = p.sigma_mag**2
     innov = 0.0
@@ -423,21 +515,24 @@ def step1(p, state, inputs, i, dt, sig):
     corr = 0.0
     updated = False
     if mode == MODE_AEKF:
-        z = np.array(p.earth_field)
+        z = p.earth_field
         do = trust > 0.0
         r_diag = sm2
     else:
         if action == MAG_START or (action == MAG_KEEP and active and age > p.max_age_s):
             # eq. 8: the reference is the field at t0 rotated by the estimate at t0
             on, age = True, 0.0
-            mag_t0 = mag
-            mag_ref = rotate1(xs[ORIENTATION], mag)
+            m_t0 = (mag[0], mag[1], mag[2])
+            m_ref = rotate3(xs[ORIENTATION], mag)
             if mode == MODE_DELAY:  # clone: Cov(δq_t0) = P_qq, Cov(δx, δq_t0) = P[:, q]
                 na = N_AUGMENTED
-                xs[CLONE] = xs[ORIENTATION]
-                ps[CLONE, :N_STATE] = ps[ORIENTATION, :N_STATE]
-                ps[:N_STATE, CLONE] = ps[:N_STATE, ORIENTATION]
-                ps[CLONE, CLONE] = ps[ORIENTATION, ORIENTATION]
+                for a in range(4):
+                    xs[CLONE.start + a] = xs[a]
+                    for c in range(N_STATE):
+                        ps[CLONE.start + a, c] = ps[a, c]
+                        ps[c, CLONE.start + a] = ps[c, a]
+                    for b in range(4):
+                        ps[CLONE.start + a, CLONE.start + b] = ps[a, b]
                 for r in range(N_STATE, N_AUGMENTED):  # the exact clone is singular; a tiny jitter keeps P̆ pos. def.
                     ps[r, r] += CLONE_JITTER
             active = True
@@ -450,56 +545,62 @@ def step1(p, state, inputs, i, dt, sig):
                 active = False
                 na = N_STATE
             do = False
-        z = mag_ref
+        z = m_ref
         r_diag = 2.0 * sm2 if mode == MODE_DELAY else sm2
     if mode == MODE_AEKF or active:
-        q = xs[ORIENTATION].copy()
-        nu = z - rotate1(q, mag)
-        innov = np.sqrt(nu @ nu)
+        q = (xs[0], xs[1], xs[2], xs[3])
+        m_e = rotate3(q, mag)
+        nu = (z[0] - m_e[0], z[1] - m_e[1], z[2] - m_e[2])
+        innov = np.sqrt(nu[0] * nu[0] + nu[1] * nu[1] + nu[2] * nu[2])
         if do:
-            h = np.zeros((3, na))
-            h[:, ORIENTATION] = rot_jacobian1(q, mag)
+            _put_jacobian(h, 0, q, mag, 1.0)
+            n2 = 0
             if na == N_AUGMENTED:
-                h[:, CLONE] = -rot_jacobian1(xs[CLONE], mag_t0)
-            q_before = xs[ORIENTATION].copy()
-            _, s_inv = _kalman_update(xs, ps, na, nu, h, r_diag, trust)
-            nis = nu @ s_inv @ nu
-            dq = xs[ORIENTATION] - q_before
-            corr = np.sqrt(dq @ dq)
+                _put_jacobian(h, CLONE.start, xs[CLONE], m_t0, -1.0)
+                n2 = 4
+            s_inv, corr = _kalman_update(w, na, CLONE.start, n2, nu, r_diag, trust)
+            nis = quad3(nu, s_inv)
             _renormalise(xs, ps, na, p.radial_eps)
             if na == N_AUGMENTED and p.update_reference:
-                mag_ref = rotate1(xs[CLONE], mag_t0)
+                m_ref = rotate3(xs[CLONE], m_t0)
             updated = True
     if keep_clone and active and na == N_AUGMENTED and age > 0.0:  # eq. 24 read literally: q̂_t0 stays
-        xs[CLONE] = state.x[CLONE]
-    # 4. covariance health
-    pp = ps[:na, :na].copy()
-    status = repair_cov1(pp, p.cov_floor)
+        for a in range(4):
+            xs[CLONE.start + a] = state.x[CLONE.start + a]
+    # 4. covariance health, commit
+    status = _commit_healthy(state, w, na, p.cov_floor)
     if status < 0:
         return -1
-    for r in range(na):
-        if not np.isfinite(xs[r]):
-            return -1
-    ps[:na, :na] = pp
-    if na == N_STATE:  # keep the unused clone block tidy
-        ps[N_STATE:, :] = 0.0
-        ps[:, N_STATE:] = 0.0
-    state.x[:] = xs
-    state.cov[:, :] = ps
     state.period_active[0], state.period_age[0] = on, age
-    state.mag_t0[:] = mag_t0
-    state.mag_ref[:] = mag_ref
-    e = heading_row1(xs[ORIENTATION])
+    state.mag_t0[0], state.mag_t0[1], state.mag_t0[2] = m_t0
+    state.mag_ref[0], state.mag_ref[1], state.mag_ref[2] = m_ref
+    e = heading_row4(xs)
+    pq = state.cov
+    var = 0.0
+    for a in range(4):
+        var += e[a] * (pq[a, 0] * e[0] + pq[a, 1] * e[1] + pq[a, 2] * e[2] + pq[a, 3] * e[3])
     sig[SIGNAL.qsf_active] = 1.0 if (active and mode != MODE_AEKF) else 0.0
     sig[SIGNAL.innov_norm] = innov
     sig[SIGNAL.nis] = nis
     sig[SIGNAL.corr_norm] = corr
     sig[SIGNAL.age] = age if active else 0.0
     sig[SIGNAL.trust] = trust if updated else 0.0
-    sig[SIGNAL.heading_std] = np.sqrt(max(0.0, e @ (ps[ORIENTATION, ORIENTATION].copy() @ e)))
+    sig[SIGNAL.heading_std] = np.sqrt(max(0.0, var))
     sig[SIGNAL.acc_used] = 1.0 if acc_used else 0.0
     sig[SIGNAL.mag_updated] = 1.0 if updated else 0.0
     return status
+
+
+@njit(cache=True)
+def step1(p, state, inputs, i, dt, sig):
+    """Sample i of ``inputs`` (:class:`Inputs`) in place on ``state`` (:class:`State`); writes ``sig`` (N_SIGNALS,).
+
+    The gyro prediction runs from sample i − 1 (none for i = 0). ``inputs.action[i]`` is MAG_NONE /
+    MAG_START / MAG_KEEP (ignored by the AEKF, which always updates), ``inputs.trust[i]`` ∈ [0, 1] scales
+    the magnetic gain. Returns 0 ok, 1 covariance repaired, −1 non-finite input or covariance (state unchanged).
+    Loops over many samples call :func:`step_work` with one scratch (:func:`run_kernel`).
+    """
+    return step_work(p, state, inputs, i, dt, sig, work())
 
 
 @njit(cache=True)
@@ -507,12 +608,14 @@ def run_kernel(p, state, inputs, dt, start, stop, out):
     """Samples ``start … stop−1`` of ``inputs`` in place on ``state`` (:func:`step1`); writes their rows of
     ``out`` (:class:`Outputs`). Returns (first bad sample or −1, covariance repairs)."""
     repairs = 0
+    w = work()
     for i in range(start, stop):
-        st = step1(p, state, inputs, i, dt, out.sig[i])
+        st = step_work(p, state, inputs, i, dt, out.sig[i], w)
         if st < 0:
             return i, repairs
         repairs += st
-        out.q[i] = state.x[ORIENTATION]
+        q = out.q[i]
+        q[0], q[1], q[2], q[3] = state.x[0], state.x[1], state.x[2], state.x[3]
     return -1, repairs
 
 
@@ -521,33 +624,38 @@ def run_kernel(p, state, inputs, dt, start, stop, out):
 
 @njit(cache=True)
 def detect_kernel(gyr, mag, dt, window, th_spread, th_drift, max_len, code, spread):
-    """QSF detector over whole arrays (see module docstring); writes code (N,) int8 and spread (N,) µT."""
+    """QSF detector over whole arrays (see module docstring); writes code (N,) int8 and spread (N,) µT.
+    The spread is summed over the window in two passes (mean, then squared distances), in scalars."""
     n = gyr.shape[0]
-    qg = np.array([1.0, 0.0, 0.0, 0.0])
+    qg = (1.0, 0.0, 0.0, 0.0)
     mg = np.empty((n, 3))
     start = -1
     for i in range(n):
         if i > 0:
-            qg = normalize1(mul1(qg, from_rotvec1(0.5 * (gyr[i - 1] + gyr[i]) * dt)))
-        mg[i] = rotate1(qg, mag[i])
+            g0, g1 = gyr[i - 1], gyr[i]
+            w = (0.5 * (g0[0] + g1[0]) * dt, 0.5 * (g0[1] + g1[1]) * dt, 0.5 * (g0[2] + g1[2]) * dt)
+            qg = normalize4(mul4(qg, from_rotvec4(w)))
+        mg[i, 0], mg[i, 1], mg[i, 2] = rotate3(qg, mag[i])
         if i + 1 < window:
             spread[i] = np.nan
             code[i] = 0
             start = -1
             continue
-        mean = np.zeros(3)
+        m0 = m1 = m2 = 0.0
         for j in range(i - window + 1, i + 1):
-            mean += mg[j]
-        mean /= window
+            m0 += mg[j, 0]
+            m1 += mg[j, 1]
+            m2 += mg[j, 2]
+        m0, m1, m2 = m0 / window, m1 / window, m2 / window
         s = 0.0
         for j in range(i - window + 1, i + 1):
-            d = mg[j] - mean
-            s += d @ d
+            d0, d1, d2 = mg[j, 0] - m0, mg[j, 1] - m1, mg[j, 2] - m2
+            s += d0 * d0 + d1 * d1 + d2 * d2
         spread[i] = np.sqrt(s / window)
         if spread[i] < th_spread:
             if start >= 0:
-                d = mg[i] - mg[start]
-                if np.sqrt(d @ d) < th_drift and i - start < max_len:
+                d0, d1, d2 = mg[i, 0] - mg[start, 0], mg[i, 1] - mg[start, 1], mg[i, 2] - mg[start, 2]
+                if np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) < th_drift and i - start < max_len:
                     code[i] = MAG_KEEP
                     continue
             start = i
