@@ -120,6 +120,7 @@ DEFAULTS: dict[str, Any] = {
     "scenarios": ["dynamic_magnet", "stationary_magnet", "dynamic_clean"],
     "train_seed": 10000,
     "val_seeds": [5000, 5020],
+    "val_scenarios": None,
     "beta": 0.0,
     "decision_every": 8,
     "fit_steps": 12000,
@@ -162,6 +163,7 @@ def check_config(config: dict | None) -> dict:
         raise ValueError(f"DAgger config 'scenarios' must be a non-empty list, got {cfg['scenarios']!r}")
     per = cfg["trials_per_scenario"]
     if isinstance(per, dict):  # scenario → trials: more distinct trials where the student needs them
+        per = cfg["trials_per_scenario"] = {sc: n for key, n in per.items() for sc in expand_mixture([key])}
         simulated = sorted(sc for sc in cfg["scenarios"] if not sc.startswith(RECORDING))
         if sorted(per) != simulated:
             raise ValueError(f"trials_per_scenario names scenarios {sorted(per)}; it must name exactly {simulated}")
@@ -185,6 +187,12 @@ def check_config(config: dict | None) -> dict:
         raise ValueError(f"train_seed must be an integer ≥ {HELD_OUT_BELOW}, got {cfg['train_seed']!r}")
     if not _is_int(cfg["seed"]) or cfg["seed"] < 0:
         raise ValueError(f"DAgger config 'seed' must be a non-negative integer, got {cfg['seed']!r}")
+    chosen = cfg["val_scenarios"]
+    if chosen is not None:
+        if not isinstance(chosen, list) or not chosen or any(sc not in cfg["scenarios"] for sc in chosen):
+            raise ValueError(
+                f"val_scenarios must be null or a non-empty list of the config's scenarios, got {chosen!r}"
+            )
     val = cfg["val_seeds"]
     if not (isinstance(val, list) and len(val) == 2 and all(map(_is_int, val))
             and VALIDATION_START <= val[0] < val[1] <= HELD_OUT_BELOW):  # fmt: skip
@@ -213,8 +221,8 @@ def check_config(config: dict | None) -> dict:
         if not isinstance(guard, dict) or set(guard) != GUARD_KEYS:
             raise ValueError(f"guard must be null or a mapping of exactly {sorted(GUARD_KEYS)}, got {guard!r}")
         fb = guard["fallback"]
-        if not isinstance(fb, list) or not fb or not all(_is_number(v) for v in fb):
-            raise ValueError(f"guard fallback must be a list of numbers (an action), got {fb!r}")
+        if fb != "rule" and (not isinstance(fb, list) or not fb or not all(_is_number(v) for v in fb)):
+            raise ValueError(f"guard fallback must be a list of numbers (an action) or 'rule', got {fb!r}")
         if not (_is_number(guard["margin"]) and 0 <= guard["margin"] < np.inf):
             raise ValueError(f"guard margin must be a non-negative number, got {guard['margin']!r}")
         if not (_is_number(guard["disagree"]) and 0 < guard["disagree"] <= np.inf):
@@ -295,7 +303,8 @@ class Student:
         guard: the config's ``guard`` (run.yaml student ``guard``), or None.
 
     **Guard** (``fallback`` an action, ``margin`` m, ``disagree`` d): the student
-    acts with ``fallback`` (e.g. MagVQF-v0's u = 1: VQF's own decision) wherever an input leaves its fitted
+    acts with ``fallback`` (e.g. MagVQF-v0's u = 1: VQF's own decision; ``rule``: the last state-dependent
+    candidate, the teacher's continuation rule at this state) wherever an input leaves its fitted
     range widened by m·(hi − lo) on each side — a state unlike any it learned from — and, in an ensemble,
     wherever the members' actions spread by more than d. ``guarded`` counts those decisions, ``decisions``
     all of them (since construction).
@@ -313,7 +322,14 @@ class Student:
         self.n_state = state_candidate_count(inputs, self.meta)
         self.bounds = None if bounds is None else tuple(np.asarray(b, np.float32) for b in bounds)
         self.guard = None if guard is None else dict(guard)
+        if self.guard is not None and self.guard["fallback"] == "rule" and not self.n_state:
+            raise ValueError("guard fallback 'rule' needs a state-dependent candidate (a teacher with a rule)")
         self.guarded = self.decisions = 0
+
+    def fallback(self, obs: np.ndarray) -> np.ndarray:
+        """(action_dim,) float64 the guard's fallback at ``obs``: its action, or the rule's (``rule``)."""
+        fb = self.guard["fallback"]
+        return self.candidates_at(obs)[-1].copy() if fb == "rule" else np.asarray(fb, np.float64)
 
     def outside(self, x: np.ndarray) -> bool:
         """Whether inputs ``x`` (1, n_in) leave the guard's widened fitted range (False without a guard)."""
@@ -360,7 +376,7 @@ class Student:
         self.decisions += 1
         if self.guard is not None and self.outside(x):
             self.guarded += 1
-            return np.asarray(self.guard["fallback"], np.float64)
+            return self.fallback(obs)
         return self._choose(self.probabilities(x)[0], obs)
 
     def tensors(self) -> dict:
@@ -417,7 +433,10 @@ class Student:
         if guard is not None and (not isinstance(guard, dict) or set(guard) != GUARD_KEYS or bounds is None):
             raise RunError(f"{path}: run.yaml's student guard must hold {sorted(GUARD_KEYS)} and the weights its "
                            "input range")  # fmt: skip
-        return cls(layers, mu, sd, candidates, inputs, meta, act, bounds, guard)
+        try:
+            return cls(layers, mu, sd, candidates, inputs, meta, act, bounds, guard)
+        except ValueError as exc:
+            raise RunError(f"{path}: {exc}") from None
 
 
 class Ensemble(Student):
@@ -446,7 +465,7 @@ class Ensemble(Student):
         acts = np.array([m._choose(p, obs) for m, p in zip(self.members, probs)])
         if any(m.outside(x) for m in self.members) or np.any(np.ptp(acts, axis=0) > float(guard["disagree"])):
             self.guarded += 1
-            return np.asarray(guard["fallback"], np.float64)
+            return self.fallback(obs)
         return self._choose(np.mean(probs, axis=0), obs)
 
     def tensors(self) -> dict:
@@ -683,6 +702,12 @@ def train(
         )
     if cfg["regret_scale"] == "best_rule" and not hasattr(teacher, "rule_actions"):
         raise ValueError(f"regret_scale best_rule needs a teacher with rule_actions; {teacher.name!r} has none")
+    guard = cfg["guard"]
+    if guard is not None and guard["fallback"] == "rule":
+        inputs = inputs_for(env_id)
+        if not state_candidate_count(inputs, inputs.meta(teacher)):
+            raise ValueError(f"guard fallback 'rule' needs a teacher whose rule is a candidate; {teacher.name!r} "
+                             "has none")  # fmt: skip
     if not resume and (out / RUN_FILE).exists():
         raise ValueError(f"{out} already holds a run; choose another --out (or continue it with --resume)")
     folder = RunFolder(out)
@@ -893,7 +918,7 @@ class Validation:
     ratio of the mean RMSE to the continuation rule's, and their mean over scenarios (the score; lower is better)."""
 
     def __init__(self, episodes: Episodes, teacher, cfg: dict):
-        self.episodes, self.scenarios = episodes, list(cfg["scenarios"])
+        self.episodes, self.scenarios = episodes, list(cfg["val_scenarios"] or cfg["scenarios"])
         seeds = range(*cfg["val_seeds"])
         self.trials = [(sc, make_trial(sc, s)) for sc in self.scenarios
                        for s in (seeds[:1] if sc.startswith(RECORDING) else seeds)]  # fmt: skip

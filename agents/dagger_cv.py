@@ -65,7 +65,10 @@ def cross_validate(
         log(f"fold {f}: held out {', '.join(p.stem for p in held)}")
         done = dagger.is_run(run) and len(dagger._read_log(run / dagger.LOG)) >= cfg["iterations"]
         if not done:
-            dagger.train(run, teacher, {**config, "scenarios": kept}, log, resume=dagger.is_run(run))
+            fold = {**config, "scenarios": kept}
+            if isinstance(cfg["trials_per_scenario"], dict):  # the fold's scenarios only
+                fold["trials_per_scenario"] = {k: n for k, n in cfg["trials_per_scenario"].items() if k in kept}
+            dagger.train(run, teacher, fold, log, resume=dagger.is_run(run))
         policy = dagger.load_policy(run)
         if episodes is None:
             episodes = dagger.Episodes(policy.env_id, policy.env_kwargs, teacher)

@@ -265,7 +265,12 @@ class VQFInputs(StudentInputs):
     bookkeeping and EMAs — and their copies 4 and 16 decisions earlier) without the columns of run.yaml's
     student ``drop`` (default ``delta``: the heading offset of the 9D frame from the 6D one, which starts from
     the sensor's arbitrary initial heading, so that a student keyed to it would learn the trials' headings, not
-    the disturbance)."""
+    the disturbance).
+
+    With a teacher of a ``rule`` (``oracle_vqf_rule``; run.yaml student ``rule: [norm_tol, th_dip]``) each kept
+    block is followed by the rule's trust recomputed from that block (``magenv.envs.vqf.fan_trust``), and the
+    current block's, in float64, is a state-dependent candidate (bit for bit the teacher's continuation, and the
+    guard's ``fallback: rule``)."""
 
     env_id = VQF_ID
     env_kwargs = {"features": "extended"}
@@ -274,15 +279,40 @@ class VQFInputs(StudentInputs):
     def meta(self, teacher) -> dict:
         from magenv.envs.vqf import EXTENDED, LAGS
 
-        return {"block": len(EXTENDED) // (1 + len(LAGS)), "drop": list(self.DROP)}
+        out = {"block": len(EXTENDED) // (1 + len(LAGS)), "drop": list(self.DROP)}
+        if getattr(teacher, "rule", None) is not None:
+            out["rule"] = [float(v) for v in teacher.rule]
+        return out
+
+    @staticmethod
+    def rule_trust(blk: np.ndarray, meta: dict) -> np.ndarray:
+        """(D,) float64 the rule's trust of blocks ``blk`` (D, block) float32."""
+        from magenv.envs.vqf import FEATURES, fan_trust
+
+        i_n, i_d = FEATURES.index("norm_dev"), FEATURES.index("dip_dev")
+        return fan_trust(blk[:, i_n], blk[:, i_d], *(float(v) for v in meta["rule"]))
 
     def __call__(self, obs: np.ndarray, meta: dict) -> np.ndarray:
         from magenv.envs.vqf import EXTENDED
 
         obs = np.atleast_2d(np.asarray(obs, np.float32))
         block, drop = int(meta["block"]), set(meta.get("drop", ()))
-        keep = [i for i in range(obs.shape[1]) if EXTENDED.names[i % block] not in drop]
-        return np.ascontiguousarray(obs[:, keep])
+        keep = np.array([i for i in range(block) if EXTENDED.names[i] not in drop])
+        parts = []
+        for start in range(0, obs.shape[1], block):
+            blk = obs[:, start : start + block]
+            parts.append(blk[:, keep])
+            if "rule" in meta:
+                parts.append(self.rule_trust(blk, meta)[:, None].astype(np.float32))
+        return np.ascontiguousarray(np.concatenate(parts, 1))
+
+    def n_state_candidates(self, meta: dict) -> int:
+        return 1 if "rule" in meta else 0
+
+    def candidate_actions(self, obs: np.ndarray, meta: dict) -> np.ndarray:
+        if not self.n_state_candidates(meta):
+            return super().candidate_actions(obs, meta)
+        return self.rule_trust(np.atleast_2d(np.asarray(obs, np.float32)), meta)[:, None, None]
 
 
 #: env id → what its student sees

@@ -22,7 +22,12 @@ each candidate's look-ahead runs δ alone (:func:`heading_costs`).
 As a DAgger teacher (the oracle interface of ``magenv.agents.dagger``) its
 continuation rule is VQF's own decision, u = 1 on top of VQF's rejection
 (``rejection="on"``): the student learns where to lower VQF's gain, and
-falls back on VQF itself.
+falls back on VQF itself. With ``rule`` (``oracle_vqf_rule``: the tuned Fan rule
+``vqf_fan_lambda_tuned``'s norm_tol and th_dip) it also searches the rule's own
+trust at each state (a state-dependent candidate, computed from the
+observation as the student computes it, ``magenv.envs.vqf.fan_trust``)
+and continues with that rule on top of VQF's rejection: its student departs from
+the rule where it learns better and falls back on it.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy as np
 from numba import njit
 
 from magenv.envs import VQF_ID
-from magenv.envs.vqf import VQFRunner, filter_options
+from magenv.envs.vqf import FEATURES, VQFRunner, fan_trust, filter_options
 from magenv.filters import vqf
 from magenv.filters.vqf import P, S
 from magenv.metrics import WORST_DEG
@@ -39,6 +44,7 @@ from magenv.protocols import Estimate
 from magenv.trial import Trial
 
 CANDIDATES = (0.0, 0.25, 0.5, 0.75, 1.0)  # trust levels searched
+_NORM_DEV, _DIP_DEV = FEATURES.index("norm_dev"), FEATURES.index("dip_dev")  # the Fan rule's features
 HORIZON_S = 4.0  # s, look-ahead of each search (half of VQF's τ_mag: a trust's cost shows)
 DECISION_EVERY = 32  # samples per decision (≈ 9 Hz at BROAD's 286 Hz)
 
@@ -90,6 +96,7 @@ class VQFOracle:
         candidates: trust levels searched at each decision (``levels`` (C,); ``candidates`` is them as (C, 1)).
         horizon_s: look-ahead, s. decision_every: samples per decision (k).
         rejection: the env option it searches under (``"on"``: on top of VQF's own rejection).
+        rule: (norm_tol, th_dip°) of the Fan rule whose trust is searched too and continued with; None: u = 1.
     """
 
     name = "oracle_vqf"
@@ -102,6 +109,7 @@ class VQFOracle:
         horizon_s: float = HORIZON_S,
         decision_every: int = DECISION_EVERY,
         rejection: str = "on",
+        rule: tuple[float, float] | None = None,
     ):
         levels = np.asarray(candidates, float)
         if levels.ndim != 1 or levels.size == 0 or not np.all((levels >= 0.0) & (levels <= 1.0)):
@@ -111,16 +119,30 @@ class VQFOracle:
         self.levels, self.candidates = levels, levels[:, None]
         self.horizon_s, self.decision_every = float(horizon_s), int(decision_every)
         self.env_kwargs = {"rejection": rejection}
+        self.rule = None if rule is None else (float(rule[0]), float(rule[1]))
         self.options = filter_options(rejection, vqf.Options.tau_acc, vqf.Options.tau_mag, True, True)
         self._rows: tuple = (None, None, None)  # (trial, parameters, their field_rows) of the last trial searched
 
-    def candidate_costs(self, runner: VQFRunner) -> np.ndarray:
-        """(C,) Σ (total error, °)² over the horizon of each candidate held, from ``runner``'s state."""
+    @classmethod
+    def from_fan_params(cls, params: dict) -> VQFOracle:
+        """``oracle_vqf_rule``: also searching, and continuing with, the Fan rule of ``params`` (its tuned file)."""
+        return cls(rule=(params["norm_tol"], params["th_dip_deg"]))
+
+    def rule_trust(self, runner: VQFRunner) -> float:
+        """The rule's trust at the runner's next sample, from its observation as the student sees it (float32)."""
+        assert self.rule is not None
+        feat = runner.feat.astype(np.float32)
+        return float(fan_trust(feat[_NORM_DEV], feat[_DIP_DEV], *self.rule))
+
+    def candidate_costs(self, runner: VQFRunner, candidates=None) -> np.ndarray:
+        """Σ (total error, °)² over the horizon of each candidate held, from ``runner``'s state: the levels, or
+        ``candidates`` (K, 1) (the fixed ones, then the rule's at this state)."""
         start = runner.pos
         stop = min(runner.n, start + max(self.decision_every, int(round(self.horizon_s * runner.trial.rate))))
-        costs = np.empty(self.levels.size)
+        levels = self.levels if candidates is None else np.ascontiguousarray(np.asarray(candidates, float)[:, 0])
+        costs = np.empty(levels.size)
         heading_costs(runner.params, runner.state[S.delta], runner.state[S.k_mag_init], self.rows(runner), start,
-                      stop, self.levels, costs)  # fmt: skip
+                      stop, levels, costs)  # fmt: skip
         return costs
 
     def rows(self, runner: VQFRunner) -> np.ndarray:
@@ -134,12 +156,14 @@ class VQFOracle:
         return rows
 
     def continuation_action(self, runner: VQFRunner) -> np.ndarray:
-        """(1,) VQF's own decision: u = 1 (VQF's rejection, where on, acts on it)."""
-        return np.ones(1)
+        """(1,) the rule's trust (``rule``), else VQF's own decision u = 1 (VQF's rejection, where on, acts on it)."""
+        return np.array([self.rule_trust(runner) if self.rule is not None else 1.0])
 
     def run(self, trial: Trial) -> Estimate:
         """The oracle's estimate of every sample of ``trial`` (reads ``trial.q_true``)."""
         runner = VQFRunner(trial, self.options)
         while not runner.done:
-            runner.advance(self.decision_every, float(self.levels[int(np.argmin(self.candidate_costs(runner)))]))
+            cands = self.levels if self.rule is None else np.r_[self.levels, self.rule_trust(runner)]
+            costs = self.candidate_costs(runner, cands[:, None])
+            runner.advance(self.decision_every, float(cands[int(np.argmin(costs))]))
         return Estimate(q=runner.est.copy(), trust=runner.gain.copy())

@@ -25,7 +25,8 @@ a fresh one. ``names()`` lists them all:
   ``magenv.baselines.oracle_constraint``; ``oracle_constraint_rules`` also searches the rule's w),
   ``oracle_qsf`` (MagQSF-v0, continuing with
   ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``; ``oracle_qsf_hold`` with ``qsf_hold``) and
-  ``oracle_vqf`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``);
+  ``oracle_vqf`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``; ``oracle_vqf_rule`` also searches and
+  continues with ``vqf_fan_lambda_tuned``'s trust on top of VQF's rejection, the teacher of its student);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``; ``pretrained:ENV_ID`` (or
   ``agent:pretrained:ENV_ID``) — the agent shipped for that env.
@@ -49,6 +50,7 @@ from magenv.baselines import (
     oracle_constraint,
     oracle_kalman,
     oracle_qsf,
+    oracle_vqf,
     qsf,
     reference,
     rules,
@@ -167,6 +169,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "oracle_constraint_rules": ("cf_constraint", _constraint_rules_oracle),
     "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),
     "oracle_qsf_hold": ("delay_magyq", oracle_qsf.QSFOracle.holding),
+    "oracle_vqf_rule": ("vqf_fan_lambda", oracle_vqf.VQFOracle.from_fan_params),
 }
 
 _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}

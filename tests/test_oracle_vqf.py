@@ -151,3 +151,38 @@ def test_cv_from_the_command_line(tmp_path, capsys):
     assert main([*args, "--cv", "recordings", "--folds", "2"]) == 0
     assert "held-out recordings: 2" in capsys.readouterr().out
     assert main([*args, "--cv", "recordings", "--resume"]) != 0
+
+
+def test_the_rule_teacher_searches_and_continues_with_the_fan_rule_its_student_computes(disturbed, tmp_path):
+    """``oracle_vqf_rule``: the tuned Fan rule's trust on top of VQF's rejection is a state-dependent candidate
+    (the student's, computed from its float32 observation) and the continuation; a guard falls back on it."""
+    teacher = registry.make("oracle_vqf_rule")
+    params = registry.tuned_params("vqf_fan_lambda")
+    assert teacher.rule == (params["norm_tol"], params["th_dip_deg"]) and teacher.env_kwargs == {"rejection": "on"}
+    inputs = inputs_for(VQF_ID)
+    meta = inputs.meta(teacher)
+    assert meta["rule"] == list(teacher.rule) and inputs.n_state_candidates(meta) == 1
+    cands = dagger.candidate_matrix(teacher.candidates)
+    episodes = dagger.teacher_episodes(VQF_ID, dagger.student_env_kwargs(inputs, teacher, 32), teacher, inputs,
+                                       meta, cands)  # fmt: skip
+    lab = episodes.run(disturbed, lambda o, runner, c: teacher.continuation_action(runner))
+    assert lab.costs.shape == (len(lab.obs), 6) and np.all(lab.rule >= 0)  # the rule is always a candidate
+    assert np.any(lab.rule == 5) and np.ptp(lab.costs[:, 5]) > 0
+    rule_only = dagger.Episodes(VQF_ID, dagger.student_env_kwargs(inputs, teacher, 32), teacher)
+    plain = rule_only.run(disturbed, lambda o, runner, c: teacher.continuation_action(runner))
+    assert lab.rmse == plain.rmse  # the same closed loop: the rule as the student computes it
+    # the oracle's own search includes the rule: it does no worse than following it
+    assert _rmse(teacher.run(disturbed).q, disturbed) <= lab.rmse
+    guard = {"fallback": "rule", "margin": 0.1, "disagree": 0.5}
+    out = dagger.train(tmp_path / "r", teacher, {**TINY, "guard": guard}, log=lambda s: None)
+    policy = registry.make(f"agent:{out}")
+    student = policy.student
+    obs = lab.obs * 40.0  # far outside the fitted range: every decision falls back on the rule
+    actions = np.array([student.action(o) for o in obs])
+    np.testing.assert_array_equal(actions[:, 0], inputs.candidate_actions(obs, meta)[:, 0, 0])
+    assert student.guarded == len(obs)
+    with pytest.raises(ValueError, match="fallback 'rule' needs"):
+        dagger.train(tmp_path / "u", registry.make("oracle_vqf"), {**TINY, "guard": guard}, log=lambda s: None)
+    assert not (tmp_path / "u").exists()
+    with pytest.raises(ValueError, match="guard fallback"):
+        dagger.check_config({**TINY, "guard": {**guard, "fallback": "vqf"}})

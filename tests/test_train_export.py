@@ -94,12 +94,6 @@ def test_unknown_student_constants_are_refused():
         check_meta(BLEND_ID, {"rule": [1, 1], "block": 42, "new": 1})
     with pytest.raises(ValueError, match="no ONNX form"):
         check_meta("magenv/Other-v0", {})
-    from magenv.train.onnx_graph import student_graph
-
-    student = load_student(f"pretrained:{BLEND_ID}").student
-    student.guard = {"fallback": [1.0], "margin": 0.1, "disagree": 0.5}
-    with pytest.raises(ValueError, match="guard"):
-        student_graph(BLEND_ID, student, [f"f{i}" for i in range(126)])
 
 
 def test_a_student_of_the_plain_observation(monkeypatch):
@@ -130,3 +124,76 @@ def test_a_student_of_the_plain_observation(monkeypatch):
         action, _ = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})
         expected = np.array([student.action(o) for o in obs])
         assert np.abs(action - expected).max() <= TOL
+
+
+def test_a_guarded_student_falls_back_in_onnx_where_it_does_in_numpy(monkeypatch):
+    """The guard (magenv.agents.dagger.Student): the fallback action out of a member's widened fitted input range
+    and where the members disagree — the same decisions in ONNX as in numpy, both kinds seen."""
+    from magenv.agents import student_inputs
+    from magenv.agents.dagger import Ensemble, Student
+    from magenv.train.onnx_graph import student_graph
+
+    monkeypatch.setitem(student_inputs.INPUTS, "magenv/Plain-v0", student_inputs.StudentInputs())
+    rng = np.random.default_rng(1)
+    obs = rng.normal(size=(2000, 6)).astype(np.float32)
+    obs[::7] *= 4.0  # some well outside the range below
+    guard = {"fallback": [0.9], "margin": 0.1, "disagree": 0.4}
+    for act in ("mean", "argmax"):
+        members = [
+            Student(
+                [(rng.normal(size=(8, 6)), rng.normal(size=8)), (rng.normal(size=(3, 8)), rng.normal(size=3))],
+                np.zeros(6),
+                np.ones(6),
+                [[0.0], [0.5], [1.0]],
+                student_inputs.StudentInputs(),
+                {},
+                act,
+                (np.full(6, -2.0), np.full(6, 2.0)),
+                guard,
+            )
+            for _ in range(2)
+        ]
+        student = Ensemble(members)
+        model = student_graph("magenv/Plain-v0", student, [f"f{i}" for i in range(6)])
+        action, _ = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})
+        expected = np.array([student.action(o) for o in obs])
+        assert np.abs(action - expected).max() <= TOL
+        assert 0 < student.guarded < student.decisions  # both kinds of decision were made
+
+
+def test_a_guarded_vqf_student_of_a_rule_falls_back_on_the_rule_in_onnx_as_in_numpy():
+    """MagVQF-v0's student of ``oracle_vqf_rule``: each kept block followed by the Fan rule's trust, that trust a
+    state-dependent candidate, the guard's ``fallback: rule`` — the same actions in ONNX as in numpy."""
+    from magenv.agents.dagger import Ensemble, Student
+    from magenv.agents.student_inputs import inputs_for
+    from magenv.envs.vqf import EXTENDED, FEATURES
+    from magenv.train.onnx_graph import student_graph
+
+    inputs, rng = inputs_for(VQF_ID), np.random.default_rng(2)
+    meta = {"block": len(EXTENDED) // 3, "drop": ["delta"], "rule": [0.1, 2.0]}
+    obs = rng.normal(scale=0.05, size=(3000, len(EXTENDED))).astype(np.float32)
+    obs[:, FEATURES.index("dip_dev")] *= 0.5  # the rule's λ2 spans [0, 1] (90° · dip_dev against 2°)
+    obs[::9] *= 6.0  # some well outside the range below
+    n_in = inputs(obs[:1], meta).shape[1]
+    assert n_in == 3 * (meta["block"] - 1 + 1) and inputs.n_state_candidates(meta) == 1
+    x = inputs(obs, meta)
+    rule = inputs.rule_trust(obs, meta)  # float64, the candidate; float32 after each kept block
+    np.testing.assert_array_equal(inputs.candidate_actions(obs, meta)[:, 0, 0], rule)
+    np.testing.assert_array_equal(x[:, meta["block"] - 1], rule.astype(np.float32))
+    assert 0.1 < rule.mean() < 0.9 and rule.min() == 0.0
+    lo, hi = np.quantile(x, 0.02, axis=0), np.quantile(x, 0.98, axis=0)
+    for act, fallback in (("mean", "rule"), ("argmax", "rule"), ("mean", [0.8])):
+        guard = {"fallback": fallback, "margin": 0.05, "disagree": 0.4}
+        members = [
+            Student([(rng.normal(size=(8, n_in)), rng.normal(size=8)), (rng.normal(size=(4, 8)), rng.normal(size=4))],
+                    x.mean(0), x.std(0) + 1e-3, [[0.0], [0.5], [1.0]], inputs, meta, act, (lo, hi), guard)  # fmt: skip
+            for _ in range(2)
+        ]
+        student = Ensemble(members)
+        model = student_graph(VQF_ID, student, list(EXTENDED.names))
+        action, probs = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})
+        expected = np.array([student.action(o) for o in obs])
+        assert probs.shape == (len(obs), 4) and np.abs(action - expected).max() <= TOL
+        assert 0 < student.guarded < student.decisions
+        if fallback == "rule":  # where it held, the action is the rule's trust
+            assert np.sum(np.abs(expected[:, 0] - rule) < 1e-12) >= student.guarded

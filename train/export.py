@@ -69,7 +69,7 @@ def sidecar(policy, env, onnx_name: str) -> dict:
     for start in range(0, len(names), block):
         lag = LAG.match(names[start])
         suffix = f"_lag{lag.group(2)}" if lag else ""
-        inputs += [{"name": names[i]} for i in range(start, start + block) if i in kept]
+        inputs += [{"name": names[start + i]} for i in range(block) if i in kept]
         inputs += [{"name": d + suffix} for d in derived]
     members = getattr(student, "members", [student])
     for i, item in enumerate(inputs):
@@ -115,6 +115,14 @@ def sidecar(policy, env, onnx_name: str) -> dict:
             "rule": "the most probable candidate (the first on ties)"
             if student.act == "argmax"
             else "the probability-weighted mean of the candidates",
+            "guard": None
+            if getattr(student, "guard", None) is None
+            else {
+                **student.guard,
+                "meaning": "inside the model: the action is `fallback` (`rule`: the last state-dependent candidate) "
+                "where a network input leaves a member's fitted range widened by margin × its width, or where the "
+                "members' own actions spread by more than disagree",
+            },
         },
         "outputs": {"action": "(batch, dim) float32: the env's action", "probabilities": "(batch, candidates)"},
         "network_inputs": {

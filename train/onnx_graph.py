@@ -4,13 +4,14 @@ The graph computes, for a batch of the env's observations ``obs`` (N, n_obs) flo
 
 1. the student's inputs — each block of the observation (the current features, then their copies ``LAGS``
    decisions earlier) followed by the columns its env's ``magenv.agents.student_inputs`` entry derives from
-   that block (:data:`DERIVED`: a rule's own trust recomputed from the block), in the same dtypes, or without
-   the columns run.yaml's student ``drop`` names (MagVQF-v0: :func:`kept_columns`);
+   that block (:data:`DERIVED`: a rule's own trust recomputed from the block), in the same dtypes, each block
+   without the columns run.yaml's student ``drop`` names (MagVQF-v0: :func:`kept_columns`);
 2. per member of the student (an ensemble has several) the standardisation (x − μ)/σ, the tanh MLP and the
    softmax over its candidates; the members' probabilities averaged;
 3. the action: the probability-weighted mean of the candidate actions (``act: mean``) or the most probable
    candidate (``argmax``, the first on ties), the candidates being the fixed ones followed by the
-   state-dependent ones of the current block (MagKalman-v0's rules' own γ, in float64).
+   state-dependent ones of the current block (a rule's own action, in float64); with a guard, its fallback
+   (an action, or the rule's) where the student's guard holds.
 
 Outputs ``action`` (N, action_dim) and ``probabilities`` (N, C + S). Each env's derived columns are written here
 a second time, as graph nodes (the names in :data:`DERIVED`); ``tests/test_train_export.py`` holds them to the numpy
@@ -36,6 +37,8 @@ DERIVED = {
     KALMAN_ID: "gamma_rule, gamma_proposal_i, gamma_still, gamma_perp: the γ of the teacher's rules on the block",
     CONSTRAINT_ID: "rule_w: w = min(mag_dev/th1, 1) of the block (eq. 16)",
     QSF_ID: "rule_decision: the tuned detector rule's decision −1 none / 0 keep / 1 start on the block",
+    VQF_ID: "rule_trust: the Fan rule's u = 1 − ½·(min(|norm_dev|/norm_tol, 1) + min(|90°·dip_dev|/th_dip, 1)) of "
+    "the block (students of a teacher with a rule)",
 }
 #: env id → the student constants (run.yaml ``student``, beyond its shape) the builder knows
 KNOWN_META = {
@@ -43,7 +46,7 @@ KNOWN_META = {
     KALMAN_ID: {"scales", "block", "proposals", "rule_candidates", "still", "perp"},
     CONSTRAINT_ID: {"th1", "block", "base_features", "rule_candidates"},
     QSF_ID: {"rule_max_age", "block"},
-    VQF_ID: {"block", "drop"},  # no derived columns; the ``drop`` columns of each block left out
+    VQF_ID: {"block", "drop", "rule"},  # the ``drop`` columns of each block left out
 }
 
 
@@ -190,6 +193,22 @@ def _constraint(g: Graph, blk: str, meta: dict) -> list[str]:
     return [g.binary("Min", g.binary("Div", g.col(blk, 0), float(meta["th1"])), 1.0)]
 
 
+def _fan_trust64(g: Graph, blk: str, meta: dict) -> str:
+    """float64 (N, 1) ``magenv.envs.vqf.fan_trust`` of a float32 block (``VQFInputs.rule_trust``)."""
+    from magenv.envs.vqf import FEATURES
+
+    f64 = np.float64
+    tol, th = float(meta["rule"][0]), float(meta["rule"][1])
+    col = lambda name: g.op("Abs", g.col(blk, FEATURES.index(name), f64))
+    lam1 = g.binary("Min", g.binary("Div", col("norm_dev"), tol, f64), 1.0, f64)
+    lam2 = g.binary("Min", g.binary("Div", g.binary("Mul", col("dip_dev"), DIP_SCALE_DEG, f64), th, f64), 1.0, f64)
+    return g.op("Sub", g.const([[1.0]], f64), g.binary("Mul", g.op("Add", lam1, lam2), 0.5, f64))
+
+
+def _vqf(g: Graph, blk: str, meta: dict) -> list[str]:
+    return [g.cast(_fan_trust64(g, blk, meta), np.float32)]
+
+
 def _qsf(g: Graph, blk: str, meta: dict) -> list[str]:
     from magenv.envs.qsf import FEATURES
 
@@ -200,7 +219,7 @@ def _qsf(g: Graph, blk: str, meta: dict) -> list[str]:
     return [g.where(half(i_s), one, g.where(half(i_k), g.where(keep, zero, one), minus))]
 
 
-BUILDERS = {BLEND_ID: _blend, KALMAN_ID: _kalman, CONSTRAINT_ID: _constraint, QSF_ID: _qsf}
+BUILDERS = {BLEND_ID: _blend, KALMAN_ID: _kalman, CONSTRAINT_ID: _constraint, QSF_ID: _qsf, VQF_ID: _vqf}
 
 
 def derived_names(env_id: str, meta: dict) -> list[str]:
@@ -208,7 +227,9 @@ def derived_names(env_id: str, meta: dict) -> list[str]:
     if env_id == KALMAN_ID:
         names = ["gamma_rule", *(f"gamma_proposal_{i}" for i in range(len(meta.get("proposals", []))))]
         return names + ["gamma_still"] * ("still" in meta) + ["gamma_perp"] * ("perp" in meta)
-    if env_id not in DERIVED or (env_id == QSF_ID and "rule_max_age" not in meta):
+    if env_id not in DERIVED or (env_id == QSF_ID and "rule_max_age" not in meta) or (
+        env_id == VQF_ID and "rule" not in meta
+    ):
         return []
     return [DERIVED[env_id].split(":")[0]]
 
@@ -220,14 +241,60 @@ def _state_candidates(g: Graph, env_id: str, obs: str, meta: dict) -> list[str]:
     if env_id == CONSTRAINT_ID and meta.get("rule_candidates"):
         return [g.binary("Min", g.binary("Div", g.col(obs, 0, np.float64), float(meta["th1"]), np.float64), 1.0,
                          np.float64)]  # fmt: skip
+    if env_id == VQF_ID and "rule" in meta:
+        return [_fan_trust64(g, obs, meta)]
     return []
 
 
 def kept_columns(names, meta: dict) -> list[int]:
-    """The observation columns (``names``) a student reads: all but those whose block name is in run.yaml's
-    student ``drop``."""
+    """The columns of a block (the first ``block`` of ``names``) a student reads: all but those whose name is in
+    run.yaml's student ``drop``."""
     block, drop = int(meta.get("block", len(names))), set(meta.get("drop", ()))
-    return [i for i in range(len(names)) if names[i % block] not in drop]
+    return [i for i in range(block) if names[i] not in drop]
+
+
+def _act(g: Graph, p: str, fixed: np.ndarray, cands: str | None, act: str) -> str:
+    """(N, A) float64: the action of probabilities ``p`` (N, C + S) over the fixed candidates (C, A) or, with
+    state-dependent ones, over ``cands`` (N, C + S, A): their weighted mean or the argmax (the first on ties)."""
+    if act == "argmax":
+        idx = g.op("ArgMax", p, axis=1, keepdims=1)  # (N, 1)
+        if cands is None:
+            return g.op("Gather", g.const(fixed, np.float64), g.op("Squeeze", idx, g.const([1], np.int64)), axis=0)
+        pick = g.op("Expand", g.op("Unsqueeze", idx, g.const([2], np.int64)), g.const([1, 1, fixed.shape[1]], np.int64))
+        return g.op("Squeeze", g.op("GatherElements", cands, pick, axis=1), g.const([1], np.int64))
+    p64 = g.cast(p, np.float64)
+    if cands is None:
+        return g.op("MatMul", p64, g.const(fixed, np.float64))
+    return g.op("ReduceSum", g.op("Mul", g.op("Unsqueeze", p64, g.const([2], np.int64)), cands),
+                g.const([1], np.int64), keepdims=0)  # fmt: skip
+
+
+def _guarded(g: Graph, student, members, probs, x: str, action: str, fixed, cands, state, guard: dict) -> str:
+    """``action`` replaced by the guard's fallback (an action, or ``rule``: the last state-dependent candidate)
+    where any member's inputs ``x`` leave its widened fitted range, or where the members' own actions spread by
+    more than ``disagree`` (``magenv.agents.dagger.Student``): the thresholds are the student's own float32
+    numbers."""
+    outside = []
+    for m in members:
+        lo, hi = m.bounds
+        pad = float(guard["margin"]) * (hi - lo)  # float32, as the student computes it
+        below, above = g.op("Less", x, g.const(lo - pad)), g.op("Greater", x, g.const(hi + pad))
+        outside.append(g.op("ReduceMax", g.cast(g.op("Or", below, above), np.float32), axes=[1], keepdims=1))
+    flags = list(outside)
+    if len(members) > 1:
+        acts = [g.op("Unsqueeze", _act(g, p, fixed, cands, student.act), g.const([2], np.int64)) for p in probs]
+        stack = g.op("Concat", *acts, axis=2)  # (N, A, M)
+        spread = g.op("Sub", g.op("ReduceMax", stack, axes=[2], keepdims=0), g.op("ReduceMin", stack, axes=[2],
+                                                                                   keepdims=0))  # fmt: skip
+        wide = g.op("Greater", spread, g.const(float(guard["disagree"]), np.float64))
+        flags.append(g.op("ReduceMax", g.cast(wide, np.float32), axes=[1], keepdims=1))
+    any_flag = flags[0]
+    for f in flags[1:]:
+        any_flag = g.op("Max", any_flag, f)
+    cond = g.op("Greater", any_flag, g.const(0.0))  # (N, 1)
+    if guard["fallback"] == "rule":
+        return g.where(cond, state[-1], action)
+    return g.where(cond, g.const(np.asarray(guard["fallback"], np.float64)[None], np.float64), action)
 
 
 def student_graph(env_id: str, student, names) -> Any:
@@ -237,20 +304,16 @@ def student_graph(env_id: str, student, names) -> Any:
 
     meta, n_obs = student.meta, len(names)
     check_meta(env_id, meta)
-    if getattr(student, "guard", None) is not None:
-        raise ValueError(f"the student's guard {student.guard} (a fallback action) has no ONNX form yet")
     g = Graph()
     obs = "obs"
     block = int(meta.get("block", n_obs))
     derived = BUILDERS[env_id] if derived_names(env_id, meta) else None  # (a plain student's: none)
-    if "drop" in meta:
-        x = g.op("Gather", obs, g.const(kept_columns(names, meta), np.int64), axis=1)
-    else:
-        parts = []
-        for start in range(0, n_obs, block):
-            blk = g.cols(obs, start, start + block)
-            parts += [blk, *(derived(g, blk, meta) if derived else [])]
-        x = g.op("Concat", *parts, axis=1) if len(parts) > 1 else parts[0]
+    keep = g.const(kept_columns(names, meta), np.int64) if "drop" in meta else None
+    parts = []
+    for start in range(0, n_obs, block):
+        blk = g.cols(obs, start, start + block)
+        parts += [blk if keep is None else g.op("Gather", blk, keep, axis=1), *(derived(g, blk, meta) if derived else [])]
+    x = g.op("Concat", *parts, axis=1) if len(parts) > 1 else parts[0]
     members = getattr(student, "members", [student])
     probs = []
     for m in members:
@@ -267,28 +330,17 @@ def student_graph(env_id: str, student, names) -> Any:
         p = g.binary("Div", p, float(len(probs)))
     fixed = np.asarray(student.candidates, np.float64)  # (C, A)
     state = _state_candidates(g, env_id, obs, meta)
+    cands = None
     if state:  # (N, C + S, A): the fixed candidates for every row, then the state's
         n_rows = g.op("Slice", g.op("Shape", obs), g.const([0], np.int64), g.const([1], np.int64))
         shape = g.op("Concat", n_rows, g.const(list(fixed.shape), np.int64), axis=0)
         tiled = g.op("Expand", g.const(fixed[None], np.float64), shape)
         extra = g.op("Unsqueeze", g.op("Concat", *state, axis=1), g.const([2], np.int64))
         cands = g.op("Concat", tiled, extra, axis=1)
-    if student.act == "argmax":
-        idx = g.op("ArgMax", p, axis=1, keepdims=1)  # (N, 1), the first on ties
-        if state:
-            pick = g.op(
-                "Expand", g.op("Unsqueeze", idx, g.const([2], np.int64)), g.const([1, 1, fixed.shape[1]], np.int64)
-            )
-            action = g.op("Squeeze", g.op("GatherElements", cands, pick, axis=1), g.const([1], np.int64))
-        else:
-            action = g.op("Gather", g.const(fixed, np.float64), g.op("Squeeze", idx, g.const([1], np.int64)), axis=0)
-    else:
-        p64 = g.cast(p, np.float64)
-        if state:
-            action = g.op("ReduceSum", g.op("Mul", g.op("Unsqueeze", p64, g.const([2], np.int64)), cands),
-                          g.const([1], np.int64), keepdims=0)  # fmt: skip
-        else:
-            action = g.op("MatMul", p64, g.const(fixed, np.float64))
+    action = _act(g, p, fixed, cands, student.act)
+    guard = getattr(student, "guard", None)
+    if guard is not None:
+        action = _guarded(g, student, members, probs, x, action, fixed, cands, state, guard)
     g.nodes.append(helper.make_node("Cast", [action], ["action"], to=TensorProto.FLOAT))
     g.nodes.append(helper.make_node("Identity", [p], ["probabilities"]))
     n_cands = len(fixed) + len(state)

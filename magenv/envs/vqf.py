@@ -418,6 +418,16 @@ def advance_extended(p, s, w, reject, site, sensors, truth, out, u, start, stop,
     lagged.compose(out.feat, extra, rows, count, _LAGS, stop > start, feat)
 
 
+def fan_trust(norm_dev, dip_dev, norm_tol: float, th_dip_deg: float):
+    """u = 1 − λ of Fan et al. 2017's rule (eqs. 15–17) on MagVQF-v0's ``norm_dev`` and ``dip_dev`` (features of
+    the observation, numbers or arrays, read as float64): λ1 = min(|norm_dev|/norm_tol, 1), λ2 = min(|90°·dip_dev|
+    / th_dip, 1), λ = (λ1 + λ2)/2 — the ``vqf_fan_lambda`` rule's trust, computed once for the rule's teacher and
+    its student."""
+    lam1 = np.minimum(np.abs(np.float64(norm_dev)) / norm_tol, 1.0)
+    lam2 = np.minimum(np.abs(DIP_SCALE_DEG * np.float64(dip_dev)) / th_dip_deg, 1.0)
+    return 1.0 - 0.5 * (lam1 + lam2)
+
+
 def filter_options(rejection: str, tau_acc: float, tau_mag: float, rest_bias: bool, motion_bias: bool):
     """The ``magenv.filters.vqf.Options`` of the env's arguments (module docstring: ``rejection``)."""
     neutral: dict[str, Any] = (
