@@ -138,6 +138,7 @@ DEFAULTS: dict[str, Any] = {
     "guard": None,
 }
 GUARD_KEYS = {"fallback", "margin", "disagree"}  # the ``guard`` config: see :class:`Student`
+GUARD_OPTIONAL = {"band": np.inf}  # guard keys a config may leave out, and their defaults
 RESUMABLE = ("iterations", "ensemble")  # the config keys a resumed run may change
 # the fit keys a refit may change
 REFIT_KEYS = ("hidden", "fit_steps", "batch_size", "learning_rate", "seed", "regret_clip", "rule_margin")
@@ -218,8 +219,9 @@ def check_config(config: dict | None) -> dict:
         raise ValueError(f"regret_clip must be a positive number (or null: no clip), got {clip!r}")
     guard = cfg["guard"]
     if guard is not None:
-        if not isinstance(guard, dict) or set(guard) != GUARD_KEYS:
-            raise ValueError(f"guard must be null or a mapping of exactly {sorted(GUARD_KEYS)}, got {guard!r}")
+        if not isinstance(guard, dict) or not GUARD_KEYS <= set(guard) <= GUARD_KEYS | set(GUARD_OPTIONAL):
+            raise ValueError(f"guard must be null or a mapping of {sorted(GUARD_KEYS)} (and optionally "
+                             f"{sorted(GUARD_OPTIONAL)}), got {guard!r}")  # fmt: skip
         fb = guard["fallback"]
         if fb != "rule" and (not isinstance(fb, list) or not fb or not all(_is_number(v) for v in fb)):
             raise ValueError(f"guard fallback must be a list of numbers (an action) or 'rule', got {fb!r}")
@@ -227,6 +229,9 @@ def check_config(config: dict | None) -> dict:
             raise ValueError(f"guard margin must be a non-negative number, got {guard['margin']!r}")
         if not (_is_number(guard["disagree"]) and 0 < guard["disagree"] <= np.inf):
             raise ValueError(f"guard disagree must be a positive number (.inf: never), got {guard['disagree']!r}")
+        band = guard.get("band", GUARD_OPTIONAL["band"])
+        if not (_is_number(band) and 0 <= band <= np.inf):
+            raise ValueError(f"guard band must be a non-negative number (.inf: unbounded), got {band!r}")
     hidden = cfg["hidden"]
     if not isinstance(hidden, list) or not hidden or not all(_is_int(h) and h >= 1 for h in hidden):
         raise ValueError(f"hidden must be a list of positive layer widths, got {hidden!r}")
@@ -307,7 +312,9 @@ class Student:
     candidate, the teacher's continuation rule at this state) wherever an input leaves its fitted
     range widened by m·(hi − lo) on each side — a state unlike any it learned from — and, in an ensemble,
     wherever the members' actions spread by more than d. ``guarded`` counts those decisions, ``decisions``
-    all of them (since construction).
+    all of them (since construction). With ``band`` b (optional, default ∞) every other action is clipped to
+    the fallback ± b, element-wise: a bounded departure from the fallback (e.g. from the teacher's rule) that
+    no learned state can widen.
     """
 
     def __init__(self, layers, mu, sd, candidates, inputs: StudentInputs, meta: dict, act: str = "mean",
@@ -321,7 +328,7 @@ class Student:
         self.feature_fn, self.meta, self.act = inputs, dict(meta), act
         self.n_state = state_candidate_count(inputs, self.meta)
         self.bounds = None if bounds is None else tuple(np.asarray(b, np.float32) for b in bounds)
-        self.guard = None if guard is None else dict(guard)
+        self.guard = None if guard is None else {**GUARD_OPTIONAL, **guard}
         if self.guard is not None and self.guard["fallback"] == "rule" and not self.n_state:
             raise ValueError("guard fallback 'rule' needs a state-dependent candidate (a teacher with a rule)")
         self.guarded = self.decisions = 0
@@ -330,6 +337,13 @@ class Student:
         """(action_dim,) float64 the guard's fallback at ``obs``: its action, or the rule's (``rule``)."""
         fb = self.guard["fallback"]
         return self.candidates_at(obs)[-1].copy() if fb == "rule" else np.asarray(fb, np.float64)
+
+    def bounded(self, action: np.ndarray, obs: np.ndarray) -> np.ndarray:
+        """``action`` clipped to the guard's fallback ± ``band`` (as it is without a guard or with b = ∞)."""
+        if self.guard is None or self.guard["band"] == np.inf:
+            return action
+        fb, band = self.fallback(obs), float(self.guard["band"])
+        return np.clip(action, fb - band, fb + band)
 
     def outside(self, x: np.ndarray) -> bool:
         """Whether inputs ``x`` (1, n_in) leave the guard's widened fitted range (False without a guard)."""
@@ -377,7 +391,7 @@ class Student:
         if self.guard is not None and self.outside(x):
             self.guarded += 1
             return self.fallback(obs)
-        return self._choose(self.probabilities(x)[0], obs)
+        return self.bounded(self._choose(self.probabilities(x)[0], obs), obs)
 
     def tensors(self) -> dict:
         import torch
@@ -430,9 +444,12 @@ class Student:
             if any(b.shape != (n_in,) or not np.all(np.isfinite(b)) for b in bounds) or np.any(bounds[0] > bounds[1]):
                 raise RunError(f"{path}: the guard's input range must be two finite ({n_in},) arrays, lo ≤ hi")
         guard = student.get("guard")
-        if guard is not None and (not isinstance(guard, dict) or set(guard) != GUARD_KEYS or bounds is None):
-            raise RunError(f"{path}: run.yaml's student guard must hold {sorted(GUARD_KEYS)} and the weights its "
-                           "input range")  # fmt: skip
+        if guard is not None and (
+            not isinstance(guard, dict) or not GUARD_KEYS <= set(guard) <= GUARD_KEYS | set(GUARD_OPTIONAL)
+            or bounds is None
+        ):  # fmt: skip
+            raise RunError(f"{path}: run.yaml's student guard must hold {sorted(GUARD_KEYS)} (and optionally "
+                           f"{sorted(GUARD_OPTIONAL)}) and the weights its input range")  # fmt: skip
         try:
             return cls(layers, mu, sd, candidates, inputs, meta, act, bounds, guard)
         except ValueError as exc:
@@ -466,7 +483,7 @@ class Ensemble(Student):
         if any(m.outside(x) for m in self.members) or np.any(np.ptp(acts, axis=0) > float(guard["disagree"])):
             self.guarded += 1
             return self.fallback(obs)
-        return self._choose(np.mean(probs, axis=0), obs)
+        return self.bounded(self._choose(np.mean(probs, axis=0), obs), obs)
 
     def tensors(self) -> dict:
         raise TypeError("an ensemble is saved as its members' checkpoints (run.yaml 'ensemble')")

@@ -565,6 +565,11 @@ def test_a_guarded_student_falls_back_outside_its_inputs_range_and_where_members
         np.testing.assert_array_equal(loose.action(o), [0.9])
     with pytest.raises(ValueError, match="guard"):
         dagger.check_config({**TINY, "guard": {"fallback": [1.0]}})
+    for bad in (-0.1, "wide", True):
+        with pytest.raises(ValueError, match="guard band"):
+            dagger.check_config({**TINY, "guard": {**guard, "band": bad}})
+    with pytest.raises(ValueError, match="optionally"):
+        dagger.check_config({**TINY, "guard": {**guard, "width": 0.1}})
 
 
 def test_a_second_run_into_a_locked_folder_stops_at_once_and_a_killed_step_leaves_the_folder_whole(tmp_path):

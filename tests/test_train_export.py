@@ -163,7 +163,8 @@ def test_a_guarded_student_falls_back_in_onnx_where_it_does_in_numpy(monkeypatch
 
 def test_a_guarded_vqf_student_of_a_rule_falls_back_on_the_rule_in_onnx_as_in_numpy():
     """MagVQF-v0's student of ``oracle_vqf_rule``: each kept block followed by the Fan rule's trust, that trust a
-    state-dependent candidate, the guard's ``fallback: rule`` — the same actions in ONNX as in numpy."""
+    state-dependent candidate, the guard's ``fallback: rule`` and its ``band`` — the same actions in ONNX as in
+    numpy."""
     from magenv.agents.dagger import Ensemble, Student
     from magenv.agents.student_inputs import inputs_for
     from magenv.envs.vqf import EXTENDED, FEATURES
@@ -182,8 +183,9 @@ def test_a_guarded_vqf_student_of_a_rule_falls_back_on_the_rule_in_onnx_as_in_nu
     np.testing.assert_array_equal(x[:, meta["block"] - 1], rule.astype(np.float32))
     assert 0.1 < rule.mean() < 0.9 and rule.min() == 0.0
     lo, hi = np.quantile(x, 0.02, axis=0), np.quantile(x, 0.98, axis=0)
-    for act, fallback in (("mean", "rule"), ("argmax", "rule"), ("mean", [0.8])):
-        guard = {"fallback": fallback, "margin": 0.05, "disagree": 0.4}
+    for act, fallback, band in (("mean", "rule", None), ("argmax", "rule", None), ("mean", [0.8], None),
+                                ("argmax", "rule", 0.25), ("mean", [0.8], 0.1)):  # fmt: skip
+        guard = {"fallback": fallback, "margin": 0.05, "disagree": 0.4, **({} if band is None else {"band": band})}
         members = [
             Student([(rng.normal(size=(8, n_in)), rng.normal(size=8)), (rng.normal(size=(4, 8)), rng.normal(size=4))],
                     x.mean(0), x.std(0) + 1e-3, [[0.0], [0.5], [1.0]], inputs, meta, act, (lo, hi), guard)  # fmt: skip
@@ -197,3 +199,9 @@ def test_a_guarded_vqf_student_of_a_rule_falls_back_on_the_rule_in_onnx_as_in_nu
         assert 0 < student.guarded < student.decisions
         if fallback == "rule":  # where it held, the action is the rule's trust
             assert np.sum(np.abs(expected[:, 0] - rule) < 1e-12) >= student.guarded
+        centre = rule if fallback == "rule" else fallback[0]
+        departure = np.abs(expected[:, 0] - centre)
+        if band is None:  # unbounded: the student departs from the fallback by more than any band below
+            assert departure.max() > 0.3
+        else:  # bounded: never further than the band, and as far where the student wanted to go further
+            assert departure.max() <= band + 1e-12 and np.sum(np.isclose(departure, band)) > 10

@@ -272,8 +272,8 @@ def _act(g: Graph, p: str, fixed: np.ndarray, cands: str | None, act: str) -> st
 def _guarded(g: Graph, student, members, probs, x: str, action: str, fixed, cands, state, guard: dict) -> str:
     """``action`` replaced by the guard's fallback (an action, or ``rule``: the last state-dependent candidate)
     where any member's inputs ``x`` leave its widened fitted range, or where the members' own actions spread by
-    more than ``disagree`` (``magenv.agents.dagger.Student``): the thresholds are the student's own float32
-    numbers."""
+    more than ``disagree``, and elsewhere clipped to the fallback ± ``band`` (``magenv.agents.dagger.Student``):
+    the thresholds are the student's own float32 numbers."""
     outside = []
     for m in members:
         lo, hi = m.bounds
@@ -292,9 +292,13 @@ def _guarded(g: Graph, student, members, probs, x: str, action: str, fixed, cand
     for f in flags[1:]:
         any_flag = g.op("Max", any_flag, f)
     cond = g.op("Greater", any_flag, g.const(0.0))  # (N, 1)
-    if guard["fallback"] == "rule":
-        return g.where(cond, state[-1], action)
-    return g.where(cond, g.const(np.asarray(guard["fallback"], np.float64)[None], np.float64), action)
+    rule = guard["fallback"] == "rule"
+    fallback = state[-1] if rule else g.const(np.asarray(guard["fallback"], np.float64)[None], np.float64)
+    band = float(guard.get("band", np.inf))
+    if band != np.inf:  # the bounded departure: clipped to the fallback ± band, in float64 as the student does
+        hi, lo = g.binary("Add", fallback, band, np.float64), g.binary("Sub", fallback, band, np.float64)
+        action = g.op("Min", g.op("Max", action, lo), hi)
+    return g.where(cond, fallback, action)
 
 
 def student_graph(env_id: str, student, names) -> Any:
