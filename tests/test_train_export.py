@@ -186,11 +186,13 @@ def test_a_guarded_vqf_student_of_a_rule_falls_back_on_the_rule_in_onnx_as_in_nu
     for act, fallback, band in (("mean", "rule", None), ("argmax", "rule", None), ("mean", [0.8], None),
                                 ("argmax", "rule", 0.25), ("mean", [0.8], 0.1)):  # fmt: skip
         guard = {"fallback": fallback, "margin": 0.05, "disagree": 0.4, **({} if band is None else {"band": band})}
-        members = [
-            Student([(rng.normal(size=(8, n_in)), rng.normal(size=8)), (rng.normal(size=(4, 8)), rng.normal(size=4))],
-                    x.mean(0), x.std(0) + 1e-3, [[0.0], [0.5], [1.0]], inputs, meta, act, (lo, hi), guard)  # fmt: skip
-            for _ in range(2)
-        ]
+
+        def member():
+            layers = [(rng.normal(size=(8, n_in)), rng.normal(size=8)), (rng.normal(size=(4, 8)), rng.normal(size=4))]
+            cands = [[0.0], [0.5], [1.0]]
+            return Student(layers, x.mean(0), x.std(0) + 1e-3, cands, inputs, meta, act, (lo, hi), guard)
+
+        members = [member() for _ in range(2)]
         student = Ensemble(members)
         model = student_graph(VQF_ID, student, list(EXTENDED.names))
         action, probs = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})

@@ -227,8 +227,10 @@ def derived_names(env_id: str, meta: dict) -> list[str]:
     if env_id == KALMAN_ID:
         names = ["gamma_rule", *(f"gamma_proposal_{i}" for i in range(len(meta.get("proposals", []))))]
         return names + ["gamma_still"] * ("still" in meta) + ["gamma_perp"] * ("perp" in meta)
-    if env_id not in DERIVED or (env_id == QSF_ID and "rule_max_age" not in meta) or (
-        env_id == VQF_ID and "rule" not in meta
+    if (
+        env_id not in DERIVED
+        or (env_id == QSF_ID and "rule_max_age" not in meta)
+        or (env_id == VQF_ID and "rule" not in meta)
     ):
         return []
     return [DERIVED[env_id].split(":")[0]]
@@ -316,7 +318,8 @@ def student_graph(env_id: str, student, names) -> Any:
     parts = []
     for start in range(0, n_obs, block):
         blk = g.cols(obs, start, start + block)
-        parts += [blk if keep is None else g.op("Gather", blk, keep, axis=1), *(derived(g, blk, meta) if derived else [])]
+        kept = blk if keep is None else g.op("Gather", blk, keep, axis=1)
+        parts += [kept, *(derived(g, blk, meta) if derived else [])]
     x = g.op("Concat", *parts, axis=1) if len(parts) > 1 else parts[0]
     members = getattr(student, "members", [student])
     probs = []
