@@ -18,6 +18,8 @@ Each acts on the observation alone and carries the env options it runs with
 
 * ``oracle_vqf`` — the privileged search of ``magenv.baselines.oracle_vqf`` on
   top of VQF's rejection: an upper bound (it reads truth), never a baseline.
+* ``vqf_fan_rejection_tuned`` — ``vqf_fan_lambda_tuned``'s trust on top of
+  VQF's rejection (:func:`fan_on_rejection`).
 * ``vqf_threshold`` — u = 0 when |‖m‖ − m0|/m0 > norm_th or |θ_dip − θ0| >
   dip_th_deg, else 1 (the gate of ``magenv.baselines.rules.Threshold``),
   rejection off.
@@ -31,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from magenv.baselines.oracle_vqf import VQFOracle
+from magenv.baselines.oracle_vqf import DECISION_EVERY, VQFOracle
 from magenv.baselines.rules import FanLambda, Threshold
 from magenv.envs import VQF_ID
 from magenv.envs.vqf import FEATURES
@@ -92,6 +94,15 @@ class VQFThreshold(VQFRule, Threshold):
 
 
 RULES = {"vqf_fan_lambda": VQFFanLambda, "vqf_threshold": VQFThreshold}
+
+
+def fan_on_rejection(params: dict) -> VQFFanLambda:
+    """``vqf_fan_rejection_tuned``: ``vqf_fan_lambda_tuned``'s trust u = 1 − λ on top of VQF's own rejection
+    (``rejection="on"``), decided every ``oracle_vqf.DECISION_EVERY`` samples — the rule ``oracle_vqf_rule``
+    continues with and its guarded student falls back on (the hand rule the learned agent departs from)."""
+    rule = VQFFanLambda.from_params(params)
+    rule.env_kwargs = {"rejection": "on", "decision_every": DECISION_EVERY}
+    return rule
 
 
 def vqf_rejection() -> VQFTrust:

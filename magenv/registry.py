@@ -169,6 +169,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "oracle_constraint_rules": ("cf_constraint", _constraint_rules_oracle),
     "oracle_qsf": ("delay_magyq", oracle_qsf.QSFOracle.from_detector_params),
     "oracle_qsf_hold": ("delay_magyq", oracle_qsf.QSFOracle.holding),
+    "vqf_fan_rejection_tuned": ("vqf_fan_lambda", vqf_rules.fan_on_rejection),
     "oracle_vqf_rule": ("vqf_fan_lambda", oracle_vqf.VQFOracle.from_fan_params),
 }
 

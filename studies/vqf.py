@@ -18,7 +18,7 @@ STUDY = Study(
     env_id=ENV_ID,
     tests=("dynamic_magnet", "stationary_magnet"),
     reference=DEFAULT_REFERENCE[ENV_ID],
-    others=("vqf", "vqf_no_rejection", "vqf_threshold_tuned"),
+    others=("vqf", "vqf_no_rejection", "vqf_threshold_tuned", "vqf_fan_rejection_tuned"),
     oracle="oracle_vqf",
     recordings=True,
 )

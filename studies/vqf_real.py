@@ -8,7 +8,8 @@ published (``vqf``, the reference): per group of recordings (BROAD's own groups,
 ``magnet`` = stationary and attached magnets, ``tapping`` = tapping and vibration, ``undisturbed``, ``office``,
 ``mixed``) the mean total RMSE (°) and the geometric mean of the per-recording ratios to ``vqf`` (with its 95 %
 bootstrap interval where the group has ≥ 2), over all recordings the same, and the worst recording's ratio; on
-the magnet recordings also the ratio to ``vqf_fan_lambda_tuned``. An agent that trained on no real recording and
+the magnet recordings also the ratio to ``vqf_fan_lambda_tuned``, and to ``vqf_fan_rejection_tuned`` (the rule a
+rule-guarded student departs from) there and over all. An agent that trained on no real recording and
 on no twin of one (the shipped MagVQF-v0 student: simulation only) is scored as it is; ``--cv RUN`` reads a
 leave-recordings-out run (``magenv train --teacher oracle_vqf --cv recordings --out RUN``): each recording
 scored by the fold's student that never saw it nor its twin (its ``cv.csv``). ``--oracle`` adds the privileged
@@ -27,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 REFERENCE = "vqf"
-RULES = ("vqf", "vqf_fan_lambda_tuned", "vqf_threshold_tuned")
+RULES = ("vqf", "vqf_fan_lambda_tuned", "vqf_fan_rejection_tuned", "vqf_threshold_tuned")
 GROUPS = (  # group → words of BROAD's file names (their groups)
     ("magnet", ("stationary_magnet", "attached_magnet")),
     ("tapping", ("tapping", "vibration")),
@@ -90,6 +91,10 @@ def table(scores: dict[str, dict[str, float]], names: list[str]) -> list[str]:
                 continue
             p = paired_ratio([scores[m][r] for r in fan], [scores["vqf_fan_lambda_tuned"][r] for r in fan])
             lines.append(f"{m} / vqf_fan_lambda_tuned on the magnet recordings: {p.ratio_text(2)}")
+            if "vqf_fan_rejection_tuned" in scores:  # the rule a rule-guarded student departs from
+                for label, keys in (("magnet", fan), ("all", recs)):
+                    p = paired_ratio([scores[m][r] for r in keys], [scores["vqf_fan_rejection_tuned"][r] for r in keys])
+                    lines.append(f"{m} / vqf_fan_rejection_tuned on the {label} recordings: {p.ratio_text(2)}")
     return lines
 
 
