@@ -181,6 +181,13 @@ def test_the_rule_teacher_searches_and_continues_with_the_fan_rule_its_student_c
     actions = np.array([student.action(o) for o in obs])
     np.testing.assert_array_equal(actions[:, 0], inputs.candidate_actions(obs, meta)[:, 0, 0])
     assert student.guarded == len(obs)
+    # band 0: never a departure from the rule — the named baseline vqf_fan_rejection_tuned, closed loop
+    policy.student = dagger.Student(student.layers, student.mu, student.sd, student.candidates, student.feature_fn,
+                                    student.meta, student.act, student.bounds, {**guard, "band": 0.0})  # fmt: skip
+    banded = evaluation.run_method("s", policy, disturbed)
+    rule = evaluation.run_method("r", registry.make("vqf_fan_rejection_tuned"), disturbed)
+    np.testing.assert_allclose(banded.q, rule.q, rtol=0, atol=1e-12)
+    assert 0 < np.ptp(banded.trust) and banded.trust.min() < 1.0
     with pytest.raises(ValueError, match="fallback 'rule' needs"):
         dagger.train(tmp_path / "u", registry.make("oracle_vqf"), {**TINY, "guard": guard}, log=lambda s: None)
     assert not (tmp_path / "u").exists()
