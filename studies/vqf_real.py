@@ -11,8 +11,8 @@ bootstrap interval where the group has ≥ 2), over all recordings the same, and
 the magnet recordings also the ratio to ``vqf_fan_lambda_tuned``, and to ``vqf_fan_rejection_tuned`` (the rule a
 rule-guarded student departs from) there and over all. An agent that trained on no real recording and
 on no twin of one (the shipped MagVQF-v0 student: simulation only) is scored as it is; ``--cv RUN`` reads a
-leave-recordings-out run (``magenv train --teacher oracle_vqf --cv recordings --out RUN``): each recording
-scored by the fold's student that never saw it nor its twin (its ``cv.csv``). ``--oracle`` adds the privileged
+leave-recordings-out run (``magenv train --teacher oracle_vqf_rule --config CFG --cv recordings --out RUN``,
+CFG with recordings or their twins among its scenarios): each recording scored by the fold's student that never saw it nor its twin (its ``cv.csv``). ``--oracle`` adds the privileged
 ``oracle_vqf`` (it reads truth: headroom). For a guarded student, the share of its decisions that fell back to
 VQF's own. It prints what it measures; nothing here is a test.
 """

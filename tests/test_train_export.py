@@ -66,9 +66,9 @@ def test_onnx_acts_as_the_student(env_id, tmp_path):
     assert side["decision_period"]["samples"] == policy.env_kwargs["decision_every"] == env.k_steps
     block, lags = side["history"]["block"], side["history"]["lags"]
     assert obs.shape[1] == block * (1 + len(lags)) and f"{env.features[0]}_lag{lags[0]}" in env.features
-    columns = side["network_inputs"]["columns"]
-    assert len(columns) == policy.student.members[0].mu.shape[0]
-    assert [c["mean"][0] for c in columns] == policy.student.members[0].mu.tolist()
+    columns, first = side["network_inputs"]["columns"], getattr(policy.student, "members", [policy.student])[0]
+    assert len(columns) == first.mu.shape[0]
+    assert [c["mean"][0] for c in columns] == first.mu.tolist()
     assert side["action"]["candidates"] == policy.student.candidates.tolist()
     assert side["action"]["act"] == policy.student.act
 

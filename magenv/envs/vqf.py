@@ -844,8 +844,9 @@ class MagVQFVectorEnv(BatchVectorEnv):
         self.p[i] = p
         self.s[i] = vqf.init_state(p)
         self.u[i] = 1.0
-        if self.extended:
+        if self.extended:  # as a single env's reset: fresh memory, extra features, lag rows and count
             self.memory[i] = 0.0
+            self.extra[i] = 0.0
             self.rows[i] = 0.0
             self.count[i] = 0
 
