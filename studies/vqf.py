@@ -4,9 +4,9 @@
 
 Fan's magnet protocols; the reference is ``vqf_fan_lambda_tuned`` (the λ rule mapped to VQF's magnetometer
 gain, its rejection off), with VQF as shipped (``vqf``, rejection on), without its rejection and the tuned
-threshold rule as columns; ``oracle_vqf`` is the headroom. ``--recordings`` scores the shipped agent, which
-trained on all nine recordings, on them: not a held-out figure (docs/results.md gives the leave-recordings-out
-one).
+threshold rule and the Fan rule on top of VQF's rejection (``vqf_fan_rejection_tuned``, the rule the shipped
+student departs from) as columns; ``oracle_vqf`` is the headroom. The shipped student trained in simulation only,
+so ``--recordings`` gives held-out figures (``studies/vqf_real.py``: per group of recordings, against ``vqf``).
 """
 
 from magenv.train.sweep_config import DEFAULT_REFERENCE

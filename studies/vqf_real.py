@@ -9,12 +9,13 @@ published (``vqf``, the reference): per group of recordings (BROAD's own groups,
 ``mixed``) the mean total RMSE (°) and the geometric mean of the per-recording ratios to ``vqf`` (with its 95 %
 bootstrap interval where the group has ≥ 2), over all recordings the same, and the worst recording's ratio; on
 the magnet recordings also the ratio to ``vqf_fan_lambda_tuned``, and to ``vqf_fan_rejection_tuned`` (the rule a
-rule-guarded student departs from) there and over all. An agent that trained on no real recording and
-on no twin of one (the shipped MagVQF-v0 student: simulation only) is scored as it is; ``--cv RUN`` reads a
+rule-guarded student departs from) there and over all. An agent that trained on no real recording and on no twin
+of one (the shipped MagVQF-v0 student: simulation only) is scored as it is; ``--cv RUN`` reads a
 leave-recordings-out run (``magenv train --teacher oracle_vqf_rule --config CFG --cv recordings --out RUN``,
-CFG with recordings or their twins among its scenarios): each recording scored by the fold's student that never saw it nor its twin (its ``cv.csv``). ``--oracle`` adds the privileged
-``oracle_vqf`` (it reads truth: headroom). For a guarded student, the share of its decisions that fell back to
-VQF's own. It prints what it measures; nothing here is a test.
+CFG with recordings or their twins among its scenarios): each recording scored by the fold's student that
+never saw it nor its twin (its ``cv.csv``). ``--oracle`` adds the privileged ``oracle_vqf`` (it reads truth:
+headroom). For a guarded student, the share of its decisions that fell back on its guard's fallback. It prints
+what it measures; nothing here is a test.
 """
 
 from __future__ import annotations
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     for a in agents:
         student = getattr(methods[a], "student", None)
         if getattr(student, "decisions", 0):
-            print(f"{a}: {student.guarded / student.decisions:.1%} of its decisions fell back to VQF's own")
+            print(f"{a}: {student.guarded / student.decisions:.1%} of its decisions fell back on its guard's fallback")
     if args.json:
         args.json.write_text(json.dumps(scores, indent=1))
     print(f"({time.time() - t0:.0f} s)")
