@@ -96,12 +96,22 @@ def test_unknown_student_constants_are_refused():
         check_meta("magenv/Other-v0", {})
 
 
+def onnx_matches_numpy(student, env_id: str, names: list[str], obs: np.ndarray):
+    """(probabilities, numpy actions) of ``student`` on ``obs``, its ONNX graph's actions within TOL of numpy's."""
+    from magenv.train.onnx_graph import student_graph
+
+    model = student_graph(env_id, student, names)
+    action, probs = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})
+    expected = np.array([student.action(o) for o in obs])
+    assert np.abs(action - expected).max() <= TOL
+    return probs, expected
+
+
 def test_a_student_of_the_plain_observation(monkeypatch):
     """A student that sees the observation as it is (the base StudentInputs, e.g. an env without derived inputs)
     exports without a builder of its own, acting as the numpy student with the mean and the argmax rule."""
     from magenv.agents import student_inputs
     from magenv.agents.dagger import Ensemble, Student
-    from magenv.train.onnx_graph import student_graph
 
     monkeypatch.setitem(student_inputs.INPUTS, "magenv/Plain-v0", student_inputs.StudentInputs())
     rng = np.random.default_rng(0)
@@ -119,11 +129,7 @@ def test_a_student_of_the_plain_observation(monkeypatch):
             )
             for _ in range(2)
         ]
-        student = Ensemble(members)
-        model = student_graph("magenv/Plain-v0", student, [f"f{i}" for i in range(12)])
-        action, _ = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})
-        expected = np.array([student.action(o) for o in obs])
-        assert np.abs(action - expected).max() <= TOL
+        onnx_matches_numpy(Ensemble(members), "magenv/Plain-v0", [f"f{i}" for i in range(12)], obs)
 
 
 def test_a_guarded_student_falls_back_in_onnx_where_it_does_in_numpy(monkeypatch):
@@ -131,7 +137,6 @@ def test_a_guarded_student_falls_back_in_onnx_where_it_does_in_numpy(monkeypatch
     and where the members disagree — the same decisions in ONNX as in numpy, both kinds seen."""
     from magenv.agents import student_inputs
     from magenv.agents.dagger import Ensemble, Student
-    from magenv.train.onnx_graph import student_graph
 
     monkeypatch.setitem(student_inputs.INPUTS, "magenv/Plain-v0", student_inputs.StudentInputs())
     rng = np.random.default_rng(1)
@@ -154,10 +159,7 @@ def test_a_guarded_student_falls_back_in_onnx_where_it_does_in_numpy(monkeypatch
             for _ in range(2)
         ]
         student = Ensemble(members)
-        model = student_graph("magenv/Plain-v0", student, [f"f{i}" for i in range(6)])
-        action, _ = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})
-        expected = np.array([student.action(o) for o in obs])
-        assert np.abs(action - expected).max() <= TOL
+        onnx_matches_numpy(student, "magenv/Plain-v0", [f"f{i}" for i in range(6)], obs)
         assert 0 < student.guarded < student.decisions  # both kinds of decision were made
 
 
@@ -168,7 +170,6 @@ def test_a_guarded_vqf_student_of_a_rule_falls_back_on_the_rule_in_onnx_as_in_nu
     from magenv.agents.dagger import Ensemble, Student
     from magenv.agents.student_inputs import inputs_for
     from magenv.envs.vqf import EXTENDED, FEATURES
-    from magenv.train.onnx_graph import student_graph
 
     inputs, rng = inputs_for(VQF_ID), np.random.default_rng(2)
     meta = {"block": len(EXTENDED) // 3, "drop": ["delta"], "rule": [0.1, 2.0]}
@@ -192,12 +193,9 @@ def test_a_guarded_vqf_student_of_a_rule_falls_back_on_the_rule_in_onnx_as_in_nu
             cands = [[0.0], [0.5], [1.0]]
             return Student(layers, x.mean(0), x.std(0) + 1e-3, cands, inputs, meta, act, (lo, hi), guard)
 
-        members = [member() for _ in range(2)]
-        student = Ensemble(members)
-        model = student_graph(VQF_ID, student, list(EXTENDED.names))
-        action, probs = ort.InferenceSession(model.SerializeToString()).run(None, {"obs": obs})
-        expected = np.array([student.action(o) for o in obs])
-        assert probs.shape == (len(obs), 4) and np.abs(action - expected).max() <= TOL
+        student = Ensemble([member() for _ in range(2)])
+        probs, expected = onnx_matches_numpy(student, VQF_ID, list(EXTENDED.names), obs)
+        assert probs.shape == (len(obs), 4)
         assert 0 < student.guarded < student.decisions
         if fallback == "rule":  # where it held, the action is the rule's trust
             assert np.sum(np.abs(expected[:, 0] - rule) < 1e-12) >= student.guarded
