@@ -335,6 +335,8 @@ class Student:
 
     def fallback(self, obs: np.ndarray) -> np.ndarray:
         """(action_dim,) float64 the guard's fallback at ``obs``: its action, or the rule's (``rule``)."""
+        if self.guard is None:
+            raise ValueError("a student without a guard has no fallback")
         fb = self.guard["fallback"]
         return self.candidates_at(obs)[-1].copy() if fb == "rule" else np.asarray(fb, np.float64)
 
