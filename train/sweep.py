@@ -1,6 +1,6 @@
 """``magenv sweep``: many ``magenv train`` runs on Ray Tune, then one table per configuration against a tuned rule.
 
-    magenv sweep CONFIG.yaml [--out runs/sweep] [--workers N] [--address ADDR] [--dry-run]
+    magenv sweep CONFIG.yaml [--out runs/sweep] [--workers N] [--address ADDR] [--seeds 0:5] [--dry-run]
 
 The sweep file (``magenv.train.sweep_config``) crosses env ids × algorithms
 × searched hyperparameter configurations × training seeds; each run is one
@@ -43,6 +43,7 @@ import yaml
 
 from magenv.agents.hyperparams import POSITIVE_INT
 from magenv.train.cli import PARTIAL, CommandError, output_folder, rule_arg
+from magenv.train.seeds import seeds_arg
 
 SUMMARY_COLUMNS = (
     "env",
@@ -72,6 +73,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="runs at a time, one CPU each (default: every CPU of the local machine or the cluster)",
     )
     p.add_argument("--address", default=None, help="an existing Ray cluster (e.g. auto, or HOST:6379); default local")
+    p.add_argument(
+        "--seeds", type=seeds_arg, default=None, help="training seeds, replacing the file's search.seeds (e.g. 0:2)"
+    )
     p.add_argument("--dry-run", action="store_true", help="list the runs and stop (Ray not needed)")
 
 
@@ -270,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.dry_run:
         output_folder(args.out, "--out")
     try:
-        sweep = load_sweep(args.config)
+        sweep = load_sweep(args.config, args.seeds)
     except ConfigError as exc:
         raise CommandError(str(exc)) from None
     runs = {r.name: json.loads(json.dumps(r.as_dict())) for r in sweep}

@@ -5,6 +5,7 @@
     magenv/MagBlend-v0:              # base hyperparameters, merged over agents/configs/ALGO.yaml's section
       n_timesteps: 20000
       n_envs: 2
+      pretrain: null                 # null: the shipped section's key dropped
     search:
       envs: [magenv/MagBlend-v0]     # default: every env section of this file
       algos: [ppo]                   # default [ppo]
@@ -18,11 +19,12 @@
         gamma: {uniform: [0.95, 0.999]}                   # random only: uniform, loguniform, randint, choice
       steps: 20000                   # optional: total steps per run (default: the section's n_timesteps)
       eval_every: 10000              # held-out evaluation and checkpoint cadence of each run
-      eval_scenarios: [dynamic_magnet, dynamic_clean]     # validation (model selection), as magenv train
+      eval_scenarios: [dynamic_magnet, dynamic_clean]     # validation (model selection), as magenv train;
+                                                          # or a mapping env id → scenarios
       eval_seeds: "5000:5002"
       report:                        # the table: every run and the reference on the same held-out trials
         reference: fan_lambda_tuned  # or a mapping env id → method (default DEFAULT_REFERENCE)
-        scenarios: [dynamic_magnet, dynamic_clean]        # default: eval_scenarios
+        scenarios: [dynamic_magnet, dynamic_clean]        # default: eval_scenarios (a mapping too)
         seeds: "0:5"                 # seeds below 5000 (magenv.seeding)
 
 A *configuration* is one set of searched values; the same configurations
@@ -142,6 +144,18 @@ def _names(where: str, key: str, value, known) -> list[str]:
     return list(dict.fromkeys(items))
 
 
+def _per_env(where: str, key: str, value, envs: list[str], known) -> dict[str, list[str]]:
+    """Env id → scenario names: ``value`` a name or list for every env, or a mapping env id → name or list
+    (every env of the sweep given)."""
+    if not isinstance(value, dict):
+        names = _names(where, key, value, known)
+        return dict.fromkeys(envs, names)
+    missing = [e for e in envs if e not in value]
+    if missing:
+        raise ConfigError(f"{where}: {key} gives no scenarios for {', '.join(missing)}")
+    return {e: _names(where, f"{key}[{e}]", value[e], known) for e in envs}
+
+
 def _set(section: dict, dotted: str, value) -> dict:
     """``section`` with ``dotted`` (``a.b.c``) set to ``value``, nested mappings copied on the way."""
     head, _, rest = dotted.partition(".")
@@ -215,15 +229,17 @@ def _base_section(algo: str, env_id: str, sweep_section: dict | None) -> dict:
     """The shipped config's section of ``env_id`` (``agents/configs/ALGO.yaml``; none: empty) with the sweep
     file's section over it (unchecked YAML)."""
     shipped = yaml.safe_load((CONFIG_DIR / f"{algo}.yaml").read_text()) or {}
-    return {**(shipped.get(env_id) or {}), **(sweep_section or {})}
+    merged = {**(shipped.get(env_id) or {}), **(sweep_section or {})}
+    return {k: v for k, v in merged.items() if v is not None}  # a key set to null drops the shipped one
 
 
 def _short(env_id: str) -> str:
     return env_id.rsplit("/", 1)[-1]
 
 
-def load_sweep(path: str | Path) -> list[SweepRun]:
-    """Every run of the sweep file ``path``, checked (ConfigError naming the file, the key and the problem)."""
+def load_sweep(path: str | Path, seeds: list[int] | None = None) -> list[SweepRun]:
+    """Every run of the sweep file ``path``, checked (ConfigError naming the file, the key and the problem);
+    ``seeds`` replaces the file's ``search.seeds``."""
     import gymnasium as gym
 
     from magenv import registry
@@ -252,20 +268,26 @@ def load_sweep(path: str | Path) -> list[SweepRun]:
     algos = _names(where, "search.algos", search.get("algos", ["ppo"]), ["ppo", "sac", "recurrent_ppo"])
     for algo in algos:
         algorithm_class(algo)
-    seeds = _seeds(where, "search.seeds", search.get("seeds", 0))
+    seeds = _seeds(where, "search.seeds", search.get("seeds", 0)) if seeds is None else seeds
     steps = search.get("steps")
     steps = None if steps is None else check_value(where, "search.steps", steps, POSITIVE_INT)
     eval_every = check_value(where, "search.eval_every", search.get("eval_every", DEFAULT_EVAL_EVERY), POSITIVE_INT)
     known_scenarios = scenario_names()
-    eval_scenarios = _names(
-        where, "search.eval_scenarios", search.get("eval_scenarios", list(DEFAULT_EVAL_SCENARIOS)), known_scenarios
+    eval_scenarios = _per_env(
+        where,
+        "search.eval_scenarios",
+        search.get("eval_scenarios", list(DEFAULT_EVAL_SCENARIOS)),
+        envs,
+        known_scenarios,
     )
     eval_seeds = _seeds(where, "search.eval_seeds", search.get("eval_seeds", list(DEFAULT_EVAL_SEEDS)))
     report = search.get("report") or {}
     if not isinstance(report, dict) or set(report) - REPORT_KEYS:
         raise ConfigError(f"{where}: search.report must be a mapping with keys {', '.join(sorted(REPORT_KEYS))}")
-    report_scenarios = _names(
-        where, "search.report.scenarios", report.get("scenarios", eval_scenarios), known_scenarios
+    report_scenarios = (
+        _per_env(where, "search.report.scenarios", report["scenarios"], envs, known_scenarios)
+        if "scenarios" in report
+        else eval_scenarios
     )
     report_seeds = _seeds(where, "search.report.seeds", report.get("seeds", DEFAULT_REPORT_SEEDS), VALIDATION_START)
     reference = report.get("reference", DEFAULT_REFERENCE)
@@ -301,10 +323,10 @@ def load_sweep(path: str | Path) -> list[SweepRun]:
                         checked,
                         run_steps,
                         eval_every,
-                        eval_scenarios,
+                        eval_scenarios[env_id],
                         eval_seeds,
                         references[env_id],
-                        report_scenarios,
+                        report_scenarios[env_id],
                         report_seeds,
                     )
                 )
