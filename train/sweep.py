@@ -44,6 +44,7 @@ import yaml
 from magenv.agents.hyperparams import POSITIVE_INT
 from magenv.train.cli import PARTIAL, CommandError, output_folder, rule_arg
 from magenv.train.seeds import seeds_arg
+from magenv.train.sweep_config import DAGGER
 
 SUMMARY_COLUMNS = (
     "env",
@@ -99,6 +100,36 @@ def _finished(out: Path, name: str, spec: dict) -> dict | None:
     return record if isinstance(record, dict) and record.get("run") == spec else None
 
 
+def _train_dagger(spec: dict, run_dir: Path) -> None:
+    """DAgger run ``spec`` into ``run_dir``, or its continuation where the folder holds it."""
+    from magenv import registry
+    from magenv.agents import dagger
+
+    config = dict(spec["section"])
+    teacher = registry.make(config.pop("teacher"))
+    resume = dagger.is_run(run_dir)
+    dagger.train(
+        run_dir,
+        teacher,
+        {"iterations": config["iterations"]} if resume else config,
+        env_id=spec["env_id"],
+        resume=resume,
+    )
+
+
+def _dagger_progress(run_dir: Path) -> dict | None:
+    """A DAgger run's progress as ``train``'s: ``timesteps`` = decisions labelled so far (its iterations.csv
+    ``samples``), ``best_score`` = its best validation score; None before its first iteration."""
+    path = run_dir / "iterations.csv"
+    if not path.is_file():
+        return None
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return None
+    return {"timesteps": int(rows[-1]["samples"]), "best_score": float(rows[-1]["best"])}
+
+
 def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
     """Train run ``name`` of the sweep in ``out`` (``runs``: name → ``SweepRun.as_dict()``) or resume it, score
     its best model and the reference on the report trials, write ``results/NAME.json``; returns that record.
@@ -114,30 +145,34 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
         return done
     run_dir, config = out_dir / "runs" / name, out_dir / "configs" / f"{name}.yaml"
     _write_atomic(config, yaml.safe_dump({spec["env_id"]: spec["section"]}, sort_keys=False))
-    before = progress(run_dir, spec["algo"])
+    dagger_run = spec["algo"] == DAGGER
+    before = _dagger_progress(run_dir) if dagger_run else progress(run_dir, spec["algo"])
     start = before["timesteps"] if before is not None else 0
     (out_dir / "logs").mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with open(out_dir / "logs" / f"{name}.log", "a") as log, contextlib.redirect_stdout(log):
-        train(
-            spec["env_id"],
-            spec["algo"],
-            spec["steps"],
-            run_dir,
-            config=str(config),
-            seed=spec["seed"],
-            eval_every=spec["eval_every"],
-            eval_scenarios=tuple(spec["eval_scenarios"]),
-            eval_seeds=tuple(spec["eval_seeds"]),
-            progress_bar=False,
-            make_method=registry.make,
-        )
+        if dagger_run:
+            _train_dagger(spec, run_dir)
+        else:
+            train(
+                spec["env_id"],
+                spec["algo"],
+                spec["steps"],
+                run_dir,
+                config=str(config),
+                seed=spec["seed"],
+                eval_every=spec["eval_every"],
+                eval_scenarios=tuple(spec["eval_scenarios"]),
+                eval_seeds=tuple(spec["eval_seeds"]),
+                progress_bar=False,
+                make_method=registry.make,
+            )
     t1 = time.perf_counter()
     trials = [make_trial(s, seed) for s in spec["report_scenarios"] for seed in spec["report_seeds"]]
     reference = spec["reference"]
     runs_ = evaluation.evaluate({"agent": load_agent(run_dir), reference: registry.make(reference)}, trials)
     scores = {m: [r.scored.total for r in runs_ if r.method == m] for m in ("agent", reference)}
-    trained = progress(run_dir, spec["algo"])
+    trained = _dagger_progress(run_dir) if dagger_run else progress(run_dir, spec["algo"])
     if trained is None:
         raise CommandError(f"{run_dir}: training left no checkpoint")
     record = {

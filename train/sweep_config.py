@@ -60,10 +60,11 @@ from magenv.agents.hyperparams import (
     read_yaml,
 )
 from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID, VQF_ID
-from magenv.seeding import VALIDATION_START
+from magenv.seeding import HELD_OUT_BELOW, VALIDATION_START
 from magenv.train.seeds import parse_seeds
 
 SEARCH = "search"
+DAGGER = "dagger"  # DAgger from a privileged teacher (magenv.agents.dagger): its section holds the teacher too
 SEARCH_KEYS = {
     "envs",
     "algos",
@@ -233,6 +234,38 @@ def _base_section(algo: str, env_id: str, sweep_section: dict | None) -> dict:
     return {k: v for k, v in merged.items() if v is not None}  # a key set to null drops the shipped one
 
 
+def _dagger_section(where: str, section: dict, methods: list[str]) -> dict:
+    """A DAgger section (the keys of ``agents/configs/dagger.yaml`` and ``teacher``, the oracle's registry name)
+    checked with ``magenv.agents.dagger.check_config``; ConfigError naming ``where``."""
+    from magenv.agents import dagger
+
+    section = dict(section)
+    teacher = section.pop("teacher", None)
+    if teacher not in methods:
+        raise ConfigError(f"{where}: a dagger section needs teacher: the oracle's method name, got {teacher!r}")
+    try:
+        dagger.check_config(section)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    return {**section, "teacher": teacher}
+
+
+#: DAgger's training seed s draws its trials from train_seed + s × DAGGER_SEED_STRIDE (each seed its own trials)
+DAGGER_SEED_STRIDE = 1_000_000
+
+
+def dagger_seeded(section: dict, seed: int, scenarios: list[str], val_seeds: list[int]) -> dict:
+    """The DAgger section of training seed ``seed``: its fit seed, its own training trials, validated on
+    ``scenarios`` × ``val_seeds`` (model selection, as the other algorithms' ``eval_*``)."""
+    return {
+        **section,
+        "seed": seed,
+        "train_seed": section.get("train_seed", HELD_OUT_BELOW) + seed * DAGGER_SEED_STRIDE,
+        "val_seeds": [min(val_seeds), max(val_seeds) + 1],
+        "val_scenarios": list(scenarios),
+    }
+
+
 def _short(env_id: str) -> str:
     return env_id.rsplit("/", 1)[-1]
 
@@ -265,9 +298,10 @@ def load_sweep(path: str | Path, seeds: list[int] | None = None) -> list[SweepRu
     if not envs:
         raise ConfigError(f"{where}: no env to train: give search.envs or an env section")
     envs = _names(where, "search.envs", envs, envs_known)
-    algos = _names(where, "search.algos", search.get("algos", ["ppo"]), ["ppo", "sac", "recurrent_ppo"])
+    algos = _names(where, "search.algos", search.get("algos", ["ppo"]), ["ppo", "sac", "recurrent_ppo", DAGGER])
     for algo in algos:
-        algorithm_class(algo)
+        if algo != DAGGER:
+            algorithm_class(algo)
     seeds = _seeds(where, "search.seeds", search.get("seeds", 0)) if seeds is None else seeds
     steps = search.get("steps")
     steps = None if steps is None else check_value(where, "search.steps", steps, POSITIVE_INT)
@@ -309,9 +343,16 @@ def load_sweep(path: str | Path, seeds: list[int] | None = None) -> list[SweepRu
             section = base
             for key, value in params.items():
                 section = _set(section, key, value)
-            checked = check_section(algo, section, f"{where} [{env_id}, {algo}, configuration {c}: {params}]")
-            run_steps = steps or int(checked.get("n_timesteps", 100_000))
+            label = f"{where} [{env_id}, {algo}, configuration {c}: {params}]"
+            if algo == DAGGER:
+                checked = _dagger_section(label, section, registry.names())
+                run_steps = 0  # DAgger's size is its iterations × trials (its section)
+            else:
+                checked = check_section(algo, section, label)
+                run_steps = steps or int(checked.get("n_timesteps", 100_000))
             for seed in seeds:
+                if algo == DAGGER:
+                    checked = dagger_seeded(checked, seed, eval_scenarios[env_id], eval_seeds)
                 runs.append(
                     SweepRun(
                         f"{_short(env_id)}-{algo}-c{c}-s{seed}",
