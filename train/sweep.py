@@ -90,7 +90,7 @@ def _write_atomic(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
-def _finished(out: Path, name: str, spec: dict) -> dict | None:
+def finished_record(out: Path, name: str, spec: dict) -> dict | None:
     """The results record of run ``name`` in sweep folder ``out`` if it finished with these settings, else None."""
     path = out / "results" / f"{name}.json"
     try:
@@ -140,7 +140,7 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
     from magenv.scenarios import make_trial
 
     spec, out_dir = runs[name], Path(out)
-    done = _finished(out_dir, name, spec)
+    done = finished_record(out_dir, name, spec)
     if done is not None:
         return done
     run_dir, config = out_dir / "runs" / name, out_dir / "configs" / f"{name}.yaml"
@@ -337,7 +337,7 @@ def run(args: argparse.Namespace) -> int:
         elif result:
             print(f"  done {name}: agent {result['agent_rmse']:.2f}°, reference {result['reference_rmse']:.2f}°")
 
-    todo = [name for name in runs if _finished(out, name, runs[name]) is None]
+    todo = [name for name in runs if finished_record(out, name, runs[name]) is None]
     print(f"{len(runs) - len(todo)} run(s) finished before, {len(todo)} to run")
     interrupted, outcome = False, {}
     try:
@@ -352,7 +352,7 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t1
     records, failed, fresh = [], {}, []
     for name in runs:
-        record = _finished(out, name, runs[name])
+        record = finished_record(out, name, runs[name])
         if record is not None:
             records.append(record)
             if name in todo:

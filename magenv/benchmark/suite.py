@@ -33,6 +33,7 @@ from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID, VQF_ID
 VERSION = "magenv-bench v1"
 EVAL_SEEDS = tuple(range(4000, 4020))
 RECORDINGS = "recordings"  # the test name of the real-recordings track
+BASELINE_SEEDS = 5  # training seeds of each baseline (docs/benchmark/index.md)
 
 
 @dataclass(frozen=True)
