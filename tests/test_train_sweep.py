@@ -164,12 +164,12 @@ def test_null_drops_a_shipped_key_and_scenarios_may_differ_per_env(tmp_path):
 def test_a_dagger_section_names_its_teacher_and_each_seed_draws_its_own_trials(tmp_path):
     search = {"algos": ["dagger"], "seeds": "0:2", "eval_scenarios": ["dynamic_clean"], "eval_seeds": "5000:5002"}
     path = tmp_path / "dagger.yaml"
-    path.write_text(yaml.safe_dump({ENV: {"teacher": "oracle", "iterations": 1}, "search": search}))
+    path.write_text(yaml.safe_dump({ENV: {"teacher": "oracle", "iterations": 1, "ensemble": 1}, "search": search}))
     first, second = load_sweep(path)
     assert first.section["teacher"] == "oracle" and first.section["val_seeds"] == [5000, 5002]
     assert first.section["train_seed"] != second.section["train_seed"] and second.section["seed"] == 1
     assert first.section["val_scenarios"] == ["dynamic_clean"]
-    path.write_text(yaml.safe_dump({ENV: {"iterations": 1}, "search": search}))
+    path.write_text(yaml.safe_dump({ENV: {"iterations": 1, "ensemble": 1}, "search": search}))
     with pytest.raises(ConfigError, match="a dagger section needs teacher"):
         load_sweep(path)
     path.write_text(yaml.safe_dump({ENV: {"teacher": "oracle", "iterations": 0}, "search": search}))
