@@ -129,13 +129,15 @@ def load_policies(spec: str, env_ids: list[str]) -> dict[str, object]:
 
 
 def source_fingerprint() -> str:
-    """A hash of every file that decides a rule's or an oracle's RMSE: magenv's and its baselines' source, the
-    packaged and the user's tuned files."""
+    """A hash of every file that may decide a rule's or an oracle's RMSE: magenv's (but the suite's) and its
+    baselines' source, the packaged and the user's tuned files."""
     from magenv import registry
 
     h = hashlib.sha256()
     roots = [Path(importlib.import_module(p).__file__).parent for p in ("magenv", "magenv.baselines")]
     files = [f for r in roots for pattern in ("*.py", "*.json", "*.xml") for f in sorted(r.rglob(pattern))]
+    suite_dir = Path(importlib.import_module("magenv.benchmark").__file__).parent  # the suite: no method's RMSE
+    files = [f for f in files if suite_dir not in f.parents]
     files += sorted(registry.user_tuned_dir().glob("*.json")) if registry.user_tuned_dir().is_dir() else []
     for f in files:
         h.update(f.name.encode())
