@@ -36,6 +36,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -93,7 +94,7 @@ def _import_callable(spec: str):
     return fn
 
 
-def load_policies(spec: str, env_ids: list[str]) -> dict[str, object]:
+def load_policies(spec: str, env_ids: list[str]) -> dict[str, Any]:
     """Env id → the policy ``spec`` names for it, for the envs of ``env_ids`` it acts in; CommandError naming the
     spec and the problem (nothing run yet)."""
     from magenv.agents.loading import PRETRAINED_PREFIX, RunError, load_agent, load_weights_file
@@ -102,7 +103,7 @@ def load_policies(spec: str, env_ids: list[str]) -> dict[str, object]:
     is_callable = ":" in spec and not spec.startswith(PRETRAINED_PREFIX) and not path.exists()
     if is_callable:
         fn = _import_callable(spec)
-        out = {}
+        out: dict[str, Any] = {}
         for env_id in env_ids:
             try:
                 policy = fn(env_id)
@@ -134,9 +135,9 @@ def source_fingerprint() -> str:
     from magenv import registry
 
     h = hashlib.sha256()
-    roots = [Path(importlib.import_module(p).__file__).parent for p in ("magenv", "magenv.baselines")]
+    roots = [Path(str(importlib.import_module(p).__file__)).parent for p in ("magenv", "magenv.baselines")]
     files = [f for r in roots for pattern in ("*.py", "*.json", "*.xml") for f in sorted(r.rglob(pattern))]
-    suite_dir = Path(importlib.import_module("magenv.benchmark").__file__).parent  # the suite: no method's RMSE
+    suite_dir = Path(str(importlib.import_module("magenv.benchmark").__file__)).parent  # the suite: no method's RMSE
     files = [f for f in files if suite_dir not in f.parents]
     files += sorted(registry.user_tuned_dir().glob("*.json")) if registry.user_tuned_dir().is_dir() else []
     for f in files:

@@ -155,7 +155,7 @@ def build(env_id: str, method: str, episodes: int, seed: int, episode_seconds: f
         reset()
         done = False
         while not done:
-            action = np.asarray(act(obs, env.unwrapped._runner), np.float32)
+            action = np.asarray(act(obs, env.unwrapped._runner), np.float32)  # type: ignore[attr-defined]
             obs, _, terminated, truncated, _ = collector.step(action)
             done = terminated or truncated
     with warnings.catch_warnings():  # Minari's advice to give an e-mail address and a versioned code link

@@ -155,7 +155,7 @@ def profile_png(matrices: dict[str, np.ndarray], path: str | Path, title: str = 
         profiles, cis = rly.create_performance_profile(checked, taus, reps=AGGREGATE_REPS)
     finally:
         np.random.set_state(saved)  # noqa: NPY002
-    colors = dict(zip(checked, plt.get_cmap("tab10").colors))
+    colors = dict(zip(checked, plt.get_cmap("tab10")(np.arange(10)).tolist()))
     fig, ax = plt.subplots(figsize=(7, 4.5))
     plot_utils.plot_performance_profiles(
         profiles,
