@@ -177,6 +177,21 @@ def test_a_dagger_section_names_its_teacher_and_each_seed_draws_its_own_trials(t
         load_sweep(path)
 
 
+def test_a_dagger_run_trains_resumes_and_is_scored_like_the_others(tmp_path):
+    search = {"algos": ["dagger"], "seeds": [0], "eval_scenarios": ["dynamic_clean"], "eval_seeds": [5000]}
+    section = {"teacher": "oracle", "scenarios": ["dynamic_clean"], "iterations": 2, "trials_per_scenario": 1}
+    path = tmp_path / "dagger.yaml"
+    path.write_text(yaml.safe_dump({ENV: {**section, "fit_steps": 50, "ensemble": 1}, "search": search}))
+    runs = {r.name: json.loads(json.dumps(r.as_dict())) for r in load_sweep(path)}
+    (name,) = runs
+    record = run_trial(name, str(tmp_path / "out"), runs)
+    assert record["timesteps"] == 2 * 2240 and record["start_timesteps"] == 0  # 70 s at 256 Hz, k = 8, twice
+    assert len(record["agent"]) == len(record["reference"]) == 1 and record["agent_rmse"] > 0
+    (tmp_path / "out" / "results" / f"{name}.json").unlink()  # as if stopped after training: resumed, not redone
+    again = run_trial(name, str(tmp_path / "out"), runs)
+    assert again["start_timesteps"] == 2 * 2240 and again["agent"] == record["agent"]
+
+
 # ----------------------------------------------------------------- one run, without Ray
 
 

@@ -119,7 +119,8 @@ def _train_dagger(spec: dict, run_dir: Path) -> None:
 
 def _dagger_progress(run_dir: Path) -> dict | None:
     """A DAgger run's progress as ``train``'s: ``timesteps`` = decisions labelled so far (its iterations.csv
-    ``samples``), ``best_score`` = its best validation score; None before its first iteration."""
+    ``samples``), ``best_score`` = its best validation score (its mean ratio to the rule, not an RMSE); None before
+    its first iteration."""
     path = run_dir / "iterations.csv"
     if not path.is_file():
         return None
