@@ -186,7 +186,7 @@ def test_a_dagger_run_trains_resumes_and_is_scored_like_the_others(tmp_path):
     (name,) = runs
     record = run_trial(name, str(tmp_path / "out"), runs)
     assert record["timesteps"] == 2 * 2240 and record["start_timesteps"] == 0  # 70 s at 256 Hz, k = 8, twice
-    assert len(record["agent"]) == len(record["reference"]) == 1 and record["agent_rmse"] > 0
+    assert len(record["agent"]) == len(record["reference"]) == 5 and record["agent_rmse"] > 0  # report seeds 0:5
     (tmp_path / "out" / "results" / f"{name}.json").unlink()  # as if stopped after training: resumed, not redone
     again = run_trial(name, str(tmp_path / "out"), runs)
     assert again["start_timesteps"] == 2 * 2240 and again["agent"] == record["agent"]
