@@ -1,7 +1,7 @@
 """``magenv benchmark``: score a policy on magenv-bench v1 (``magenv.benchmark.suite``) and write its score card.
 
     magenv benchmark --agent AGENT [--tasks LIST] [--out DIR] [--seeds S] [--duration S] [--no-cache]
-    magenv benchmark --sweep DIR [DIR ...] --out docs/benchmark      (the baselines' table)
+    magenv benchmark --sweep RUNS --out docs/benchmark      (the baselines' table)
 
 AGENT is a run folder (``magenv train``), ``pretrained:ENV_ID`` (a shipped agent), one weights-only file of an SB3
 run folder (``RUN/best.safetensors``, ``RUN/checkpoints/step_T.safetensors``), or a Python callable
@@ -21,7 +21,8 @@ and the oracle). ``--seeds`` or ``--duration`` make a quick look that the card m
 The rules' and oracles' per-trial RMSEs are cached under the user data folder (``benchmark/``), keyed by a
 hash of magenv's source and tuned files, so a change of code recomputes them (``--no-cache``: always).
 
-``--sweep`` scores every finished run of ``magenv sweep`` folders (e.g. ``agents/configs/bench/train.sh``'s) on
+``--sweep`` scores every finished run of ``magenv sweep`` folders (or of the sweep folders inside a folder, e.g.
+``agents/configs/bench/train.sh``'s RUNS) on
 its env's tasks and writes OUT/baselines.csv (env, task, method, training seed, RMSE, normalised score),
 OUT/baselines.png and OUT/index.md (the protocol, the table with the number of training seeds finished of each
 cell, the aggregates); a run's scores are kept beside it (``SWEEP/benchmark/NAME.json``) for the next call.
@@ -358,16 +359,27 @@ def run_agent(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------- the baselines' table
 
 
+def sweep_folders(given: list[Path]) -> list[Path]:
+    """The sweep folders of ``--sweep``: each folder given that holds a ``sweep.json``, else its subfolders that
+    do (``RUNS`` for ``RUNS/ppo``, ``RUNS/sac`` …); CommandError naming a folder with none."""
+    found = []
+    for folder in given:
+        inside = (
+            [folder] if (folder / "sweep.json").is_file() else sorted(p.parent for p in folder.glob("*/sweep.json"))
+        )
+        if not inside:
+            raise CommandError(f"--sweep {folder}: not a magenv sweep folder (no sweep.json in it or its subfolders)")
+        found += inside
+    return found
+
+
 def _finished_runs(sweeps: list[Path]) -> list[tuple[Path, dict]]:
     """(sweep folder, its results record) of every finished run of ``sweeps``."""
     from magenv.train.sweep import finished_record
 
     found = []
     for sweep in sweeps:
-        path = sweep / "sweep.json"
-        if not path.is_file():
-            raise CommandError(f"--sweep {sweep}: not a magenv sweep folder (no sweep.json)")
-        runs = json.loads(path.read_text())["runs"]
+        runs = json.loads((sweep / "sweep.json").read_text())["runs"]
         for name, spec in runs.items():
             record = finished_record(sweep, name, spec)
             if record is not None:
@@ -444,7 +456,7 @@ def index_markdown(rows: list[dict], n_finished: int, n_planned: int, agg: dict,
     lines = [
         f"# Benchmark: {suite.VERSION}",
         "",
-        "<!-- written by `magenv benchmark --sweep RUNS/* --out docs/benchmark`: edit magenv/benchmark/suite.py "
+        "<!-- written by `magenv benchmark --sweep RUNS --out docs/benchmark`: edit magenv/benchmark/suite.py "
         "or train/benchmark.py, not this page -->",
         "",
         "Score any policy on the suite in one command (a run folder, `pretrained:ENV_ID`, a weights file or your "
@@ -483,7 +495,7 @@ def index_markdown(rows: list[dict], n_finished: int, n_planned: int, agg: dict,
         "PPO, SAC and RecurrentPPO (Stable-Baselines3, sb3-contrib) from scratch, and DAgger from the oracle, each "
         f"at the budget with {suite.BASELINE_SEEDS} training seeds (configs: `agents/configs/bench/`), trained by "
         "`nice -n 19 agents/configs/bench/train.sh RUNS` (`magenv sweep`, resumable; sized so that the 100 runs "
-        "take at most a day on two cores) and scored by `magenv benchmark --sweep RUNS/* --out docs/benchmark`.",
+        "take at most a day on two cores) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark`.",
         "",
         f"**{n_finished} of {n_planned} runs finished and scored**"
         + (
@@ -522,14 +534,12 @@ def run_sweeps(args: argparse.Namespace) -> int:
     from magenv.benchmark import score, suite
 
     out = output_folder(args.out, "--out")
-    for sweep in args.sweep:
-        if not (sweep / "sweep.json").is_file():
-            raise CommandError(f"--sweep {sweep}: not a magenv sweep folder (no sweep.json)")
+    sweeps = sweep_folders(args.sweep)
     if args.tasks is not None or args.seeds is not None or args.duration is not None:
         raise CommandError("--sweep scores the baselines on the whole suite: drop --tasks, --seeds and --duration")
     planned = len(suite.ENVS) * len(ALGO_LABELS) * suite.BASELINE_SEEDS
-    finished = _finished_runs(args.sweep)
-    print(f"{len(finished)} finished run(s) in {len(args.sweep)} sweep folder(s)", flush=True)
+    finished = _finished_runs(sweeps)
+    print(f"{len(finished)} finished run(s) in {len(sweeps)} sweep folder(s)", flush=True)
     refs = References(cache_folder(args.no_cache))
     rows = [row for sweep, record in finished for row in _run_scores(sweep, record, list(suite.TASKS), refs)]
     out.mkdir(parents=True, exist_ok=True)

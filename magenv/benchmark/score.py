@@ -30,6 +30,7 @@ from magenv import stats
 #: Bootstrap resamples of the rliable intervals (the per-task intervals take ``magenv.stats.DEFAULT_BOOT``)
 AGGREGATE_REPS = 2000
 AGGREGATE_SEED = 0
+PROFILE_RANGE = (-1.0, 1.5)  # normalised scores on the profiles' axis
 
 
 @dataclass(frozen=True)
@@ -136,7 +137,8 @@ def _matrix(name: str, x) -> np.ndarray:
 
 def profile_png(matrices: dict[str, np.ndarray], path: str | Path, title: str = "") -> Path:
     """The performance profiles of each method's (runs × tasks) matrix, with stratified-bootstrap bands, as a
-    PNG at ``path``: the fraction of (run, task) scores above τ for τ from the lowest score to above 1."""
+    PNG at ``path``: the fraction of (run, task) scores above τ, τ over ``PROFILE_RANGE`` (the same axis on every
+    card; a score below its start counts below every τ)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -146,9 +148,7 @@ def profile_png(matrices: dict[str, np.ndarray], path: str | Path, title: str = 
     from rliable import plot_utils
 
     checked = {m: _matrix(m, x) for m, x in matrices.items()}
-    low = min(0.0, min(float(x.min()) for x in checked.values()))
-    high = max(1.2, max(float(x.max()) for x in checked.values()))
-    taus = np.linspace(low, high, 101)
+    taus = np.linspace(*PROFILE_RANGE, 101)
     saved = np.random.get_state()  # noqa: NPY002  (rliable draws its profile bands from numpy's global generator)
     np.random.seed(AGGREGATE_SEED)  # noqa: NPY002
     try:

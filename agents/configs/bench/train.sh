@@ -3,7 +3,7 @@
 # training seed of every method after another, so that a table cut short has whole rounds. Resumable: run it
 # again and finished runs are skipped, an interrupted one resumes from its last checkpoint (magenv sweep).
 #   nice -n 19 agents/configs/bench/train.sh [OUT=/work/runs/bench] [WORKERS=2]
-# Score what has finished: magenv benchmark --sweep OUT/* --out docs/benchmark
+# Score what has finished: magenv benchmark --sweep OUT --out docs/benchmark
 set -u
 OUT=${1:-runs/bench}
 WORKERS=${2:-2}
