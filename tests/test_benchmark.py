@@ -198,10 +198,20 @@ def test_the_baselines_table_shows_what_did_not_finish():
     names = [t.name for t in suite.TASKS if t.normalised]
     matrices, covered = benchmark.baseline_matrices(rows, names)
     assert matrices["DAgger"].shape == (2, 2) and covered["PPO"] == f"2 of {len(names)} tasks, seeds 0, 1"
-    page = benchmark.index_markdown(rows, 4, 100, {}, covered)
+    records = [
+        {"run": {"env_id": suite.BLEND.env_id, "algo": "ppo"}, "train_s": 600.0, "eval_s": 60.0},
+        {"run": {"env_id": suite.BLEND.env_id, "algo": "dagger"}, "train_s": 9.0, "eval_s": 1.0,
+         "train_cpu_s": 1140.0, "eval_cpu_s": 60.0},
+    ] * 2  # fmt: skip
+    page = benchmark.index_markdown(rows, records, 100, {}, covered)
     assert "**4 of 100 runs finished and scored**: the table is incomplete" in page
     assert "| MagBlend-v0/dynamic_magnet | 0.05 (1.50°) n = 2 | – | – | 0.55 (1.50°) n = 2 |" in page
     assert "| MagKalman-v0/dynamic_magnet | – | – | – | – |" in page
+    # minutes per run: CPU where recorded, else wall (*); 5 seeds × (11 + 20) min = 2.6 CPU-hours
+    assert (
+        "| MagBlend-v0 | 11* | – | – | 20 |" in page
+        and "The 2 of 20 (env, method) cells measured would take 2.6" in page
+    )
     for t in suite.TASKS:
         assert f"| {t.name} | {', '.join(t.env.mixture)} | `{t.rule}` |" in page
 

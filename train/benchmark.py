@@ -448,7 +448,40 @@ def baseline_matrices(rows: list[dict], tasks: list[str]) -> tuple[dict[str, np.
     return matrices, covered
 
 
-def index_markdown(rows: list[dict], n_finished: int, n_planned: int, agg: dict, covered: dict) -> str:
+def cost_lines(records: list[dict]) -> list[str]:
+    """The Markdown table of the minutes a finished run took (training and its sweep's scoring), per env and
+    method: CPU minutes where the sweep recorded them, else wall minutes (marked *, on the loaded machine), and
+    the CPU-hours the table's runs would take at those costs."""
+    from magenv.benchmark import suite
+
+    methods = list(ALGO_LABELS)
+    lines = ["| env | " + " | ".join(ALGO_LABELS[m] for m in methods) + " |", "|---|" + "---|" * len(methods)]
+    total, cells = 0.0, 0
+    for env in suite.ENVS:
+        row = []
+        for m in methods:
+            mine = [r for r in records if r["run"]["env_id"] == env.env_id and r["run"]["algo"] == m]
+            cpu = [r["train_cpu_s"] + r["eval_cpu_s"] for r in mine if "train_cpu_s" in r]
+            wall = [r["train_s"] + r["eval_s"] for r in mine]
+            if not mine:
+                row.append("–")
+                continue
+            minutes = float(np.mean(cpu if cpu else wall)) / 60
+            row.append(f"{minutes:.0f}" + ("" if cpu else "*"))
+            total += minutes * suite.BASELINE_SEEDS / 60
+            cells += 1
+        lines.append(f"| {env.short} | " + " | ".join(row) + " |")
+    n_cells = len(suite.ENVS) * len(methods)
+    lines += [
+        "",
+        f"The {cells} of {n_cells} (env, method) cells measured would take {total:.1f} CPU-hours for their "
+        f"{suite.BASELINE_SEEDS} seeds each ({total / 2:.1f} h on two free cores)"
+        + ("." if cells == n_cells else "; the others are not measured yet."),
+    ]
+    return lines
+
+
+def index_markdown(rows: list[dict], records: list[dict], n_planned: int, agg: dict, covered: dict) -> str:
     """docs/benchmark/index.md: the protocol (from the suite) and the baselines' table."""
     from magenv.benchmark import suite
 
@@ -497,10 +530,10 @@ def index_markdown(rows: list[dict], n_finished: int, n_planned: int, agg: dict,
         "`nice -n 19 agents/configs/bench/train.sh RUNS` (`magenv sweep`, resumable; sized so that the 100 runs "
         "take at most a day on two cores) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark`.",
         "",
-        f"**{n_finished} of {n_planned} runs finished and scored**"
+        f"**{len(records)} of {n_planned} runs finished and scored**"
         + (
             "; the table is complete."
-            if n_finished == n_planned
+            if len(records) == n_planned
             else ": the table is incomplete. A cell shows the mean over the training seeds that finished (n = how "
             "many); – where none did."
         ),
@@ -527,6 +560,12 @@ def index_markdown(rows: list[dict], n_finished: int, n_planned: int, agg: dict,
         lines += aggregate_lines(agg, "seeds × tasks")
         lines += ["", "| method | covered |", "|---|---|"] + [f"| {m} | {c} |" for m, c in covered.items()]
         lines += ["", f"![performance profiles of the baselines]({BASELINES}.png)"]
+    if records:
+        lines += [
+            "",
+            "Minutes per run (training, validation and the sweep's own scoring), mean over the finished runs:",
+        ]
+        lines += ["", *cost_lines(records)]
     return "\n".join(lines) + "\n"
 
 
@@ -549,7 +588,8 @@ def run_sweeps(args: argparse.Namespace) -> int:
     agg = score.aggregates(matrices) if matrices else {}
     if matrices:
         score.profile_png(matrices, out / f"{BASELINES}.png", f"{suite.VERSION} baselines")
-    (out / "index.md").write_text(index_markdown(rows, len(finished), planned, agg, covered))
+    records = [record for _, record in finished]
+    (out / "index.md").write_text(index_markdown(rows, records, planned, agg, covered))
     print(f"wrote {out / (BASELINES + '.csv')}, {out / 'index.md'}" + (f", {out / BASELINES}.png" if agg else ""))
     return 0
 

@@ -12,7 +12,7 @@ its best model and the reference rule on the same held-out trials. OUT holds::
     sweep.json           the runs (written first; a rerun may add runs, never change one)
     configs/NAME.yaml    each run's config section (its magenv train --config)
     runs/NAME/           each run's magenv train run folder (magenv evaluate, compare --agent take it)
-    results/NAME.json    each finished run: per-trial RMSE of the agent and the reference, timings
+    results/NAME.json    each finished run: per-trial RMSE of the agent and the reference, wall and CPU timings
     logs/NAME.log        what each run printed
     summary.csv          the table (SUMMARY_COLUMNS)
     tune/                Ray Tune's own files (never read back by magenv)
@@ -150,7 +150,7 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
     before = _dagger_progress(run_dir) if dagger_run else progress(run_dir, spec["algo"])
     start = before["timesteps"] if before is not None else 0
     (out_dir / "logs").mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with open(out_dir / "logs" / f"{name}.log", "a") as log, contextlib.redirect_stdout(log):
         if dagger_run:
             _train_dagger(spec, run_dir)
@@ -168,7 +168,7 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
                 progress_bar=False,
                 make_method=registry.make,
             )
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     trials = [make_trial(s, seed) for s in spec["report_scenarios"] for seed in spec["report_seeds"]]
     reference = spec["reference"]
     runs_ = evaluation.evaluate({"agent": load_agent(run_dir), reference: registry.make(reference)}, trials)
@@ -190,6 +190,8 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
         "timesteps": trained["timesteps"],
         "train_s": t1 - t0,
         "eval_s": time.perf_counter() - t1,
+        "train_cpu_s": c1 - c0,  # this process's CPU seconds: what a free core would take
+        "eval_cpu_s": time.process_time() - c1,
     }
     _write_atomic(out_dir / "results" / f"{name}.json", json.dumps(record, indent=1))
     return record
