@@ -152,6 +152,24 @@ def test_a_users_callable_is_scored_in_one_command(tmp_path, user_module, capsys
     assert "| MagBlend-v0/dynamic_clean | fan_lambda_tuned |" in (out / "card.md").read_text()
 
 
+def test_the_recordings_track_is_skipped_saying_so_where_there_are_none(tmp_path, monkeypatch, capsys):
+    (tmp_path / "vqf_user.py").write_text(
+        "from magenv import registry\n\ndef rule(env_id):\n    return registry.make('vqf_fan_lambda_tuned')\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("MAGENV_BROAD_DIR", str(tmp_path / "empty"))
+    (tmp_path / "empty").mkdir()
+    out = tmp_path / "card"
+    assert cli(["benchmark", "--agent", "vqf_user:rule", "--tasks", "MagVQF-v0/recordings", "--out", str(out)]) == 0
+    card = json.loads((out / "card.json").read_text())
+    assert card["tasks"] == [] and card["skipped"] == [
+        {"task": "MagVQF-v0/recordings", "reason": "no recordings: the folder holds no *.hdf5 file"}
+    ]
+    assert "| MagVQF-v0/recordings | skipped: no recordings" in (out / "card.md").read_text()
+    assert "MagVQF-v0/recordings: skipped (no recordings" in capsys.readouterr().out
+    sys.modules.pop("vqf_user", None)
+
+
 @pytest.mark.parametrize(
     "agent, message",
     [

@@ -222,8 +222,12 @@ def score_policy(policy, tasks, seeds, duration, refs: References, log=print) ->
         try:
             trials = task_trials(task, seeds, duration)
         except TrialError as exc:
-            skipped.append({"task": task.name, "reason": f"no recordings: {exc}"})
-            log(f"{task.name}: skipped (no recordings: {exc})")
+            trials, why = [], f"no recordings: {exc}"
+        else:
+            why = "no recordings: the folder holds no *.hdf5 file"
+        if not trials:
+            skipped.append({"task": task.name, "reason": why})
+            log(f"{task.name}: skipped ({why})")
             continue
         agent = _rmse(getattr(policy, "name", "agent"), policy, trials)
         rule = refs.rmse(task.rule, trials, duration)
@@ -527,8 +531,9 @@ def index_markdown(rows: list[dict], records: list[dict], n_planned: int, agg: d
         "",
         "PPO, SAC and RecurrentPPO (Stable-Baselines3, sb3-contrib) from scratch, and DAgger from the oracle, each "
         f"at the budget with {suite.BASELINE_SEEDS} training seeds (configs: `agents/configs/bench/`), trained by "
-        "`nice -n 19 agents/configs/bench/train.sh RUNS` (`magenv sweep`, resumable; sized so that the 100 runs "
-        "take at most a day on two cores) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark`.",
+        "`nice -n 19 agents/configs/bench/train.sh RUNS` (`magenv sweep`, resumable; the budget was chosen so "
+        "that the 100 runs train within a day on two free cores: the cost table below says how far the runs "
+        "measured so far bear that out) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark`.",
         "",
         f"**{len(records)} of {n_planned} runs finished and scored**"
         + (
