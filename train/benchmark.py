@@ -232,7 +232,10 @@ def score_policy(policy, tasks, seeds, duration, refs: References, log=print) ->
         agent = _rmse(getattr(policy, "name", "agent"), policy, trials)
         rule = refs.rmse(task.rule, trials, duration)
         oracle = refs.rmse(task.oracle, trials, duration) if task.oracle else []
-        scores.append(score_task(task.name, task.rule, task.oracle, [t.name for t in trials], agent, rule, oracle))
+        try:
+            scores.append(score_task(task.name, task.rule, task.oracle, [t.name for t in trials], agent, rule, oracle))
+        except ValueError as exc:  # e.g. trials cut so short that the oracle gains nothing over the rule
+            raise CommandError(f"{task.name}: no score ({exc})") from None
         log(f"{task.name}: {time.perf_counter() - t0:.0f} s")
     return scores, skipped
 
