@@ -523,12 +523,23 @@ def index_markdown(rows: list[dict], records: list[dict], n_planned: int, agg: d
         "probability of improvement over the rule, with stratified-bootstrap 95 % intervals, and performance "
         "profiles.",
         "",
+        "* **Rule** of a task: the tuned rule of lowest mean RMSE on the project's seeds 0–39 "
+        "([results](../results.md)); MagKalman-v0's and MagConstraint-v0's act on the extended observation.",
+        "",
         "| task | training mixture | rule (score 0) | oracle (score 1) |",
         "|---|---|---|---|",
     ]
     for t in suite.TASKS:
         lines.append(f"| {t.name} | {', '.join(t.env.mixture)} | `{t.rule}` | {f'`{t.oracle}`' if t.oracle else '–'} |")
     lines += [
+        "",
+        "## Offline datasets",
+        "",
+        "`magenv datasets build [--envs …] [--episodes N]` rolls the oracle and the tuned rules out on each env's "
+        "training mixture (training seeds) into Minari datasets (`magenv/blend-oracle-v0`, …; `magenv datasets "
+        "list`): observations, actions, rewards and the truth-only channels (errors against the true orientation, "
+        "the disturbance's size, the true quaternion) in the step infos; `dataset.recover_environment()` and an "
+        "episode's reset seed replay it to the same rewards. Needs `pip install 'magenv[datasets]'`.",
         "",
         "## Baselines",
         "",
