@@ -13,7 +13,8 @@ the observation, the action, the reward and, in its infos, the truth-only channe
 of the estimate against the true orientation, the disturbance's size, the true and estimated quaternions; NaN
 at the reset). The methods: ``oracle`` — the suite's privileged oracle of the env, acting at each decision with
 its cheapest candidate (it reads truth: expert data, not a deployable policy) — and ``rules`` — the tuned rules
-of the env's tasks that act as policies (``DATASET_RULES``); each in the env options it acts in.
+of the env's tasks that act as policies (:func:`dataset_rules`); each in the env options it acts in (its
+observation's features, a tuned gain schedule or detector).
 
 Replaying a dataset: ``env = dataset.recover_environment()``, ``env.reset(seed=episode.id's seed)`` (the
 episode's ``seed`` in its metadata), then its actions: the same rewards, bit for bit.
@@ -44,15 +45,6 @@ TRUTH_INFO = {
     "q_true": (4,),
     "q_est": (4,),
 }
-#: Per env: the tuned rules of its tasks that act as policies (MagConstraint-v0's cf_constraint_tuned is an
-#: estimator: its eq. 16 rule acts as ``constraint_rule`` in the env with the tuned gain schedule, the oracle's).
-DATASET_RULES = {
-    "magenv/MagBlend-v0": ("fan_lambda_tuned",),
-    "magenv/MagKalman-v0": ("kf_model_tuned", "kf_adaptive_tuned"),
-    "magenv/MagConstraint-v0": ("constraint_rule",),
-    "magenv/MagQSF-v0": ("qsf_detector_tuned",),
-    "magenv/MagVQF-v0": ("vqf_fan_lambda_tuned",),
-}
 MINARI_PATH_ENV = "MINARI_DATASETS_PATH"
 
 
@@ -73,6 +65,17 @@ def _minari():
     except ImportError:
         raise CommandError("magenv datasets needs Minari: pip install 'magenv[datasets]'") from None
     return minari
+
+
+def dataset_rules(env_id: str) -> list[str]:
+    """The rules of ``env_id``'s tasks (``magenv.benchmark.suite``) that act as policies (an estimator, such as
+    MagQSF-v0's ``delay_magyq_tuned``, has no actions to store)."""
+    from magenv import registry
+    from magenv.benchmark import suite
+    from magenv.protocols import is_policy
+
+    rules = dict.fromkeys(t.rule for t in suite.TASKS if t.env_id == env_id)
+    return [r for r in rules if is_policy(registry.make(r))]
 
 
 def dataset_id(env_id: str, method: str) -> str:
@@ -123,10 +126,6 @@ def _actor(method: str, env_id: str):
     if not is_policy(rule) or rule.env_id != env_id:
         raise CommandError(f"{method} is not a policy of {env_id}")
     kwargs = dict(getattr(rule, "env_kwargs", {}) or {})
-    if env_id == "magenv/MagConstraint-v0":  # the tuned gain schedule (eq. 18) the oracle searches in
-        schedule = _actor("oracle", env_id)[0]
-        schedule.pop("decision_every")
-        kwargs = {**schedule, **kwargs}
     return kwargs, lambda obs, runner: rule(obs), rule.reset
 
 
@@ -197,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
     kinds = [m.strip() for m in args.methods.split(",") if m.strip()]
     if not kinds or set(kinds) - {"oracle", "rules"}:
         raise CommandError(f"--methods must name oracle, rules or both, got {args.methods!r}")
-    plan = [(e, m) for e in envs for k in kinds for m in (("oracle",) if k == "oracle" else DATASET_RULES[e])]
+    plan = [(e, m) for e in envs for k in kinds for m in (["oracle"] if k == "oracle" else dataset_rules(e))]
     existing = minari.list_local_datasets()
     taken = [dataset_id(e, m) for e, m in plan if dataset_id(e, m) in existing]
     if taken and not args.force:
