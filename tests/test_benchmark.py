@@ -238,3 +238,23 @@ def test_the_baseline_configs_are_what_train_sh_runs():
     script = (ROOT / "agents" / "configs" / "bench" / "train.sh").read_text()
     algos = yaml.safe_load("[" + script.split("for algo in ")[1].split(";")[0].replace(" ", ", ") + "]")
     assert sorted(algos) == sorted(p.stem for p in BENCH_CONFIGS) == sorted(benchmark.ALGO_LABELS)
+
+
+def test_a_weights_file_acts_as_its_run_folders_model(tmp_path):
+    from magenv.agents.loading import RunError, load_agent, load_weights_file
+    from magenv.agents.training import train
+
+    env_id = suite.BLEND.env_id
+    config = tmp_path / "ppo.yaml"
+    section = {"n_envs": 2, "n_steps": 64, "batch_size": 64, "n_epochs": 1, "env_kwargs": {"episode_seconds": 3.0}}
+    config.write_text(yaml.safe_dump({env_id: section}))
+    run = train(env_id, "ppo", 128, tmp_path / "run", config=str(config), eval_every=128,
+                eval_scenarios=["dynamic_clean"], eval_seeds=[5000], progress_bar=False)  # fmt: skip
+    (step,) = sorted((run / "checkpoints").glob("step_*.safetensors"))
+    from_file, from_folder = load_weights_file(step), load_agent(run, which="last")
+    assert from_file.env_id == env_id and from_file.which == step.stem
+    obs = np.random.default_rng(0).uniform(-1, 1, (20, 13)).astype(np.float32)
+    assert np.array_equal([from_file(o) for o in obs], [from_folder(o) for o in obs])
+    (tmp_path / "loose.safetensors").write_bytes(step.read_bytes())  # no run.yaml beside it
+    with pytest.raises(RunError, match="not a magenv run folder"):
+        load_weights_file(tmp_path / "loose.safetensors")
