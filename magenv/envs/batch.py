@@ -25,10 +25,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium.utils import seeding
+from numba import njit, prange
 
 from magenv.checks import check_int
 from magenv.envs.common import TrialRunner, TrustEnv, check_reset_args, cut_trial
-from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR
+from magenv.metrics import N_ERR, N_STEP, S_DIST, S_HEADING, S_INCL, S_REWARD, S_TOTAL, step_means_rows
 from magenv.trial import Trial
 
 
@@ -142,6 +143,24 @@ def check_box_actions(actions, num_envs: int, low: np.ndarray, high: np.ndarray)
     return values, (values != a).any(axis=1)
 
 
+@njit
+def each_env(advance_env, b):
+    """The batch kernel of every vector env: each env i of ``b`` (the env's ``Batch``) with ``b.todo[i] ≥ 0``
+    does it, ``advance_env(b, i)``. Compiled once per process and env (numba caches no function taking a
+    function); ``advance_env``, the part that takes long to compile, comes from its cache."""
+    for i in range(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            advance_env(b, i)
+
+
+@njit(parallel=True)
+def each_env_threads(advance_env, b):
+    """:func:`each_env` with the envs spread over numba's threads."""
+    for i in prange(b.todo.shape[0]):
+        if b.todo[i] >= 0:
+            advance_env(b, i)
+
+
 class BatchVectorEnv(gym.vector.VectorEnv):
     """``num_envs`` envs of ``env_class`` advanced together: their state as arrays, one kernel call per step.
 
@@ -163,9 +182,10 @@ class BatchVectorEnv(gym.vector.VectorEnv):
     ``n_samples``, ``sample``.
 
     Subclasses set ``env_class``, ``features`` (its FeatureTable), ``channels`` (the store's per-sample
-    channels), ``first`` (the first sample a step fuses), ``kernels`` (the serial and the threaded batch
-    kernel) and implement ``_alloc(n)``, ``_prepare(trial) → (rows, description)``, ``_start(i,
-    description)``, ``_set_actions(values, stepping) → action infos`` and ``_batch()`` (the kernels'
+    channels), ``first`` (the first sample a step fuses), ``advance_env`` (the numba kernel ``(batch, i)`` that
+    does env i's ``todo``; :func:`each_env` runs it for every env), ``extended_batched`` (it also computes
+    ``features="extended"``) and implement ``_alloc(n)``, ``_prepare(trial) → (rows, description)``,
+    ``_start(i, description)``, ``_set_actions(values, stepping) → action infos`` and ``_batch()`` (the kernel's
     argument). ``todo[i]`` tells the kernel what env i does: fuse that many samples (≥ 1), only compute its
     observation (0), or nothing (−1).
     """
@@ -174,13 +194,19 @@ class BatchVectorEnv(gym.vector.VectorEnv):
     env_class: type[TrustEnv]
     features: Any  # the env's magenv.envs.features.FeatureTable
     channels: dict[str, tuple[tuple[int, ...], Any]]
-    kernels: tuple  # (serial, threaded) numba kernels taking the _batch() tuple
+    advance_env: Any  # numba kernel (the _batch() tuple, i): env i does todo[i]
+    extended_batched = False  # the kernel also computes the memory of features="extended"
     first = 0
 
     def __init__(self, num_envs: int = 1, parallel: bool = False, **kwargs):
         self.num_envs = n = check_int("num_envs", num_envs, 1)
         self.template: Any = self.env_class(**kwargs)  # the env subclass's options (filter_kwargs, …)
         env = self.template
+        if env.extended and not self.extended_batched:
+            raise ValueError(
+                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
+                'vectorization_mode="sync")'
+            )
         self.env_kwargs = dict(kwargs)
         self.trials = env.trials
         self.trials.cache_size = 0  # the store keeps the trials in use
@@ -206,6 +232,7 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         self.pos = np.zeros(n, np.int64)  # next sample to fuse
         self.todo = np.zeros(n, np.int64)  # what the next kernel call does per env (see class docstring)
         self.err = np.zeros((n, N_ERR))  # the last step's error sums (magenv.metrics.E_*)
+        self._means = np.zeros((n, N_STEP))  # the last step's rewards and mean errors (magenv.metrics.S_*)
         self.feat = np.zeros((n, len(self.features)))  # observations, all features, float64
         self.has_dist = np.zeros(n, bool)  # the episode's trial has a true disturbance
         self._returns = np.zeros(n)
@@ -236,9 +263,9 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         """The one compiled call: every env does ``todo``; then checks the kernel's status (``_check``)."""
         if self._args_version != self.store.version:
             self._args, self._args_version = self._batch(), self.store.version
-            kernel = self.kernels[1 if self.parallel else 0]
-            self._entry = TrialRunner.compiled(kernel, self._args)
-        self._entry(self._args)
+            kernel = each_env_threads if self.parallel else each_env
+            self._entry = TrialRunner.compiled(kernel, self.advance_env, self._args)
+        self._entry(self.advance_env, self._args)
         self._check()
 
     def _check(self) -> None:
@@ -332,21 +359,19 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         before = self.pos.copy()
         action_info = self._set_actions(values, stepping)
         self._run()
-        err = self.err
-        has = err[:, E_COUNT] > 0
-        cnt = np.where(has, err[:, E_COUNT], 1.0)
-        total = np.where(has, err[:, E_TOTAL] / cnt, np.nan)
-        rewards = np.where(has, -total, 0.0)
+        fused = np.maximum(self.pos - before, 1)
+        means = self._means
+        step_means_rows(self.err, fused, self.has_dist & stepping, means)
+        rewards = means[:, S_REWARD].copy()
         truncated = stepping & (self.pos >= self.n)
         self._needs_reset = truncated.copy()
         self._returns += rewards
         self._lengths += stepping
-        fused = np.maximum(self.pos - before, 1)
         infos = {
-            "error_total": total,
-            "error_heading": np.where(has, err[:, E_HEADING] / cnt, np.nan),
-            "error_inclination": np.where(has, err[:, E_INCL] / cnt, np.nan),
-            "disturbance_norm": np.where(self.has_dist & stepping, err[:, E_DIST] / fused, np.nan),
+            "error_total": means[:, S_TOTAL].copy(),
+            "error_heading": means[:, S_HEADING].copy(),
+            "error_inclination": means[:, S_INCL].copy(),
+            "disturbance_norm": means[:, S_DIST].copy(),
             "action_clipped": clipped & stepping,
             "sample": self.pos.copy(),
             **action_info,

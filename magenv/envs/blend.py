@@ -19,16 +19,16 @@ it: the extra causal features of ``magenv.envs.blend_memory`` and the memory
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from magenv.checks import check_bool
 from magenv.envs import BLEND_ID, blend_memory, lagged
 from magenv.envs.batch import BatchVectorEnv
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.envs.common import TrialRunner, TrustEnv, Truth
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import blend, stationary
 from magenv.filters.madgwick import BETA_DEFAULT
 from magenv.filters.sensors import Sensors
@@ -128,10 +128,7 @@ def _norm3(v):
     return np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    """Feature value ``x`` clipped to the range of feature ``i``."""
-    return min(_HIGH[i], max(_LOW[i], x))
+_clip = clipper(FEATURES)
 
 
 @njit(cache=True, inline="always")
@@ -443,39 +440,18 @@ class MagBlendEnv(TrustEnv):
     ):
         features, table = observation_table(features)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            prefetch=prefetch,
-            trial_pool=trial_pool,
-        )
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool, prefetch=prefetch,
+        )  # fmt: skip
         # bad filter arguments fail here, not at reset (ValueError / TypeError naming the argument)
-        params = blend.make_params(1.0, beta, check_bool("stationary_hold", stationary_hold), th_acc_g, th_gyro_dps)
-        stationary.make_state(1.0, t0)
-        self.stationary_hold = params.hold
-        self.filter_kwargs: dict[str, Any] = dict(
-            beta=params.beta,
-            hold=params.hold,
-            t0=float(t0),
-            th_acc_g=float(th_acc_g),
-            th_gyro_dps=float(th_gyro_dps),
-            extended=table is EXTENDED,
-        )
+        hold = check_bool("stationary_hold", stationary_hold)
+        self.options = blend.Options(beta, hold, t0, th_acc_g, th_gyro_dps)
+        self.stationary_hold = hold
+        self.extended = table is EXTENDED
 
     def _make_runner(self, trial: Trial) -> BlendRunner:
-        return BlendRunner(trial, **self.filter_kwargs)
-
-    def step(self, action):
-        runner = self._step_runner()
-        lam, clipped = scalar_action(action, "λ")
-        runner.advance(self.k_steps, lam)
-        return self._step_result(runner, {"lambda": lam, "action_clipped": clipped})
+        o = self.options
+        return BlendRunner(trial, o.beta, o.hold, o.t0, o.th_acc_g, o.th_gyro_dps, extended=self.extended)
 
     # ------------------------------------------------------------ evaluation access
 
@@ -540,22 +516,6 @@ def _advance_env(b, i):
     b.pos[i] = stop
 
 
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
 class MagBlendVectorEnv(BatchVectorEnv):
     """``num_envs`` MagBlend envs advanced together: one numba call per ``step`` fuses every env's k samples.
 
@@ -571,16 +531,10 @@ class MagBlendVectorEnv(BatchVectorEnv):
     features = FEATURES
     channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
                 "dist": ((), float)}  # fmt: skip
-    kernels = (advance_batch, advance_batch_threads)
+    advance_env = _advance_env
 
     def _alloc(self, n: int) -> None:
-        kw = self.template.filter_kwargs
-        if kw["extended"]:
-            raise ValueError(
-                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
-                'vectorization_mode="sync")'
-            )
-        self.params = blend.make_params(1.0, kw["beta"], kw["hold"], kw["th_acc_g"], kw["th_gyro_dps"])
+        self.params = self.template.options.params(1.0)
         rows = self.k_steps + 2
         self.dt, self.m0, self.dip0 = np.ones(n), np.ones(n), np.zeros(n)
         self.q = np.zeros((n, 4))
@@ -594,8 +548,7 @@ class MagBlendVectorEnv(BatchVectorEnv):
     def _prepare(self, trial: Trial):
         truth = Truth.of(trial)
         rows = {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist}
-        kw = self.template.filter_kwargs
-        state = blend.make_state(trial, kw["t0"])
+        state = blend.make_state(trial, self.template.options.t0)
         return rows, (float(trial.dt), trial.field_norm, trial.field_dip, state.q, state.detector.buf.shape[0])
 
     def _start(self, i: int, description) -> None:

@@ -15,13 +15,13 @@ from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from magenv.checks import check_bool, check_positive
 from magenv.envs import CONSTRAINT_ID, constraint_memory, lagged
 from magenv.envs.batch import BatchVectorEnv, check_box_actions
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import constraint as cf
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
@@ -54,10 +54,7 @@ EXTENDED = lagged.extended_table((*FEATURES.features, *constraint_memory.EXTRA.f
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    """Feature value ``x`` clipped to the range of feature ``i``."""
-    return min(max(x, _LOW[i]), _HIGH[i])
+_clip = clipper(FEATURES)
 
 
 @njit(cache=True, inline="always")
@@ -289,20 +286,10 @@ class MagConstraintEnv(TrustEnv):
         _, th2, th3, k_min, k_max = cf.check_rule_params(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
         features, table = lagged.observation_table(features, FEATURES, EXTENDED)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            2 if control_gain else 1,
-            world="twolink",
-            require=cf.require_two_link,
-            trial_pool=trial_pool,
-        )
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool,
+            action_dim=2 if control_gain else 1, world="twolink", require=cf.require_two_link,
+        )  # fmt: skip
         self.control_gain, self.gain_max = control_gain, gain_max
         self.filter_kwargs: dict[str, Any] = dict(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
         self.extended = table is EXTENDED
@@ -310,7 +297,7 @@ class MagConstraintEnv(TrustEnv):
     def _make_runner(self, trial: Trial) -> ConstraintRunner:
         return ConstraintRunner(trial, self.extended, **self.filter_kwargs)  # checks link j's channels
 
-    def _action(self, action) -> tuple[float, float | None, bool]:
+    def _decode(self, action) -> tuple[tuple[float, float | None], dict]:
         dim = 2 if self.control_gain else 1  # the action Box's length
         what = "[w, k/gain_max]" if self.control_gain else "w"
         a = action_array(action, f"{what} in [0, 1]")
@@ -323,16 +310,10 @@ class MagConstraintEnv(TrustEnv):
         clipped = bool(np.any(c != a))
         w = float(c[0])
         k = float(c[1]) * self.gain_max if self.control_gain else None  # None: eq. 18
-        return w, k, clipped
+        return (w, k), {"w": w, "action_clipped": clipped}
 
-    def step(self, action):
-        runner = self._step_runner()
-        w, k, clipped = self._action(action)
-        start = runner.pos
-        runner.advance(self.k_steps, (w, k))
-        return self._step_result(
-            runner, {"w": w, "k": float(np.mean(runner.trace.gain[start : runner.pos])), "action_clipped": clipped}
-        )
+    def _step_info(self, runner, start: int) -> dict:
+        return {"k": float(np.mean(runner.trace.gain[start : runner.pos]))}  # the mean gain over the step
 
     # ------------------------------------------------------------ evaluation access
 
@@ -405,22 +386,6 @@ def _advance_env(b, i):
     b.pos[i] = stop
 
 
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
 class MagConstraintVectorEnv(BatchVectorEnv):
     """``num_envs`` MagConstraint envs advanced together: one numba call per ``step`` fuses every env's samples.
 
@@ -432,15 +397,10 @@ class MagConstraintVectorEnv(BatchVectorEnv):
     env_class = MagConstraintEnv
     features = FEATURES
     channels = {name: ((3,), float) for name in cf.Inputs._fields} | {"q_true": ((4,), float), "dist": ((), float)}
-    kernels = (advance_batch, advance_batch_threads)
+    advance_env = _advance_env
 
     def _alloc(self, n: int) -> None:
         env = self.template
-        if env.extended:
-            raise ValueError(
-                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
-                'vectorization_mode="sync")'
-            )
         kw = env.filter_kwargs
         self.constants = (cf.TH1, kw["th2"], kw["th3"], kw["k_min"], kw["k_max"], True, not env.control_gain)
         rows = self.k_steps + 2

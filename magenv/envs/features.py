@@ -13,6 +13,7 @@ from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 # Scales shared by the envs' features, so that a rule can recover physical values from an observation.
 DIP_SCALE_DEG = 90.0  # dip deviations in units of 90°
@@ -59,6 +60,22 @@ class FeatureTable:
         for i, f in enumerate(self.features):
             rows.append(f"| {i} | `{f.name}` | {f.meaning} | {f.unit} | {f.low:g} | {f.high:g} |")
         return "\n".join(rows)
+
+
+def clipper(table: FeatureTable, neutral_nan: bool = False):
+    """The numba function ``clip(x, i)``: value ``x`` clipped to the range of feature ``i`` of ``table``, as the
+    kernels clip each feature (float64 bounds; ``min(high, max(low, x))``, which reads NaN as the lower bound).
+    ``neutral_nan``: NaN (e.g. from a zero field) reads as the neutral value instead, 0 if in range, else the
+    lower bound."""
+    low, high = table.low64, table.high64
+
+    @njit(cache=True, inline="always")
+    def clip(x, i):
+        if neutral_nan and x != x:
+            return 0.0 if low[i] <= 0.0 <= high[i] else low[i]
+        return min(high[i], max(low[i], x))
+
+    return clip
 
 
 def document(table: FeatureTable, placeholder: str = "{observation_table}"):

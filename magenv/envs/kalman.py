@@ -26,12 +26,12 @@ from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from magenv.envs import KALMAN_ID, kalman_memory, lagged
 from magenv.envs.batch import BatchVectorEnv
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.envs.common import TrialRunner, TrustEnv, Truth
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
 from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
@@ -125,14 +125,7 @@ class Outputs(NamedTuple):
         )
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    """Feature value ``x`` clipped to the range of feature ``i``; NaN (e.g. from a zero field) reads as the
-    neutral value (0 if in range, else the lower bound)."""
-    lo, hi = _LOW[i], _HIGH[i]
-    if x != x:
-        return 0.0 if lo <= 0.0 <= hi else lo
-    return min(hi, max(lo, x))
+_clip = clipper(FEATURES, neutral_nan=True)
 
 
 def make_model_params(params: kt.Params, model_c_a=C_A, model_c_b=C_B, model_p0=1.0) -> VecParams:
@@ -472,6 +465,7 @@ class MagKalmanEnv(TrustEnv):
     - v0: initial version.
     """
 
+    action_symbol, action_key = "γ", "trust"
     env_name = KALMAN_ID.split("/")[1]
 
     def __init__(
@@ -494,18 +488,9 @@ class MagKalmanEnv(TrustEnv):
     ):
         features, table = observation_table(features)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            prefetch=prefetch,
-            trial_pool=trial_pool,
-        )
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool, prefetch=prefetch,
+        )  # fmt: skip
         # validate the noise model now, not at reset (ValueError / TypeError naming the argument)
         probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only)
         make_model_params(probe, model_c_a, model_c_b)
@@ -523,11 +508,8 @@ class MagKalmanEnv(TrustEnv):
         params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **self.filter_kwargs)
         return KalmanRunner(trial, params, **self.model_kwargs, extended=self.extended)
 
-    def step(self, action):
-        runner = self._step_runner()
-        gamma, clipped = scalar_action(action, "γ")
-        runner.advance(self.k_steps, gamma)
-        return self._step_result(runner, {"trust": gamma, "action_clipped": clipped}, {"repairs": runner.repairs})
+    def _step_info(self, runner, start: int) -> dict:
+        return {"repairs": runner.repairs}
 
     # ------------------------------------------------------------ evaluation access
 
@@ -615,22 +597,6 @@ def _advance_env(b, i):
     b.pos[i] = stop
 
 
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
 class MagKalmanVectorEnv(BatchVectorEnv):
     """``num_envs`` MagKalman envs advanced together: one numba call per ``step`` fuses every env's k samples.
 
@@ -644,15 +610,10 @@ class MagKalmanVectorEnv(BatchVectorEnv):
     features = FEATURES
     channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
                 "dist": ((), float), "mdist": ((), float)}  # fmt: skip
-    kernels = (advance_batch, advance_batch_threads)
+    advance_env = _advance_env
     first = 1
 
     def _alloc(self, n: int) -> None:
-        if self.template.extended:
-            raise ValueError(
-                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
-                'vectorization_mode="sync")'
-            )
         self.params = kt.make_params(46.0, 49.6, 1.0, **self.template.filter_kwargs)  # the env-wide constants
         rows = self.k_steps + 2
         self.dt, self.h_ref, self.m0, self.dip0 = np.ones(n), np.zeros((n, 3)), np.ones(n), np.zeros(n)

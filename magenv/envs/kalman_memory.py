@@ -56,7 +56,7 @@ import numpy as np
 from numba import njit
 
 from magenv.envs.blend_memory import _heading
-from magenv.envs.features import Feature, FeatureTable
+from magenv.envs.features import Feature, FeatureTable, clipper
 from magenv.filters.kalman_trust import SIG
 from magenv.quaternion import from_rotvec1, mul1, normalize1, rotate_inv1
 
@@ -141,11 +141,7 @@ def _ema(old, new, a):
     return old + a * (new - old)
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    if x != x:
-        return 0.0 if _LOW[i] <= 0.0 <= _HIGH[i] else _LOW[i]
-    return min(_HIGH[i], max(_LOW[i], x))
+_clip = clipper(EXTRA, neutral_nan=True)
 
 
 @njit(cache=True, inline="always")

@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from gymnasium import spaces
-from numba import njit, prange
+from numba import njit
 
 from magenv.checks import check_choice, check_mapping
 from magenv.envs import QSF_ID, lagged, qsf_memory
@@ -384,17 +384,9 @@ class MagQSFEnv(TrustEnv):
         filter_kwargs = check_mapping("filter_kwargs", filter_kwargs)
         features, table = lagged.observation_table(features, FEATURES, EXTENDED)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            trial_pool=trial_pool,
-        )
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool,
+        )  # fmt: skip
         self.action_space = spaces.Box(
             np.array([-1.0, 0.0], np.float32), np.array([1.0, 1.0], np.float32), dtype=np.float32
         )
@@ -411,15 +403,12 @@ class MagQSFEnv(TrustEnv):
     def _make_runner(self, trial: Trial) -> QSFRunner:
         return QSFRunner(trial, self.variant, self.detector, self.init, self.filter_kwargs, self.extended)
 
-    def step(self, action):
-        runner = self._step_runner()
+    def _decode(self, action) -> tuple[tuple[int, float], dict]:
         code, trust, clipped = decode_action(action)
-        runner.advance(self.k_steps, (code, trust))
-        return self._step_result(
-            runner,
-            {"decision": DECISIONS[code], "trust": trust, "action_clipped": clipped},
-            {"qsf_active": bool(runner.state.period_active[0])},
-        )
+        return (code, trust), {"decision": DECISIONS[code], "trust": trust, "action_clipped": clipped}
+
+    def _step_info(self, runner, start: int) -> dict:
+        return {"qsf_active": bool(runner.state.period_active[0])}
 
     # ------------------------------------------------------------ evaluation access
 
@@ -500,22 +489,6 @@ def _advance_env(b, i):
     b.pos[i] = stop
 
 
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
 class MagQSFVectorEnv(BatchVectorEnv):
     """``num_envs`` MagQSF envs advanced together: one numba call per ``step`` fuses every env's samples.
 
@@ -529,17 +502,12 @@ class MagQSFVectorEnv(BatchVectorEnv):
     features = FEATURES
     channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
                 "dist": ((), float), "codes": ((), np.int8), "spread": ((), float)}  # fmt: skip
-    kernels = (advance_batch, advance_batch_threads)
+    advance_env = _advance_env
     _floats = ("sigma_gyr", "sigma_bias_walk", "sigma_acc_bias_walk", "sigma_acc", "sigma_mag", "th_acc",
                "cov_floor", "radial_eps", "max_age_s", "acc_adaptive")  # fmt: skip
 
     def _alloc(self, n: int) -> None:
         env = self.template
-        if env.extended:
-            raise ValueError(
-                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
-                'vectorization_mode="sync")'
-            )
         p = qsf.make_params(50.0, 60.0, mode=env.variant, **env.filter_kwargs)
         self.constants = (p.mode, p.update_reference)
         rows, na = self.k_steps + 2, qsf.N_AUGMENTED

@@ -35,14 +35,14 @@ from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from magenv.checks import check_bool, check_number
 from magenv.envs import VQF_ID, lagged
 from magenv.envs.batch import BatchVectorEnv
 from magenv.envs.blend import NORM_RATE_SCALE, dip_deg
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.envs.common import TrialRunner, TrustEnv, Truth
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import vqf
 from magenv.filters.sensors import Sensors
 from magenv.filters.vqf import P, S, tau_of_trust
@@ -212,9 +212,7 @@ class Outputs(NamedTuple):
                    np.zeros(N_ERR), np.zeros(N_VQ), np.zeros(len(FEATURES)))  # fmt: skip
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    return min(_HIGH[i], max(_LOW[i], x))
+_clip = clipper(FEATURES)
 
 
 @njit(cache=True, inline="always")
@@ -652,6 +650,7 @@ class MagVQFEnv(TrustEnv):
     - v0: initial version (VQF as numba kernels, bit for bit the C++ filter; the extended observation).
     """
 
+    action_symbol, action_key = "u", "trust"
     env_name = VQF_ID.split("/")[1]
 
     def __init__(
@@ -673,18 +672,9 @@ class MagVQFEnv(TrustEnv):
     ):
         features, table = observation_table(features)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            prefetch=prefetch,
-            trial_pool=trial_pool,
-        )
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool, prefetch=prefetch,
+        )  # fmt: skip
         self.rejection = check_choice("rejection", rejection, REJECTION)
         self.backend = check_choice("backend", backend, BACKENDS)
         self.extended = table is EXTENDED
@@ -703,11 +693,8 @@ class MagVQFEnv(TrustEnv):
             return VQFCppRunner(trial, self.options)
         return VQFRunner(trial, self.options, self.extended)
 
-    def step(self, action):
-        runner = self._step_runner()
-        u, clipped = scalar_action(action, "u")
-        runner.advance(self.k_steps, u)
-        return self._step_result(runner, {"trust": u, "action_clipped": clipped}, {"mag_dist": runner.mag_dist})
+    def _step_info(self, runner, start: int) -> dict:
+        return {"mag_dist": runner.mag_dist}
 
     @property
     def trust(self) -> np.ndarray:
@@ -783,22 +770,6 @@ def _advance_env(b, i):
     b.pos[i] = stop
 
 
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
 class MagVQFVectorEnv(BatchVectorEnv):
     """``num_envs`` MagVQF envs advanced together: one numba call per ``step`` fuses every env's k samples.
 
@@ -813,7 +784,8 @@ class MagVQFVectorEnv(BatchVectorEnv):
     features = FEATURES
     channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
                 "dist": ((), float)}  # fmt: skip
-    kernels = (advance_batch, advance_batch_threads)
+    advance_env = _advance_env
+    extended_batched = True
 
     def _alloc(self, n: int) -> None:
         env = self.template
