@@ -44,6 +44,7 @@ from magenv.envs.blend import NORM_RATE_SCALE, dip_deg
 from magenv.envs.common import TrialRunner, TrustEnv, Truth
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import vqf
+from magenv.filters.rules import fan_lambda
 from magenv.filters.sensors import Sensors
 from magenv.filters.vqf import P, S, tau_of_trust
 from magenv.metrics import N_ERR, error_sums
@@ -417,13 +418,10 @@ def advance_extended(p, s, w, reject, site, sensors, truth, out, u, start, stop,
 
 
 def fan_trust(norm_dev, dip_dev, norm_tol: float, th_dip_deg: float):
-    """u = 1 − λ of Fan et al. 2017's rule (eqs. 15–17) on MagVQF-v0's ``norm_dev`` and ``dip_dev`` (features of
-    the observation, numbers or arrays, read as float64): λ1 = min(|norm_dev|/norm_tol, 1), λ2 = min(|90°·dip_dev|
-    / th_dip, 1), λ = (λ1 + λ2)/2 — the ``vqf_fan_lambda`` rule's trust, computed once for the rule's teacher and
-    its student."""
-    lam1 = np.minimum(np.abs(np.float64(norm_dev)) / norm_tol, 1.0)
-    lam2 = np.minimum(np.abs(DIP_SCALE_DEG * np.float64(dip_dev)) / th_dip_deg, 1.0)
-    return 1.0 - 0.5 * (lam1 + lam2)
+    """u = 1 − λ of Fan et al. 2017's rule (``magenv.filters.rules.fan_lambda``) on MagVQF-v0's ``norm_dev`` and
+    ``dip_dev`` (features of the observation, numbers or arrays, read as float64) — the ``vqf_fan_lambda`` rule's
+    trust, computed once for the rule's teacher and its student."""
+    return 1.0 - fan_lambda(np.float64(norm_dev), DIP_SCALE_DEG * np.float64(dip_dev), norm_tol, th_dip_deg)
 
 
 def filter_options(rejection: str, tau_acc: float, tau_mag: float, rest_bias: bool, motion_bias: bool):
