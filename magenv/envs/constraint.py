@@ -19,7 +19,7 @@ from numba import njit
 
 from magenv.checks import check_bool, check_positive
 from magenv.envs import CONSTRAINT_ID, constraint_memory, lagged
-from magenv.envs.batch import BatchVectorEnv, check_box_actions
+from magenv.envs.batch import ROWS, BatchVectorEnv, check_box_actions
 from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import constraint as cf
@@ -263,6 +263,7 @@ class MagConstraintEnv(TrustEnv):
     - v0: initial version.
     """
 
+    action_symbol = action_key = "w"
     env_name = CONSTRAINT_ID.split("/")[1]
 
     def __init__(
@@ -347,43 +348,28 @@ class Batch(NamedTuple):
     m0: np.ndarray  # (N,) … field norm, µT …
     field_dir: np.ndarray  # (N, 3) … unit Earth field, ENU
     q: np.ndarray  # (N, 4) link i's estimates (the filter's state)
-    gyr: np.ndarray  # (M, 3) the store's rows: constraint.Inputs …
-    acc: np.ndarray
-    mag: np.ndarray
-    joint_i: np.ndarray
+    joint_i: np.ndarray  # (M, 3) the store's rows of constraint.Inputs beyond the sensors (ROWS)
     joint_j: np.ndarray
-    q_true: np.ndarray  # (M, 4) … and truth
-    dist: np.ndarray  # (M,)
-    off: np.ndarray  # (N,) each env's first row in the store
-    n: np.ndarray  # (N,) samples of each env's episode
-    pos: np.ndarray  # (N,) next sample to fuse
-    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
     w: np.ndarray  # (N,) the step's constraint weight
     k: np.ndarray  # (N,) the step's gain (when not by eq. 18)
-    est: np.ndarray  # (N, k + 2, 4) scratch Trace of the step's window
+    est: np.ndarray  # (N, k + 2, 4) scratch Trace of the step's window (magenv.envs.batch.Window)
     weight: np.ndarray  # (N, k + 2)
     gain: np.ndarray  # (N, k + 2)
     mag_dev: np.ndarray  # (N, k + 2)
-    err: np.ndarray  # (N, N_ERR)
-    feat: np.ndarray  # (N, len(FEATURES))
 
 
 @njit(cache=True)
-def _advance_env(b, i):
-    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` on the window of its step (from the sample
-    before the step to the one after)."""
-    o, start = b.off[i], b.pos[i]
-    stop = min(start + b.todo[i], b.n[i])
-    base, end = max(start - 1, 0), min(stop + 1, b.n[i])
+def _advance_env(b, s, i, w):
+    """Env i of :class:`Batch` (``s``: ``magenv.envs.batch.Steps``) does its step: :func:`advance` on window
+    ``w``."""
     fd = b.field_dir[i]
     p = cf.Params(b.dt[i], b.m0[i], (fd[0], fd[1], fd[2]), b.th1, b.th2, b.th3, b.k_min, b.k_max, b.use_constraint)
-    r0, r1 = o + base, o + end
-    inputs = cf.Inputs(b.gyr[r0:r1], b.acc[r0:r1], b.mag[r0:r1], b.joint_i[r0:r1], b.joint_j[r0:r1])
+    r0, r1 = w.r0, w.r1
+    inputs = cf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.joint_i[r0:r1], b.joint_j[r0:r1])
     control = cf.Control(b.w[i], b.k[i], False, b.gain_by_rule)
     trace = cf.Trace(b.est[i], b.weight[i], b.gain[i], b.mag_dev[i])
-    q_true, dist = b.q_true[r0:r1], b.dist[r0:r1]
-    advance(p, b.q[i], inputs, control, start - base, stop - base, trace, q_true, dist, b.err[i], b.feat[i])
-    b.pos[i] = stop
+    advance(p, b.q[i], inputs, control, w.start, w.stop, trace, s.q_true[r0:r1], s.dist[r0:r1], s.err[i], s.feat[i])
+    return -1
 
 
 class MagConstraintVectorEnv(BatchVectorEnv):
@@ -396,17 +382,18 @@ class MagConstraintVectorEnv(BatchVectorEnv):
 
     env_class = MagConstraintEnv
     features = FEATURES
-    channels = {name: ((3,), float) for name in cf.Inputs._fields} | {"q_true": ((4,), float), "dist": ((), float)}
+    channels = {**ROWS, "joint_i": ((3,), float), "joint_j": ((3,), float)}
     advance_env = _advance_env
 
     def _alloc(self, n: int) -> None:
         env = self.template
         kw = env.filter_kwargs
-        self.constants = (cf.TH1, kw["th2"], kw["th3"], kw["k_min"], kw["k_max"], True, not env.control_gain)
+        self.constants = dict(th1=cf.TH1, th2=kw["th2"], th3=kw["th3"], k_min=kw["k_min"], k_max=kw["k_max"],
+                              use_constraint=True, gain_by_rule=not env.control_gain)  # fmt: skip
         rows = self.k_steps + 2
         self.dt, self.m0, self.field_dir = np.ones(n), np.ones(n), np.zeros((n, 3))
         self.q = np.zeros((n, 4))
-        self.w, self.k = np.zeros(n), np.zeros(n)
+        self.k = np.zeros(n)
         self.trace = cf.Trace(np.zeros((n, rows, 4)), np.zeros((n, rows)), np.zeros((n, rows)), np.zeros((n, rows)))
 
     def _prepare(self, trial: Trial):
@@ -431,17 +418,14 @@ class MagConstraintVectorEnv(BatchVectorEnv):
 
     def _set_actions(self, values, stepping) -> dict:
         if values is None:
-            self.w[:], self.k[:] = 0.0, 0.0
-            return {}
-        np.copyto(self.w, np.where(stepping, values[:, 0], 0.0))
-        if self.template.control_gain:
+            self.k[:] = 0.0
+        elif self.template.control_gain:
             np.copyto(self.k, np.where(stepping, values[:, 1], 0.0))
-        return {"w": self.w.copy()}
+        return super()._set_actions(values, stepping)  # w
 
     def _batch(self) -> Batch:
         t, a = self.trace, self.store.arrays
         return Batch(
-            *self.constants, self.dt, self.m0, self.field_dir, self.q, a["gyr"], a["acc"], a["mag"], a["joint_i"],
-            a["joint_j"], a["q_true"], a["dist"], self.off, self.n, self.pos, self.todo, self.w, self.k, t.est,
-            t.weight, t.gain, t.mag_dev, self.err, self.feat,
+            **self.constants, dt=self.dt, m0=self.m0, field_dir=self.field_dir, q=self.q, joint_i=a["joint_i"],
+            joint_j=a["joint_j"], w=self.action, k=self.k, est=t.est, weight=t.weight, gain=t.gain, mag_dev=t.mag_dev,
         )  # fmt: skip

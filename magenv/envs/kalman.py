@@ -29,8 +29,8 @@ import numpy as np
 from numba import njit
 
 from magenv.envs import KALMAN_ID, kalman_memory, lagged
-from magenv.envs.batch import BatchVectorEnv
-from magenv.envs.common import TrialRunner, TrustEnv, Truth
+from magenv.envs.batch import ROWS, BatchVectorEnv, trial_rows, window_rows
+from magenv.envs.common import TrialRunner, TrustEnv
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
@@ -551,50 +551,31 @@ class Batch(NamedTuple):
     dip0: np.ndarray  # (N,) … dip, rad
     q: np.ndarray  # (N, 4) estimates (kalman_trust.State)
     p: np.ndarray  # (N, 3, 3) covariances
-    gyr: np.ndarray  # (M, 3) the store's rows: sensors …
-    acc: np.ndarray
-    mag: np.ndarray
-    q_true: np.ndarray  # (M, 4) … truth …
-    dist: np.ndarray  # (M,)
-    mdist: np.ndarray  # (M,) … and ‖d̂‖, µT (model_disturbance)
-    off: np.ndarray  # (N,) each env's first row in the store
-    n: np.ndarray  # (N,) samples of each env's episode
-    pos: np.ndarray  # (N,) next sample to fuse
-    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
+    mdist: np.ndarray  # (M,) the store's rows of ‖d̂‖, µT (model_disturbance)
     gamma: np.ndarray  # (N,) γ of the step
-    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window
+    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window (magenv.envs.batch.Window)
     sig: np.ndarray  # (N, k + 2, NSIG)
     trust: np.ndarray  # (N, k + 2)
-    err: np.ndarray  # (N, N_ERR)
-    feat: np.ndarray  # (N, len(FEATURES))
     peek: np.ndarray  # (N, NSIG)
-    status: np.ndarray  # (N,) OK, or the sample where the env's filter failed
     repairs: np.ndarray  # (N,) covariance repairs of each episode so far
 
 
 @njit(cache=True)
-def _advance_env(b, i):
-    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` on the window of its step (from the sample
-    before the step to the one after)."""
-    o, start = b.off[i], b.pos[i]
-    stop = min(start + b.todo[i], b.n[i])
-    base, end = start - 1, min(stop + 1, b.n[i])
+def _advance_env(b, s, i, w):
+    """Env i of :class:`Batch` (``s``: ``magenv.envs.batch.Steps``) does its step: :func:`advance` on window ``w``;
+    returns −1 (``OK``) or the window's sample where the filter failed."""
     params = kt.Params(
         b.dt[i], b.sigma_gyr, b.sigma_acc, b.sigma_mag, b.th_acc, b.heading_only, b.g_ref, b.h_ref[i], b.m0[i],
         b.dip0[i], b.cov_floor, b.p0,
     )  # fmt: skip
-    sensors = Sensors(b.gyr[o + base : o + end], b.acc[o + base : o + end], b.mag[o + base : o + end])
-    truth = Truth(b.q_true[o + base : o + end], b.dist[o + base : o + end])
-    out = Outputs(b.est[i], b.sig[i], b.trust[i], b.err[i], b.feat[i], b.peek[i])
+    sensors, truth = window_rows(s, w)
+    out = Outputs(b.est[i], b.sig[i], b.trust[i], s.err[i], s.feat[i], b.peek[i])
     status, repairs = advance(
-        params, kt.State(b.q[i], b.p[i]), sensors, truth, b.mdist[o + base : o + end], out, b.gamma[i],
-        start - base, stop - base,
-    )  # fmt: skip
-    if status != OK:
-        b.status[i] = status + base
-        return
-    b.repairs[i] += repairs
-    b.pos[i] = stop
+        params, kt.State(b.q[i], b.p[i]), sensors, truth, b.mdist[w.r0 : w.r1], out, b.gamma[i], w.start, w.stop
+    )
+    if status == OK:
+        b.repairs[i] += repairs
+    return status
 
 
 class MagKalmanVectorEnv(BatchVectorEnv):
@@ -608,32 +589,27 @@ class MagKalmanVectorEnv(BatchVectorEnv):
 
     env_class = MagKalmanEnv
     features = FEATURES
-    channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
-                "dist": ((), float), "mdist": ((), float)}  # fmt: skip
+    channels = {**ROWS, "mdist": ((), float)}
     advance_env = _advance_env
     first = 1
+    idle_action = 1.0
 
     def _alloc(self, n: int) -> None:
         self.params = kt.make_params(46.0, 49.6, 1.0, **self.template.filter_kwargs)  # the env-wide constants
         rows = self.k_steps + 2
         self.dt, self.h_ref, self.m0, self.dip0 = np.ones(n), np.zeros((n, 3)), np.ones(n), np.zeros(n)
         self.q, self.p = np.zeros((n, 4)), np.zeros((n, 3, 3))
-        self.gamma = np.ones(n)
         self.scratch = Outputs(
             np.zeros((n, rows, 4)), np.zeros((n, rows, kt.NSIG)), np.zeros((n, rows)), self.err, self.feat,
             np.zeros((n, kt.NSIG)),
         )  # fmt: skip
-        self.status = np.full(n, OK, np.int64)
         self.repairs = np.zeros(n, np.int64)
 
     def _prepare(self, trial: Trial):
         env = self.template
         params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **env.filter_kwargs)
         mdist = trial_disturbance(trial, params, env.model_kwargs["model_c_a"], env.model_kwargs["model_c_b"])
-        truth = Truth.of(trial)
-        rows = {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist,
-                "mdist": mdist}  # fmt: skip
-        return rows, (params, kt.init(params, trial.acc[0], trial.mag[0]))
+        return {**trial_rows(trial), "mdist": mdist}, (params, kt.init(params, trial.acc[0], trial.mag[0]))
 
     def _start(self, i: int, description) -> None:
         params, state = description
@@ -642,31 +618,20 @@ class MagKalmanVectorEnv(BatchVectorEnv):
         self.scratch.trust[i, 0] = 1.0  # sample 0, the TRIAD start, uses the magnetometer fully
         self.repairs[i] = 0
 
-    def _set_actions(self, values, stepping) -> dict:
-        if values is None:
-            self.gamma[:] = 1.0
-            return {}
-        np.copyto(self.gamma, np.where(stepping, values[:, 0], 1.0))
-        return {"trust": self.gamma.copy()}
-
     def _step_info(self) -> dict:
         return {"repairs": self.repairs.copy()}
 
-    def _check(self) -> None:
-        bad = np.flatnonzero(self.status != OK)
-        if bad.size:
-            i = int(bad[0])
-            sample, self.status[:] = int(self.status[i]), OK
-            raise kt.FilterError(
-                f"trust KF: non-finite sample or covariance at sample {sample} of trial {self._names[i]!r} "
-                f"(env {i}, trust {self.gamma[i]})"
-            )
+    def _failure(self, i: int, sample: int) -> Exception:
+        return kt.FilterError(
+            f"trust KF: non-finite sample or covariance at sample {sample} of trial {self._names[i]!r} "
+            f"(env {i}, trust {self.action[i]})"
+        )
 
     def _batch(self) -> Batch:
-        p, s, a = self.params, self.scratch, self.store.arrays
+        p, s = self.params, self.scratch
         return Batch(
-            p.sigma_gyr, p.sigma_acc, p.sigma_mag, p.th_acc, p.heading_only, p.g_ref, p.cov_floor, p.p0, self.dt,
-            self.h_ref, self.m0, self.dip0, self.q, self.p, a["gyr"], a["acc"], a["mag"], a["q_true"], a["dist"],
-            a["mdist"], self.off, self.n, self.pos, self.todo, self.gamma, s.est, s.sig, s.trust, self.err,
-            self.feat, s.peek, self.status, self.repairs,
+            sigma_gyr=p.sigma_gyr, sigma_acc=p.sigma_acc, sigma_mag=p.sigma_mag, th_acc=p.th_acc,
+            heading_only=p.heading_only, g_ref=p.g_ref, cov_floor=p.cov_floor, p0=p.p0, dt=self.dt, h_ref=self.h_ref,
+            m0=self.m0, dip0=self.dip0, q=self.q, p=self.p, mdist=self.store.arrays["mdist"], gamma=self.action,
+            est=s.est, sig=s.sig, trust=s.trust, peek=s.peek, repairs=self.repairs,
         )  # fmt: skip
