@@ -273,7 +273,7 @@ class BatchVectorEnv(gym.vector.VectorEnv):
 
     def __init__(self, num_envs: int = 1, parallel: bool = False, **kwargs):
         self.num_envs = n = check_int("num_envs", num_envs, 1)
-        self.template: Any = self.env_class(**kwargs)  # the env subclass's options (filter_kwargs, …)
+        self.template: Any = self.env_class(**kwargs)  # the env subclass's options (its typed ``options``, …)
         env = self.template
         if env.extended and not self.extended_batched:
             raise ValueError(

@@ -298,12 +298,6 @@ class BlendRunner(TrialRunner):
         return self.est
 
 
-def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
-    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
-    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
-    return lagged.observation_table(features, FEATURES, EXTENDED)
-
-
 @document(blend_memory.EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagBlendEnv(TrustEnv):
@@ -419,6 +413,7 @@ class MagBlendEnv(TrustEnv):
     - v0: initial version.
     """
 
+    observation = (FEATURES, EXTENDED)
     env_name = BLEND_ID.split("/")[1]
 
     def __init__(
@@ -437,16 +432,14 @@ class MagBlendEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
-        features, table = observation_table(features)
         self._setup(
             scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool, prefetch=prefetch,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
         )  # fmt: skip
         # bad filter arguments fail here, not at reset (ValueError / TypeError naming the argument)
         hold = check_bool("stationary_hold", stationary_hold)
         self.options = blend.Options(beta, hold, t0, th_acc_g, th_gyro_dps)
         self.stationary_hold = hold
-        self.extended = table is EXTENDED
 
     def _make_runner(self, trial: Trial) -> BlendRunner:
         o = self.options

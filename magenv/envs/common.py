@@ -34,6 +34,7 @@ import numpy as np
 from numba.core.dispatcher import Dispatcher
 
 from magenv.checks import check_bool, check_int, check_mapping, check_number
+from magenv.envs import lagged
 from magenv.envs.features import FeatureTable
 from magenv.envs.render import RenderMixin, check_render_mode
 from magenv.filters.sensors import Sensors
@@ -488,7 +489,8 @@ class TrustEnv(RenderMixin, gym.Env):
     env_name = "TrustEnv"  # registered id without the namespace, for messages
     action_symbol = "λ"  # the scalar action's symbol in messages (:meth:`_decode`)
     action_key = "lambda"  # and its ``info`` key
-    extended = False  # the observation holds memory features (``features="extended"``): single envs only
+    observation: tuple[FeatureTable, FeatureTable]  # the env's FEATURES and EXTENDED tables (``features`` option)
+    extended = False  # the observation is EXTENDED's (memory features)
 
     def _setup(
         self,
@@ -499,16 +501,15 @@ class TrustEnv(RenderMixin, gym.Env):
         render_mode,
         scenario_kwargs,
         features,
-        table: FeatureTable,
         action_dim: int = 1,
         prefetch: bool = False,
         world: str | None = None,
         require: Callable[[Trial], None] | None = None,
         trial_pool=None,
     ) -> None:
-        """Check the options every env shares (keywords only; ``table``: the observation's FeatureTable, whose
-        ``features`` are selected); set ``k_steps``, ``trials`` (a :class:`TrialSource`), ``scenario``,
-        ``features``, the spaces."""
+        """Check the options every env shares (keywords only; ``features`` selects from the env's ``observation``
+        tables, ``magenv.envs.lagged.observation_table``); set ``k_steps``, ``trials`` (a :class:`TrialSource`),
+        ``scenario``, ``features``, ``extended``, the spaces."""
         self.k_steps = check_env_args(self.env_name, decision_every, episode_seconds, render_mode)
         scenario_kwargs = check_mapping("scenario_kwargs", scenario_kwargs)
         prefetch = check_bool("prefetch", prefetch)
@@ -518,6 +519,8 @@ class TrustEnv(RenderMixin, gym.Env):
         self.episode = 0  # episodes since the last seeded reset (a trial pool's generation counts them)
         self.scenario = self.trials.label
         self.episode_seconds = episode_seconds
+        features, table = lagged.observation_table(features, *self.observation)
+        self.extended = table is self.observation[1]
         self.features, self._idx, self._all, self.observation_space = select_features(
             features, table.names, table.low, table.high
         )

@@ -12,7 +12,8 @@ decision per sample reproduces the paper's filter.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -115,6 +116,22 @@ def _features(p, inputs, q, trace, start, stop, feat):
     for i in range(start, stop):
         s += trace.mag_dev[i]
     feat[F.mag_dev_mean] = _clip(s / (stop - start + 1), F.mag_dev_mean)
+
+
+@dataclass(frozen=True)
+class Options:
+    """The env's eq. 18 gain rule, checked once (``constraint.check_rule_params``): th2 (a weight), th3 (‖Δq‖),
+    gains k_min ≤ k_max (1/s)."""
+
+    th2: float = cf.TH2
+    th3: float = cf.TH3
+    k_min: float = cf.K_MIN
+    k_max: float = cf.K_MAX
+
+    def __post_init__(self):
+        _, *checked = cf.check_rule_params(th2=self.th2, th3=self.th3, k_min=self.k_min, k_max=self.k_max)
+        for name, value in zip(("th2", "th3", "k_min", "k_max"), checked):
+            object.__setattr__(self, name, value)
 
 
 class ConstraintRunner(TrialRunner):
@@ -264,6 +281,7 @@ class MagConstraintEnv(TrustEnv):
     """
 
     action_symbol = action_key = "w"
+    observation = (FEATURES, EXTENDED)
     env_name = CONSTRAINT_ID.split("/")[1]
 
     def __init__(
@@ -284,19 +302,17 @@ class MagConstraintEnv(TrustEnv):
     ):
         # bad arguments fail here, not at reset (ValueError / TypeError naming the argument)
         control_gain, gain_max = check_bool("control_gain", control_gain), check_positive("gain_max", gain_max)
-        _, th2, th3, k_min, k_max = cf.check_rule_params(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
-        features, table = lagged.observation_table(features, FEATURES, EXTENDED)
+        options = Options(th2, th3, k_min, k_max)
         self._setup(
             scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool,
             action_dim=2 if control_gain else 1, world="twolink", require=cf.require_two_link,
         )  # fmt: skip
         self.control_gain, self.gain_max = control_gain, gain_max
-        self.filter_kwargs: dict[str, Any] = dict(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
-        self.extended = table is EXTENDED
+        self.options = options
 
     def _make_runner(self, trial: Trial) -> ConstraintRunner:
-        return ConstraintRunner(trial, self.extended, **self.filter_kwargs)  # checks link j's channels
+        return ConstraintRunner(trial, self.extended, **asdict(self.options))  # checks link j's channels
 
     def _decode(self, action) -> tuple[tuple[float, float | None], dict]:
         dim = 2 if self.control_gain else 1  # the action Box's length
@@ -387,9 +403,7 @@ class MagConstraintVectorEnv(BatchVectorEnv):
 
     def _alloc(self, n: int) -> None:
         env = self.template
-        kw = env.filter_kwargs
-        self.constants = dict(th1=cf.TH1, th2=kw["th2"], th3=kw["th3"], k_min=kw["k_min"], k_max=kw["k_max"],
-                              use_constraint=True, gain_by_rule=not env.control_gain)  # fmt: skip
+        self.constants = dict(th1=cf.TH1, **asdict(env.options), use_constraint=True, gain_by_rule=not env.control_gain)
         rows = self.k_steps + 2
         self.dt, self.m0, self.field_dir = np.ones(n), np.ones(n), np.zeros((n, 3))
         self.q = np.zeros((n, 4))
@@ -397,7 +411,7 @@ class MagConstraintVectorEnv(BatchVectorEnv):
         self.trace = cf.Trace(np.zeros((n, rows, 4)), np.zeros((n, rows)), np.zeros((n, rows)), np.zeros((n, rows)))
 
     def _prepare(self, trial: Trial):
-        filt = cf.ConstraintFilter(trial, **self.template.filter_kwargs)  # checks link j's channels
+        filt = cf.ConstraintFilter(trial, **asdict(self.template.options))  # checks link j's channels
         truth = Truth.of(trial)
         rows = {**filt.inputs._asdict(), "q_true": truth.q_true, "dist": truth.dist}
         return rows, (filt.params, filt.q0)

@@ -23,7 +23,8 @@ samples 0…j only (causal).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from dataclasses import astuple, dataclass, fields
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -126,6 +127,34 @@ class Outputs(NamedTuple):
 
 
 _clip = clipper(FEATURES, neutral_nan=True)
+
+
+@dataclass(frozen=True)
+class Options:
+    """The env's filter options, checked once: the trust KF's noise model (``kalman_trust.make_params``: σ's,
+    accelerometer threshold, heading-only update) and the Gauss–Markov split of ``model_dist``
+    (:func:`make_model_params`)."""
+
+    sigma_gyr: float = SIGMA_GYR
+    sigma_acc: float = SIGMA_ACC
+    sigma_mag: float = SIGMA_MAG
+    th_acc: float = TH_ACC
+    heading_only: bool = True
+    model_c_a: float = C_A
+    model_c_b: float = C_B
+
+    def __post_init__(self):
+        probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, *astuple(self)[:5])  # ValueError / TypeError naming one
+        make_model_params(probe, self.model_c_a, self.model_c_b)
+        for f in fields(self):  # held as Python numbers (the checks take ints and numpy scalars too)
+            value = getattr(self, f.name)
+            object.__setattr__(self, f.name, bool(value) if f.name == "heading_only" else float(value))
+
+    def params(self, trial: Trial | None = None) -> kt.Params:
+        """The trust KF's parameters on ``trial``'s field and rate (None: a 46 µT, 49.6° field at 1 Hz, for the
+        constants alone)."""
+        field = (46.0, 49.6, 1.0) if trial is None else (trial.field_norm, trial.field_dip, trial.dt)
+        return kt.make_params(*field, self.sigma_gyr, self.sigma_acc, self.sigma_mag, self.th_acc, self.heading_only)
 
 
 def make_model_params(params: kt.Params, model_c_a=C_A, model_c_b=C_B, model_p0=1.0) -> VecParams:
@@ -261,12 +290,6 @@ def advance_extended(params, state, sensors, truth, mdist, out, gamma, start, st
         kalman_memory.update(params, sensors, mdist, out.est, out.sig, out.trust, out.peek, memory, start, stop)
     lagged.compose(out.feat, memory.value, rows, count, _LAGS, stop > start, feat)
     return status, repairs
-
-
-def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
-    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
-    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
-    return lagged.observation_table(features, FEATURES, EXTENDED)
 
 
 def trial_disturbance(trial: Trial, params: kt.Params, model_c_a: float, model_c_b: float, model_p0: float = 1.0):
@@ -466,6 +489,7 @@ class MagKalmanEnv(TrustEnv):
     """
 
     action_symbol, action_key = "γ", "trust"
+    observation = (FEATURES, EXTENDED)
     env_name = KALMAN_ID.split("/")[1]
 
     def __init__(
@@ -486,27 +510,16 @@ class MagKalmanEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
-        features, table = observation_table(features)
         self._setup(
             scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool, prefetch=prefetch,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
         )  # fmt: skip
-        # validate the noise model now, not at reset (ValueError / TypeError naming the argument)
-        probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only)
-        make_model_params(probe, model_c_a, model_c_b)
-        self.filter_kwargs: dict[str, Any] = dict(
-            sigma_gyr=float(sigma_gyr),
-            sigma_acc=float(sigma_acc),
-            sigma_mag=float(sigma_mag),
-            th_acc=float(th_acc),
-            heading_only=bool(heading_only),
-        )
-        self.model_kwargs: dict[str, Any] = dict(model_c_a=float(model_c_a), model_c_b=float(model_c_b))
-        self.extended = table is EXTENDED
+        # the noise model checked now, not at reset (ValueError / TypeError naming the argument)
+        self.options = Options(sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only, model_c_a, model_c_b)
 
     def _make_runner(self, trial: Trial) -> KalmanRunner:
-        params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **self.filter_kwargs)
-        return KalmanRunner(trial, params, **self.model_kwargs, extended=self.extended)
+        o = self.options
+        return KalmanRunner(trial, o.params(trial), o.model_c_a, o.model_c_b, extended=self.extended)
 
     def _step_info(self, runner, start: int) -> dict:
         return {"repairs": runner.repairs}
@@ -595,7 +608,7 @@ class MagKalmanVectorEnv(BatchVectorEnv):
     idle_action = 1.0
 
     def _alloc(self, n: int) -> None:
-        self.params = kt.make_params(46.0, 49.6, 1.0, **self.template.filter_kwargs)  # the env-wide constants
+        self.params = self.template.options.params()  # the env-wide constants
         rows = self.k_steps + 2
         self.dt, self.h_ref, self.m0, self.dip0 = np.ones(n), np.zeros((n, 3)), np.ones(n), np.zeros(n)
         self.q, self.p = np.zeros((n, 4)), np.zeros((n, 3, 3))
@@ -607,8 +620,9 @@ class MagKalmanVectorEnv(BatchVectorEnv):
 
     def _prepare(self, trial: Trial):
         env = self.template
-        params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **env.filter_kwargs)
-        mdist = trial_disturbance(trial, params, env.model_kwargs["model_c_a"], env.model_kwargs["model_c_b"])
+        o = env.options
+        params = o.params(trial)
+        mdist = trial_disturbance(trial, params, o.model_c_a, o.model_c_b)
         return {**trial_rows(trial), "mdist": mdist}, (params, kt.init(params, trial.acc[0], trial.mag[0]))
 
     def _start(self, i: int, description) -> None:

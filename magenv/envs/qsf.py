@@ -363,6 +363,7 @@ class MagQSFEnv(TrustEnv):
     - v0: initial version.
     """
 
+    observation = (FEATURES, EXTENDED)
     env_name = QSF_ID.split("/")[1]
 
     def __init__(
@@ -382,10 +383,9 @@ class MagQSFEnv(TrustEnv):
         check_choice("variant", variant, VARIANTS)
         check_choice("init", init, qsf.INITS)
         filter_kwargs = check_mapping("filter_kwargs", filter_kwargs)
-        features, table = lagged.observation_table(features, FEATURES, EXTENDED)
         self._setup(
             scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool,
         )  # fmt: skip
         self.action_space = spaces.Box(
             np.array([-1.0, 0.0], np.float32), np.array([1.0, 1.0], np.float32), dtype=np.float32
@@ -397,7 +397,6 @@ class MagQSFEnv(TrustEnv):
             raise TypeError(f"detector must be a QSFDetector or a mapping of its thresholds, got {detector!r}")
         self.detector = detector or qsf.QSFDetector()
         self.filter_kwargs: dict[str, Any] = filter_kwargs
-        self.extended = table is EXTENDED
         qsf.make_params(50.0, 60.0, mode=variant, **self.filter_kwargs)  # bad keywords fail here, not at reset
 
     def _make_runner(self, trial: Trial) -> QSFRunner:

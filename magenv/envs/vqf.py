@@ -536,12 +536,6 @@ def check_choice(name: str, value, choices: tuple[str, ...]) -> str:
     return value
 
 
-def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
-    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
-    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
-    return lagged.observation_table(features, FEATURES, EXTENDED)
-
-
 @document(EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagVQFEnv(TrustEnv):
@@ -648,6 +642,7 @@ class MagVQFEnv(TrustEnv):
     """
 
     action_symbol, action_key = "u", "trust"
+    observation = (FEATURES, EXTENDED)
     env_name = VQF_ID.split("/")[1]
 
     def __init__(
@@ -667,14 +662,12 @@ class MagVQFEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
-        features, table = observation_table(features)
         self._setup(
             scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, table=table, trial_pool=trial_pool, prefetch=prefetch,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
         )  # fmt: skip
         self.rejection = check_choice("rejection", rejection, REJECTION)
         self.backend = check_choice("backend", backend, BACKENDS)
-        self.extended = table is EXTENDED
         if self.extended and self.backend == "cpp":
             raise ValueError('features="extended" needs backend="numba"')
         self.options = filter_options(
