@@ -114,7 +114,7 @@ class Graph:
         return self.op("Where", cond, a, b)
 
 
-class Node:
+class Node(np.lib.mixins.NDArrayOperatorsMixin):
     """A tensor of graph ``g`` in ``dtype`` that numpy's functions and Python's arithmetic extend by ONNX nodes,
     so that a formula written for arrays (``magenv.filters.rules``) builds its own graph: ``np.minimum(x, 1.0)``
     adds ``Min(x, 1.0)``; a number is a constant of ``dtype``."""
@@ -130,24 +130,6 @@ class Node:
             return NotImplemented
         names = [x.name if isinstance(x, Node) else self.g.const(x, self.dtype) for x in inputs]
         return Node(self.g, self.g.op(self.OPS[ufunc], *names), self.dtype)
-
-    def __add__(self, other):
-        return np.add(self, other)
-
-    def __sub__(self, other):
-        return np.subtract(self, other)
-
-    def __rsub__(self, other):
-        return np.subtract(other, self)
-
-    def __mul__(self, other):
-        return np.multiply(self, other)
-
-    def __rmul__(self, other):
-        return np.multiply(other, self)
-
-    def __truediv__(self, other):
-        return np.divide(self, other)
 
 
 def _onnx_type(dtype) -> int:

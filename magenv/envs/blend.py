@@ -27,7 +27,7 @@ from numba import njit
 from magenv.checks import check_bool
 from magenv.envs import BLEND_ID, blend_memory, lagged
 from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
-from magenv.envs.common import TrialRunner, TrustEnv
+from magenv.envs.common import TrialRunner, TrustEnv, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import blend, stationary
 from magenv.filters.madgwick import BETA_DEFAULT
@@ -447,10 +447,7 @@ class MagBlendEnv(TrustEnv):
 
     # ------------------------------------------------------------ evaluation access
 
-    @property
-    def lambdas(self) -> np.ndarray:
-        """(N,) λ used per sample (NaN where not fused yet)."""
-        return self._need_reset().lam
+    lambdas = episode_view("lam", "(N,) λ used per sample (NaN where not fused yet).")
 
     @property
     def stationary(self) -> np.ndarray:

@@ -25,6 +25,7 @@ The batched vector env every env module builds its ``vector_entry_point`` on is 
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -471,6 +472,13 @@ class TrialRunner:
         return stop - start
 
 
+def episode_view(path: str, doc: str) -> Any:
+    """A read-only property of an env: its current episode's runner's attribute ``path`` (dotted), RuntimeError
+    before the first ``reset()``."""
+    get = operator.attrgetter(path)
+    return property(lambda env: get(env._need_reset()), doc=doc)
+
+
 class TrustEnv(RenderMixin, gym.Env):
     """Bookkeeping every trust env shares: arguments, trial per ``reset``, step checks, errors, histories.
 
@@ -632,7 +640,6 @@ class TrustEnv(RenderMixin, gym.Env):
             raise RuntimeError("no episode yet; call env.reset() first")
         return self._runner
 
-    @property
-    def estimate(self) -> np.ndarray:
-        """(N, 4) per-sample estimate sensor → ENU of the current episode (NaN rows not fused yet)."""
-        return self._need_reset().est
+    estimate = episode_view(
+        "est", "(N, 4) per-sample estimate sensor → ENU of the current episode (NaN rows not fused yet)."
+    )

@@ -21,7 +21,7 @@ from numba import njit
 from magenv.checks import check_bool, check_positive
 from magenv.envs import CONSTRAINT_ID, constraint_memory, lagged
 from magenv.envs.batch import ROWS, BatchVectorEnv, check_box_actions
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
+from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import constraint as cf
 from magenv.metrics import N_ERR, error_sums
@@ -123,10 +123,10 @@ class Options:
     """The env's eq. 18 gain rule, checked once (``constraint.check_rule_params``): th2 (a weight), th3 (‖Δq‖),
     gains k_min ≤ k_max (1/s)."""
 
-    th2: float = cf.TH2
-    th3: float = cf.TH3
-    k_min: float = cf.K_MIN
-    k_max: float = cf.K_MAX
+    th2: float
+    th3: float
+    k_min: float
+    k_max: float
 
     def __post_init__(self):
         _, *checked = cf.check_rule_params(th2=self.th2, th3=self.th3, k_min=self.k_min, k_max=self.k_max)
@@ -334,15 +334,9 @@ class MagConstraintEnv(TrustEnv):
 
     # ------------------------------------------------------------ evaluation access
 
-    @property
-    def weights(self) -> np.ndarray:
-        """(N,) constraint weight w per sample (NaN where not fused yet)."""
-        return self._need_reset().trace.weight
+    weights = episode_view("trace.weight", "(N,) constraint weight w per sample (NaN where not fused yet).")
 
-    @property
-    def gains(self) -> np.ndarray:
-        """(N,) gain k per sample (NaN where not fused yet)."""
-        return self._need_reset().trace.gain
+    gains = episode_view("trace.gain", "(N,) gain k per sample (NaN where not fused yet).")
 
     @property
     def lambdas(self) -> np.ndarray:

@@ -31,7 +31,7 @@ from numba import njit
 
 from magenv.envs import KALMAN_ID, kalman_memory, lagged
 from magenv.envs.batch import ROWS, BatchVectorEnv, trial_rows, window_rows
-from magenv.envs.common import TrialRunner, TrustEnv
+from magenv.envs.common import TrialRunner, TrustEnv, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
@@ -135,13 +135,13 @@ class Options:
     accelerometer threshold, heading-only update) and the Gauss–Markov split of ``model_dist``
     (:func:`make_model_params`)."""
 
-    sigma_gyr: float = SIGMA_GYR
-    sigma_acc: float = SIGMA_ACC
-    sigma_mag: float = SIGMA_MAG
-    th_acc: float = TH_ACC
-    heading_only: bool = True
-    model_c_a: float = C_A
-    model_c_b: float = C_B
+    sigma_gyr: float
+    sigma_acc: float
+    sigma_mag: float
+    th_acc: float
+    heading_only: bool
+    model_c_a: float
+    model_c_b: float
 
     def __post_init__(self):
         probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, *astuple(self)[:5])  # ValueError / TypeError naming one
@@ -526,25 +526,20 @@ class MagKalmanEnv(TrustEnv):
 
     # ------------------------------------------------------------ evaluation access
 
-    @property
-    def trust(self) -> np.ndarray:
-        """(N,) γ used per sample (sample 0, the TRIAD start, is 1; NaN where not fused yet)."""
-        return self._need_reset().trust
+    trust = episode_view("trust", "(N,) γ used per sample (sample 0, the TRIAD start, is 1; NaN where not fused yet).")
 
     @property
     def lambdas(self) -> np.ndarray:
         """(N,) 1 − γ: the MagBlend-style "IMU weight" view of the trust, for ``magenv.evaluation``."""
         return 1.0 - self._need_reset().trust
 
-    @property
-    def signals(self) -> np.ndarray:
-        """(N, 13) the filter's per-sample signals, columns ``kalman_trust.SIGNALS`` (NaN where not fused)."""
-        return self._need_reset().sig
+    signals = episode_view(
+        "sig", "(N, 13) the filter's per-sample signals, columns ``kalman_trust.SIGNALS`` (NaN where not fused)."
+    )
 
-    @property
-    def model_disturbance(self) -> np.ndarray:
-        """(N,) ‖d̂‖ of the model-based split, µT (the ``model_dist`` feature before scaling)."""
-        return self._need_reset().mdist
+    model_disturbance = episode_view(
+        "mdist", "(N,) ‖d̂‖ of the model-based split, µT (the ``model_dist`` feature before scaling)."
+    )
 
 
 class Batch(NamedTuple):

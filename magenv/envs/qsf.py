@@ -28,9 +28,10 @@ from numba import njit
 from magenv.checks import check_choice, check_mapping
 from magenv.envs import QSF_ID, lagged, qsf_memory
 from magenv.envs.batch import ROWS, BatchVectorEnv, trial_rows
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
+from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import qsf
+from magenv.filters.linalg import clip
 from magenv.filters.qsf import SIGNAL
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
@@ -87,15 +88,6 @@ RAD_TO_DEG = 180.0 / math.pi  # as math.degrees
 
 
 @njit(cache=True, inline="always")
-def _clip(x, lo, hi):
-    """``numpy.clip`` of one value: NaN stays NaN; ties and signed zeros as numpy gives them."""
-    if x != x:
-        return x
-    m = x if x > lo else lo
-    return m if m < hi else hi
-
-
-@njit(cache=True, inline="always")
 def _norm3(v):
     return np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
@@ -143,7 +135,7 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
     f[F.heading_std] = hstd
     f[F.trust_prev] = trust_prev
     for k in range(f.shape[0]):
-        f[k] = _clip(f[k], _LOW[k], _HIGH[k])
+        f[k] = clip(f[k], _LOW[k], _HIGH[k])
 
 
 @njit(cache=True)
@@ -411,10 +403,9 @@ class MagQSFEnv(TrustEnv):
 
     # ------------------------------------------------------------ evaluation access
 
-    @property
-    def signals(self) -> np.ndarray:
-        """(N, N_SIGNALS) per-sample filter signals (``qsf.SIGNALS``), zeros where not fused yet."""
-        return self._need_reset().out.sig
+    signals = episode_view(
+        "out.sig", "(N, N_SIGNALS) per-sample filter signals (``qsf.SIGNALS``), zeros where not fused yet."
+    )
 
     @property
     def trust(self) -> np.ndarray:

@@ -41,7 +41,7 @@ from magenv.checks import check_bool, check_number
 from magenv.envs import VQF_ID, lagged
 from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
 from magenv.envs.blend import NORM_RATE_SCALE, dip_deg
-from magenv.envs.common import TrialRunner, TrustEnv
+from magenv.envs.common import TrialRunner, TrustEnv, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import vqf
 from magenv.filters.rules import fan_lambda
@@ -686,20 +686,15 @@ class MagVQFEnv(TrustEnv):
     def _step_info(self, runner, start: int) -> dict:
         return {"mag_dist": runner.mag_dist}
 
-    @property
-    def trust(self) -> np.ndarray:
-        """(N,) u applied to each sample (NaN where not fused yet)."""
-        return self._need_reset().trust
+    trust = episode_view("trust", "(N,) u applied to each sample (NaN where not fused yet).")
 
-    @property
-    def vqf_gain(self) -> np.ndarray:
-        """(N,) the trust that reached VQF's gain: u, or 0 where ``rejection="on"`` zeroed it."""
-        return self._need_reset().gain
+    vqf_gain = episode_view(
+        "gain", """(N,) the trust that reached VQF's gain: u, or 0 where ``rejection="on"`` zeroed it."""
+    )
 
-    @property
-    def mag_dist_detected(self) -> np.ndarray:
-        """(N,) VQF's disturbance flag per fused sample (0 where not fused yet)."""
-        return self._need_reset().dist_flag
+    mag_dist_detected = episode_view(
+        "dist_flag", "(N,) VQF's disturbance flag per fused sample (0 where not fused yet)."
+    )
 
 
 class Batch(NamedTuple):

@@ -63,11 +63,11 @@ class Options:
     """The blend's options for every trial (an env's arguments, checked once): gain β rad/s, the stationary hold,
     the detector's interval t0 s and thresholds (g, °/s). :meth:`params` gives a trial's :class:`Params`."""
 
-    beta: float = BETA_DEFAULT
-    hold: bool = True
-    t0: float = stationary.T0_S
-    th_acc_g: float = stationary.TH_ACC_G
-    th_gyro_dps: float = stationary.TH_GYRO_DPS
+    beta: float
+    hold: bool
+    t0: float
+    th_acc_g: float
+    th_gyro_dps: float
 
     def __post_init__(self):
         p = self.params(1.0)  # ValueError / TypeError naming a bad option
