@@ -31,6 +31,29 @@ class Feature:
     meaning: str
 
 
+DEG = "°"  # the unit of the features in degrees
+HEADING = -180.0, 180.0  # degrees: the range of a heading feature
+
+#: memory features (``features="extended"``) that several envs' EXTRA tables hold alike, by name: one name, one
+#: meaning across the envs
+SHARED = {
+    f.name: f
+    for f in (
+        Feature("mh_ema_025", *HEADING, DEG, "EMA (τ 0.25 s) of the mag heading"),
+        Feature("mh_ema_1", *HEADING, DEG, "EMA (τ 1 s) of the mag heading"),
+        Feature("mh_ema_4", *HEADING, DEG, "EMA (τ 4 s) of the mag heading"),
+        Feature("nd_ema_05", -1.0, 10.0, "fraction of m0", "EMA (τ 0.5 s) of the field-norm deviation"),
+        Feature("nd_ema_2", -1.0, 10.0, "fraction of m0", "EMA (τ 2 s) of the field-norm deviation"),
+        Feature("nd_ema_8", 0.0, 10.0, "fraction of m0", "EMA (τ 8 s) of the absolute field-norm deviation"),
+        Feature("dd_ema_05", 0.0, 180.0, DEG, "EMA (τ 0.5 s) of the absolute dip deviation"),
+        Feature("dd_ema_2", -180.0, 180.0, DEG, "EMA (τ 2 s) of the signed dip deviation"),
+        Feature("gyro_ema_1", 0.0, 100.0, "rad/s", "EMA (τ 1 s) of ‖ω‖"),
+        Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
+        Feature("t_clean", 0.0, 3.0, "units of 10 s", "time since the last clean sample (clipped)"),
+    )
+}
+
+
 class FeatureTable:
     """An env's observation features in order: names, float32 bounds, indices and the Markdown table."""
 
