@@ -96,7 +96,8 @@ def env_kernels(num_envs: int, k: int = 8) -> dict[str, float]:
         trial = bench_trial(full)
         vec = gym.make_vec(full, num_envs=num_envs, vectorization_mode="vector_entry_point", scenario=[trial],
                            decision_every=k)  # fmt: skip
-        if vec.unwrapped.kernels:  # a vector env with a compiled batch kernel (not 3026d33's VQF on C++ objects)
+        venv = vec.unwrapped  # a vector env with a compiled batch kernel (not 3026d33's VQF on C++ objects):
+        if getattr(venv, "advance_env", None) or getattr(venv, "kernels", None):  # (``kernels`` before the template)
             out[f"{env_id} batch kernel, N={num_envs}"] = _batch_kernel_ns(vec, trial, num_envs, k)
         vec.close()
     return out
@@ -113,10 +114,11 @@ def _batch_kernel_ns(vec, trial, num_envs: int, k: int) -> float:
     def loop():
         vec.reset(seed=0)
         venv._set_actions(actions, np.ones(num_envs, bool))
-        todo, run, args = venv.todo, venv._entry, venv._args
+        todo, run = venv.todo, venv._entry
+        args = venv._args if hasattr(venv, "advance_env") else (venv._args,)  # one Batch before the env template
         for _ in range(steps):
             todo[:] = k
-            run(args)
+            run(*args)
 
     return best_ns(loop, steps * k * num_envs)
 
