@@ -147,16 +147,21 @@ def short_trials():
     return [kinematic_trial(seed=s, duration=3.0, disturbance_ut=20.0, disturbance_window=(1.0, 2.0)) for s in range(2)]
 
 
-@pytest.fixture(scope="session")
-def broad_dir() -> Path:
-    """Folder of the real BROAD recordings (``magenv.recordings.broad_dir``). Where there are none, a test that
-    needs them is skipped with the reason and the command that fetches them — except under CI (``CI`` set),
-    where it fails, so that CI keeps testing them."""
+def require_broad() -> Path:
+    """Folder of the real BROAD recordings (``magenv.recordings.broad_dir``). Where there are none, the calling
+    test is skipped with the reason and the command that fetches them — except under CI (``CI`` set), where it
+    fails, so that CI keeps testing them."""
     if BROAD_DIR is None:
         if os.environ.get("CI"):
             pytest.fail(f"CI is set and the BROAD recordings are missing: {_NO_BROAD}")
         pytest.skip(_NO_BROAD)  # names the places looked in and `magenv data broad`
     return BROAD_DIR
+
+
+@pytest.fixture(scope="session")
+def broad_dir() -> Path:
+    """:func:`require_broad` as a fixture."""
+    return require_broad()
 
 
 def run_episode(env, seed, actions):
