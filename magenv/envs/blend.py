@@ -410,7 +410,10 @@ class MagBlendEnv(TrustEnv):
 
     ## Version History
 
-    - v0: initial version.
+    - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
+      2026-12-01 first version (Fan et al.'s complementary blend on the MuJoCo gimbal), the batched vector env
+      on the same kernel, ``features="extended"`` (29 causal features, lags of 8 and 32 decisions);
+      2026-12-02 long episodes held in bounded memory (no change to any observation or reward).
     """
 
     observation = (FEATURES, EXTENDED)

@@ -277,7 +277,10 @@ class MagConstraintEnv(TrustEnv):
 
     ## Version History
 
-    - v0: initial version.
+    - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
+      2026-12-01 first version (the two-link constraint filter, w per step), the batched vector env;
+      2026-12-02 ``features="extended"``; 2026-12-05 gyro-bias features (bias from rest, drift, bias-corrected
+      parallel filters); 2026-12-06 the bias-corrected twin applies the env's k where the action sets it.
     """
 
     action_symbol = action_key = "w"

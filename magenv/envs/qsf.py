@@ -352,7 +352,10 @@ class MagQSFEnv(TrustEnv):
 
     ## Version History
 
-    - v0: initial version.
+    - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
+      2026-12-01 first version (the hand-held QSF filters, trust of each quasi-static period), the batched vector
+      env; 2026-12-02 ``features="extended"``; 2026-12-07 kernels rewritten without allocation (per-trial RMSEs
+      unchanged to 1e-9°).
     """
 
     observation = (FEATURES, EXTENDED)

@@ -638,7 +638,11 @@ class MagVQFEnv(TrustEnv):
 
     ## Version History
 
-    - v0: initial version (VQF as numba kernels, bit for bit the C++ filter; the extended observation).
+    - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
+      2026-12-02 first version (trust u of VQF's magnetometer gain on the ``vqf`` package, rejection off/on);
+      2026-12-07 VQF as numba kernels (orientation equal to the C++ filter's to 1e-6 rad; ``backend="cpp"``
+      keeps the package), the batched vector env in one compiled call, the extended observation (ψ-change,
+      field-deviation and applied-gain EMAs; zeroed at every autoreset of the vector env).
     """
 
     action_symbol, action_key = "u", "trust"
