@@ -19,6 +19,7 @@ import numpy as np
 
 from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID, VQF_ID
 from magenv.envs.features import DIP_SCALE_DEG
+from magenv.filters.rules import fan_lambda
 
 
 class StudentInputs:
@@ -47,8 +48,8 @@ class StudentInputs:
 class BlendInputs(StudentInputs):
     """MagBlend-v0: the extended observation (``features="extended"``: base and extra causal features, and their
     copies 8 and 32 decisions earlier), each block followed by the teacher's continuation rule λ recomputed from
-    that block's ``norm_dev`` and ``dip_dev`` (the Fan rule of eqs. 15–17 with the teacher's ``norm_tol``,
-    ``th_dip_deg``): λ = ½·(min(|norm_dev|/norm_tol, 1) + min(|90°·dip_dev|/th_dip, 1))."""
+    that block's ``norm_dev`` and ``dip_dev`` (``magenv.filters.rules.fan_lambda`` with the teacher's ``norm_tol``,
+    ``th_dip_deg``, in float32)."""
 
     env_id = BLEND_ID
     env_kwargs = {"features": "extended"}
@@ -69,9 +70,8 @@ class BlendInputs(StudentInputs):
         parts = []
         for start in range(0, obs.shape[1], block):
             blk = obs[:, start : start + block]
-            lam1 = np.minimum(np.abs(blk[:, 0]) / norm_tol, 1.0)  # eq. 15 (norm_dev is column 0)
-            lam2 = np.minimum(np.abs(DIP_SCALE_DEG * blk[:, 1]) / th_dip, 1.0)  # eq. 16 (dip_dev, column 1)
-            parts += [blk, (0.5 * (lam1 + lam2))[:, None].astype(np.float32)]
+            lam = fan_lambda(blk[:, 0], DIP_SCALE_DEG * blk[:, 1], norm_tol, th_dip)  # norm_dev, dip_dev: columns 0, 1
+            parts += [blk, lam[:, None].astype(np.float32)]
         return np.concatenate(parts, 1)
 
 

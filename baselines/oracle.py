@@ -32,6 +32,7 @@ from numba import njit
 from magenv.envs import BLEND_ID
 from magenv.envs.blend import BlendRunner, dip_deg
 from magenv.filters import blend, stationary
+from magenv.filters.rules import FAN_NORM_TOL, FAN_TH_DIP_DEG, fan_lambda_kernel
 from magenv.metrics import errors1
 from magenv.protocols import Estimate
 from magenv.trial import Trial
@@ -43,11 +44,10 @@ DECISION_EVERY = 8  # samples per decision (the env's default)
 
 @njit(cache=True, inline="always")
 def fan_lambda(site, q, m, norm_tol, th_dip):
-    """The continuation rule's λ (eqs. 15–17) for field m (3,) µT seen with estimate q (4,)."""
+    """The continuation rule's λ (eqs. 15–17, ``magenv.filters.rules``) for field m (3,) µT seen with estimate q
+    (4,)."""
     mn = np.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
-    lam1 = min(abs(mn - site.m0) / site.m0 / norm_tol, 1.0)
-    lam2 = min(abs(dip_deg(q, m) - site.dip0) / th_dip, 1.0)
-    return 0.5 * (lam1 + lam2)
+    return fan_lambda_kernel((mn - site.m0) / site.m0, dip_deg(q, m) - site.dip0, norm_tol, th_dip)
 
 
 @njit(cache=True)
@@ -98,8 +98,8 @@ class BlendOracle:
 
     def __init__(
         self,
-        norm_tol: float = 1.0,
-        th_dip_deg: float = 20.0,
+        norm_tol: float = FAN_NORM_TOL,
+        th_dip_deg: float = FAN_TH_DIP_DEG,
         candidates=CANDIDATES,
         horizon_s: float = HORIZON_S,
         decision_every: int = DECISION_EVERY,

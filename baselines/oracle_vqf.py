@@ -53,7 +53,8 @@ DECISION_EVERY = 32  # samples per decision (≈ 9 Hz at BROAD's 286 Hz)
 def field_rows(p, s, w, gyr, acc, mag, q_true, rows):
     """Per sample of a trial, from VQF's state ``s`` before its first sample (a fork, left unchanged: ``s`` is
     copied), what a heading step needs and the truth it is scored against: rows[i] = (ψ, the gain's divisor,
-    A = q6D·t, B = (q_z(π) ⊗ q6D)·t) with t the truth (NaN A and B where it has none).
+    r, φ) with A = q6D·t = r cos φ, B = (q_z(π) ⊗ q6D)·t = r sin φ, t the truth (NaN r and φ where it has none):
+    the 9D estimate's scalar product with the truth is then r cos(δ/2 − φ), one cosine a sample.
 
     Only δ depends on the trust (``magenv.filters.vqf.step``), so these rows are the same whatever the trusts
     chosen: one pass serves every decision of every candidate (:func:`heading_costs`)."""
@@ -64,15 +65,16 @@ def field_rows(p, s, w, gyr, acc, mag, q_true, rows):
         q0, q1, q2, q3 = vqf.quat6d(fork)
         t = q_true[i]
         rows[i, 0], rows[i, 1] = psi, divisor
-        rows[i, 2] = q0 * t[0] + q1 * t[1] + q2 * t[2] + q3 * t[3]
-        rows[i, 3] = -q3 * t[0] - q2 * t[1] + q1 * t[2] + q0 * t[3]
+        a = q0 * t[0] + q1 * t[1] + q2 * t[2] + q3 * t[3]
+        b = -q3 * t[0] - q2 * t[1] + q1 * t[2] + q0 * t[3]
+        rows[i, 2], rows[i, 3] = np.hypot(a, b), np.arctan2(b, a)
 
 
 @njit(cache=True)
 def heading_costs(p, delta, init, rows, start, stop, cands, costs):
     """``costs[c]`` = Σ (total error, °)² over samples start … stop−1 of trust ``cands[c]`` held, from the heading
     offset δ = ``delta`` and the initial convergence's 1/N = ``init`` before sample ``start``; ``rows`` of
-    :func:`field_rows`. The 9D estimate's scalar product with the truth is cos(δ/2)·A + sin(δ/2)·B."""
+    :func:`field_rows`. The 9D estimate's scalar product with the truth is r cos(δ/2 − φ)."""
     ts = p[P.ts]
     for c in range(cands.shape[0]):
         k, tau = vqf.trust_gain(p, cands[c])
@@ -81,9 +83,9 @@ def heading_costs(p, delta, init, rows, start, stop, cands, costs):
         for i in range(start, stop):
             if rows[i, 1] != 0.0:
                 d, n0, _, _ = vqf.heading_update(d, n0, rows[i, 0], rows[i, 1], k, tau, ts)
-            a = rows[i, 2]
-            if a == a:  # no truth: NaN, adds nothing
-                wq = np.cos(d / 2) * a + np.sin(d / 2) * rows[i, 3]
+            r = rows[i, 2]
+            if r == r:  # no truth: NaN, adds nothing
+                wq = r * np.cos(d / 2 - rows[i, 3])
                 total = np.rad2deg(2.0 * np.arccos(min(1.0, abs(wq)))) if np.isfinite(wq) else WORST_DEG
                 cost += total * total
         costs[c] = cost

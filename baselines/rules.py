@@ -21,6 +21,9 @@ env applies.
   deviation exceeds its threshold, else 0 (the vector-selector idea of
   Lee & Park 2009 in Ligorio & Sabatini 2016 Table A1: th_mag = 1.20 µT of
   m0 = 46 µT ⇒ 0.026, th_α = 5°).
+
+The formulas, their published parameters and tuning ranges are ``magenv.filters.rules`` (shared with the
+oracles, the students' inputs and the ONNX export).
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import numpy as np
 from magenv.envs import BLEND_ID as ENV_ID
 from magenv.envs.blend import FEATURES
 from magenv.envs.features import DIP_SCALE_DEG
+from magenv.filters import rules
 from magenv.protocols import Tunable
 
 
@@ -93,21 +97,17 @@ class ConstantLambda(RulePolicy):
 
 
 class FanLambda(RulePolicy):
-    """Fan et al. 2017 eqs. 15–17.
-
-    λ1 = min(|‖m‖ − m0| / (norm_tol·m0), 1)     (eq. 15; paper: divisor m0, norm_tol = 1)
-    λ2 = min(|θ_dip − θ0| / th_dip, 1)           (eq. 16 with th_dip = 20°, eq. 18 for θ_dip)
-    λ  = (λ1 + λ2) / 2                           (eq. 17)
-    """
+    """Fan et al. 2017 eqs. 15–17 (``magenv.filters.rules.fan_lambda``) on the observation's ``norm_dev`` and
+    ``dip_dev`` (eq. 18 for θ_dip)."""
 
     name = "fan_lambda"
-    PARAM_BOUNDS = {"norm_tol": (0.02, 5.0), "th_dip_deg": (0.1, 90.0)}
+    PARAM_BOUNDS = rules.FAN_BOUNDS
     NEEDS = ("norm_dev", "dip_dev")
 
     def __init__(
         self,
-        norm_tol: float = 1.0,
-        th_dip_deg: float = 20.0,
+        norm_tol: float = rules.FAN_NORM_TOL,
+        th_dip_deg: float = rules.FAN_TH_DIP_DEG,
         features: Sequence[str] | None = None,
         stationary_hold: bool | None = None,
     ):
@@ -117,23 +117,21 @@ class FanLambda(RulePolicy):
         self.norm_tol, self.th_dip_deg = float(norm_tol), float(th_dip_deg)
 
     def weight(self, obs: np.ndarray) -> float:
-        lam1 = min(abs(float(obs[self._ix["norm_dev"]])) / self.norm_tol, 1.0)  # eq. 15
-        dip_dev_deg = DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])
-        lam2 = min(abs(dip_dev_deg) / self.th_dip_deg, 1.0)  # eq. 16
-        return 0.5 * (lam1 + lam2)  # eq. 17
+        norm_dev, dip_dev_deg = float(obs[self._ix["norm_dev"]]), DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])
+        return float(rules.fan_lambda(norm_dev, dip_dev_deg, self.norm_tol, self.th_dip_deg))
 
 
 class Threshold(RulePolicy):
-    """λ = 1 when |‖m‖ − m0|/m0 > norm_th or |θ_dip − θ0| > dip_th_deg, else λ = 0."""
+    """λ = 1 when |‖m‖ − m0|/m0 > norm_th or |θ_dip − θ0| > dip_th_deg, else λ = 0 (``magenv.filters.rules.gate``)."""
 
     name = "threshold"
-    PARAM_BOUNDS = {"norm_th": (0.005, 1.0), "dip_th_deg": (0.5, 45.0)}
+    PARAM_BOUNDS = rules.GATE_BOUNDS
     NEEDS = ("norm_dev", "dip_dev")
 
     def __init__(
         self,
-        norm_th: float = 1.2 / 46.0,
-        dip_th_deg: float = 5.0,
+        norm_th: float = rules.GATE_NORM_TH,
+        dip_th_deg: float = rules.GATE_DIP_TH_DEG,
         features: Sequence[str] | None = None,
         stationary_hold: bool | None = None,
     ):
@@ -143,11 +141,8 @@ class Threshold(RulePolicy):
         self.norm_th, self.dip_th_deg = float(norm_th), float(dip_th_deg)
 
     def weight(self, obs: np.ndarray) -> float:
-        off = (
-            abs(float(obs[self._ix["norm_dev"]])) > self.norm_th
-            or abs(DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])) > self.dip_th_deg
-        )
-        return 1.0 if off else 0.0
+        norm_dev, dip_dev_deg = float(obs[self._ix["norm_dev"]]), DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])
+        return 1.0 if rules.gate(norm_dev, dip_dev_deg, self.norm_th, self.dip_th_deg) else 0.0
 
 
 RULES: dict[str, type[RulePolicy]] = {"constant": ConstantLambda, "fan_lambda": FanLambda, "threshold": Threshold}

@@ -8,13 +8,9 @@ Each acts on the observation alone and carries the env options it runs with
   shipped — reproduces the ``vqf`` reference estimator bit for bit.
 * ``vqf_no_rejection`` (u = 1, ``rejection="off"``): VQF with its
   disturbance rejection off (``magDistRejectionEnabled=False``).
-* ``vqf_fan_lambda`` — Fan et al. 2017 eqs. 15–17 on the env's ``norm_dev``
-  and ``dip_dev`` (same names and scales as MagBlend-v0's), u = 1 − λ,
-  VQF's rejection off (the rule replaces it):
-
-      λ1 = min(|‖m‖ − m0| / (norm_tol·m0), 1)   (eq. 15)
-      λ2 = min(|θ_dip − θ0| / th_dip, 1)         (eq. 16, th_dip = 20°)
-      λ  = (λ1 + λ2) / 2                         (eq. 17)
+* ``vqf_fan_lambda`` — Fan et al. 2017 eqs. 15–17 (``magenv.filters.rules.fan_lambda``) on the env's
+  ``norm_dev`` and ``dip_dev`` (same names and scales as MagBlend-v0's), u = 1 − λ, VQF's rejection off
+  (the rule replaces it).
 
 * ``oracle_vqf`` — the privileged search of ``magenv.baselines.oracle_vqf`` on
   top of VQF's rejection: an upper bound (it reads truth), never a baseline.
@@ -37,6 +33,7 @@ from magenv.baselines.oracle_vqf import DECISION_EVERY, VQFOracle
 from magenv.baselines.rules import FanLambda, Threshold
 from magenv.envs import VQF_ID
 from magenv.envs.vqf import FEATURES
+from magenv.filters import rules
 
 
 class VQFTrust:
@@ -78,7 +75,7 @@ class VQFFanLambda(VQFRule, FanLambda):
 
     name = "vqf_fan_lambda"
 
-    def __init__(self, norm_tol: float = 1.0, th_dip_deg: float = 20.0):
+    def __init__(self, norm_tol: float = rules.FAN_NORM_TOL, th_dip_deg: float = rules.FAN_TH_DIP_DEG):
         super().__init__(norm_tol, th_dip_deg, features=FEATURES.names)
         self._vqf_setup()
 
@@ -88,7 +85,7 @@ class VQFThreshold(VQFRule, Threshold):
 
     name = "vqf_threshold"
 
-    def __init__(self, norm_th: float = 1.2 / 46.0, dip_th_deg: float = 5.0):
+    def __init__(self, norm_th: float = rules.GATE_NORM_TH, dip_th_deg: float = rules.GATE_DIP_TH_DEG):
         super().__init__(norm_th, dip_th_deg, features=FEATURES.names)
         self._vqf_setup()
 

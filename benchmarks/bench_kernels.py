@@ -8,7 +8,8 @@ trust KF of ``MagKalman-v0`` (``kalman_trust.run_k_kernel``, γ = 0.5), the Gaus
 filters, the QSF detector (at each ``MagQSF-v0`` reset) and the three QSF filters (``qsf.run_kernel`` on the
 detector's codes, trust 1); then the bare batch kernel of each env's ``vector_entry_point`` (N envs,
 ``decision_every`` 8, a fixed action, within one episode, on bench_vector.py's trial of the env: its kernel
-limit) per fused sample; and each oracle (``bench_vector.oracle_rate``, 5 s of the env's trial) per sample.
+limit) per fused sample; and each oracle (``bench_vector.oracle_rate``, 5 s of the env's trial) per sample, with
+``oracle_vqf`` also at a 2-s look-ahead (the C++ oracle's of 3026d33; today's looks 4 s ahead).
 Each figure is the best of 5 timings after a warm-up, in CPU time of the process (what one free core gives:
 robust on a shared machine).
 
@@ -95,7 +96,8 @@ def env_kernels(num_envs: int, k: int = 8) -> dict[str, float]:
         trial = bench_trial(full)
         vec = gym.make_vec(full, num_envs=num_envs, vectorization_mode="vector_entry_point", scenario=[trial],
                            decision_every=k)  # fmt: skip
-        if vec.unwrapped.kernels:  # a vector env with a compiled batch kernel (not 3026d33's VQF on C++ objects)
+        venv = vec.unwrapped  # a vector env with a compiled batch kernel (not 3026d33's VQF on C++ objects):
+        if getattr(venv, "advance_env", None) or getattr(venv, "kernels", None):  # (``kernels`` before the template)
             out[f"{env_id} batch kernel, N={num_envs}"] = _batch_kernel_ns(vec, trial, num_envs, k)
         vec.close()
     return out
@@ -112,10 +114,11 @@ def _batch_kernel_ns(vec, trial, num_envs: int, k: int) -> float:
     def loop():
         vec.reset(seed=0)
         venv._set_actions(actions, np.ones(num_envs, bool))
-        todo, run, args = venv.todo, venv._entry, venv._args
+        todo, run = venv.todo, venv._entry
+        args = venv._args if hasattr(venv, "advance_env") else (venv._args,)  # one Batch before the env template
         for _ in range(steps):
             todo[:] = k
-            run(args)
+            run(*args)
 
     return best_ns(loop, steps * k * num_envs)
 
@@ -133,6 +136,12 @@ def oracle_kernels(seconds: float = 5.0) -> dict[str, float]:
             _, per_cpu_s, decisions = oracle_rate(ORACLES[name], trial, seconds)
             samples = min(trial.n, int(round(seconds * trial.rate)))
             out[f"{ORACLES[name]} (its searches per sample)"] = decisions / per_cpu_s / samples * 1e9
+    if "magenv/MagVQF-v0" in gym.registry:  # at the 2-s look-ahead of the C++ oracle (3026d33): same work a label
+        from magenv.baselines.oracle_vqf import VQFOracle
+
+        cut = bench_trial("magenv/MagVQF-v0")
+        cut = cut.slice(0, min(cut.n, int(round(seconds * cut.rate))))
+        out["oracle_vqf, 2-s look-ahead"] = best_ns(lambda: VQFOracle(horizon_s=2.0).run(cut), cut.n)
     return out
 
 

@@ -93,6 +93,37 @@ def error_sums(est, q_true, dist, start, stop, err):
         add_errors(err, est[i], q_true[i], dist[i])
 
 
+# Layout of a step's means (``step_means``): the reward and the errors ``info`` reports.
+S_REWARD, S_TOTAL, S_HEADING, S_INCL, S_DIST = range(5)
+N_STEP = 5
+
+
+@njit(cache=True)
+def step_means(err, fused, has_dist, out):
+    """Write ``out`` (N_STEP,) from one step's error sums ``err`` (N_ERR,) over ``fused`` samples: the mean total,
+    heading and inclination errors (°) over the samples with truth (NaN if none had truth), the mean true
+    disturbance norm (µT; NaN unless ``has_dist``) and the reward, −(mean total error), 0 if no sample had
+    truth. The one definition of the reward: the single env calls it on its runner's sums, the batched vector
+    env on each env's (:func:`step_means_rows`)."""
+    cnt = err[E_COUNT]
+    if cnt > 0:
+        out[S_TOTAL] = err[E_TOTAL] / cnt
+        out[S_HEADING] = err[E_HEADING] / cnt
+        out[S_INCL] = err[E_INCL] / cnt
+        out[S_REWARD] = -out[S_TOTAL]
+    else:
+        out[S_TOTAL] = out[S_HEADING] = out[S_INCL] = np.nan
+        out[S_REWARD] = 0.0
+    out[S_DIST] = err[E_DIST] / fused if has_dist else np.nan
+
+
+@njit(cache=True)
+def step_means_rows(err, fused, has_dist, out):
+    """:func:`step_means` of each row: ``err`` (n, N_ERR), ``fused`` (n,), ``has_dist`` (n,), ``out`` (n, N_STEP)."""
+    for i in range(err.shape[0]):
+        step_means(err[i], fused[i], has_dist[i], out[i])
+
+
 @njit(cache=True)
 def _error_rows(q_est, q_true, out):
     for i in range(q_est.shape[0]):

@@ -6,7 +6,8 @@ orientation plus white noise, and an optional magnetic disturbance window.
 Filter tests use it where the physics of the gimbal does not matter.
 
 Env test helpers: ``short_trials`` (fixture), ``run_episode``,
-``check_seeded_replay``, ``check_scalar_action``, ``check_with_checkers``.
+``check_seeded_replay``, ``check_scalar_action``, ``check_with_checkers``;
+``ENV_CASES``, what the tests that cover every env run each on (a new env adds its case).
 
 ``ray_2cpu`` (fixture): one local Ray of 2 CPUs per test module; skips,
 naming the extra, where Ray is not installed.
@@ -15,6 +16,8 @@ naming the extra, where Ray is not installed.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -144,16 +147,21 @@ def short_trials():
     return [kinematic_trial(seed=s, duration=3.0, disturbance_ut=20.0, disturbance_window=(1.0, 2.0)) for s in range(2)]
 
 
-@pytest.fixture(scope="session")
-def broad_dir() -> Path:
-    """Folder of the real BROAD recordings (``magenv.recordings.broad_dir``). Where there are none, a test that
-    needs them is skipped with the reason and the command that fetches them — except under CI (``CI`` set),
-    where it fails, so that CI keeps testing them."""
+def require_broad() -> Path:
+    """Folder of the real BROAD recordings (``magenv.recordings.broad_dir``). Where there are none, the calling
+    test is skipped with the reason and the command that fetches them — except under CI (``CI`` set), where it
+    fails, so that CI keeps testing them."""
     if BROAD_DIR is None:
         if os.environ.get("CI"):
             pytest.fail(f"CI is set and the BROAD recordings are missing: {_NO_BROAD}")
         pytest.skip(_NO_BROAD)  # names the places looked in and `magenv data broad`
     return BROAD_DIR
+
+
+@pytest.fixture(scope="session")
+def broad_dir() -> Path:
+    """:func:`require_broad` as a fixture."""
+    return require_broad()
 
 
 def run_episode(env, seed, actions):
@@ -278,3 +286,40 @@ def check_kernel_layout(env, table, index) -> None:
     assert index._fields == table.names and tuple(index) == tuple(range(len(table)))
     obs, _ = env.reset(seed=0)
     assert np.all(obs >= table.low) and np.all(obs <= table.high)
+
+
+@dataclass(frozen=True)
+class EnvCase:
+    """What the tests that cover every env run one env on."""
+
+    batch_trials: Callable[[], list]  # tests/test_env_batch.py: short trials, several episodes each
+    action_dim: int
+    decision_every: int  # tests/test_properties.py: its steps, its finite actions drawn in action_range
+    action_range: tuple[float, float] = (-2.0, 3.0)
+    twolink: bool = False  # tests/test_properties.py runs it on two-link trials (else on sensor trials)
+    render: str | None = None  # tests/test_env_render.py: the scenario of its frames (None: not rendered there)
+
+
+def _disturbed(*seeds_durations) -> list:
+    return [kinematic_trial(seed=s, duration=d, disturbance_ut=20.0) for s, d in seeds_durations]
+
+
+def _twolink() -> list:
+    from magenv.scenarios import make_trial
+
+    return [make_trial("constraint_test1", 3, duration=5.0), make_trial("constraint_random", 4)]
+
+
+def _handheld() -> list:
+    from magenv.scenarios import make_trial
+
+    return [make_trial("handheld_texting", 3, duration=3.0), kinematic_trial(seed=5, duration=2.0)]
+
+
+ENV_CASES = {  # env id → its EnvCase
+    "magenv/MagBlend-v0": EnvCase(lambda: _disturbed((0, 1.6), (1, 1.1)), 1, 8, render="dynamic_magnet"),
+    "magenv/MagKalman-v0": EnvCase(lambda: _disturbed((2, 1.6), (3, 1.1)), 1, 8, render="dynamic_magnet"),
+    "magenv/MagConstraint-v0": EnvCase(_twolink, 1, 8, twolink=True, render="constraint_test1"),
+    "magenv/MagQSF-v0": EnvCase(_handheld, 2, 10, (-3.0, 3.0), render="handheld_texting"),
+    "magenv/MagVQF-v0": EnvCase(lambda: _disturbed((6, 1.6), (7, 1.1)), 1, 8),
+}

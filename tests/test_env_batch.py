@@ -7,19 +7,12 @@ import numpy as np
 import pytest
 
 import magenv  # noqa: F401  (registers the envs)
-from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID, VQF_ID
+from magenv.envs import BLEND_ID, VQF_ID
 from magenv.envs.batch import TrialStore
 from magenv.envs.common import TrialPool, TrialSource
-from magenv.scenarios import make_trial
-from tests.conftest import kinematic_trial
+from tests.conftest import ENV_CASES, kinematic_trial
 
-ENVS = {  # env id → (trial factory, action dim)
-    BLEND_ID: (lambda: [kinematic_trial(seed=s, duration=d, disturbance_ut=20.0) for s, d in ((0, 1.6), (1, 1.1))], 1),
-    KALMAN_ID: (lambda: [kinematic_trial(seed=s, duration=d, disturbance_ut=20.0) for s, d in ((2, 1.6), (3, 1.1))], 1),
-    CONSTRAINT_ID: (lambda: [make_trial("constraint_test1", 3, duration=5.0), make_trial("constraint_random", 4)], 1),
-    QSF_ID: (lambda: [make_trial("handheld_texting", 3, duration=3.0), kinematic_trial(seed=5, duration=2.0)], 2),
-    VQF_ID: (lambda: [kinematic_trial(seed=s, duration=d, disturbance_ut=20.0) for s, d in ((6, 1.6), (7, 1.1))], 1),
-}
+ENVS = {env_id: (case.batch_trials, case.action_dim) for env_id, case in ENV_CASES.items()}  # (trials, action dim)
 
 
 def vector_and_singles(env_id, kwargs, seed, actions, num_envs, **vector_kwargs):

@@ -11,16 +11,12 @@ import numpy as np
 import pytest
 
 import magenv  # noqa: F401  (registers the envs)
-from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID
+from magenv.envs import BLEND_ID, KALMAN_ID
 from magenv.envs import render as rd
 from magenv.envs.blend import MagBlendEnv
+from tests.conftest import ENV_CASES
 
-CASES = [
-    (BLEND_ID, "dynamic_magnet"),
-    (KALMAN_ID, "dynamic_magnet"),
-    (CONSTRAINT_ID, "constraint_test1"),
-    (QSF_ID, "handheld_texting"),
-]
+CASES = [(env_id, case.render) for env_id, case in ENV_CASES.items() if case.render]
 FRAME = (rd.SCENE_HEIGHT + rd.STRIP_HEIGHT, rd.WIDTH, 3)
 
 

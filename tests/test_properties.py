@@ -20,7 +20,7 @@ from magenv import quaternion as quat
 from magenv import scenarios as cs
 from magenv.filters import madgwick
 from magenv.metrics import E_COUNT, E_TOTAL, N_ERR, WORST_DEG, error_sums, errors
-from tests.conftest import kinematic_trial
+from tests.conftest import ENV_CASES, kinematic_trial
 
 SETTINGS = settings(derandomize=True, deadline=None, max_examples=60, suppress_health_check=[HealthCheck.too_slow])
 ENV_SETTINGS = settings(SETTINGS, max_examples=15)
@@ -145,21 +145,15 @@ def env_trials():
     """name → the trials of one env's episodes (sensor trials; two-link ones for the constraint env)."""
     sensor = [kinematic_trial(seed=s, duration=1.0, disturbance_ut=30.0, disturbance_window=(0.3, 0.6)) for s in (0, 1)]
     twolink = [cs.make_trial("constraint_test2", s, duration=8.0, disturbances=((0.3, 0.3),)) for s in (0, 1)]
-    return {
-        "MagBlend-v0": sensor,
-        "MagKalman-v0": sensor,
-        "MagQSF-v0": sensor,
-        "MagConstraint-v0": twolink,
-        "MagVQF-v0": sensor,
-    }
+    return {env_id.split("/")[1]: twolink if case.twolink else sensor for env_id, case in ENV_CASES.items()}
 
 
 ENVS = {  # env → (decision_every, a strategy of one finite action, in range or not)
-    "MagBlend-v0": (8, arrays(np.float32, 1, elements=st.floats(-2.0, 3.0, width=32))),
-    "MagKalman-v0": (8, arrays(np.float32, 1, elements=st.floats(-2.0, 3.0, width=32))),
-    "MagQSF-v0": (10, arrays(np.float32, 2, elements=st.floats(-3.0, 3.0, width=32))),
-    "MagConstraint-v0": (8, arrays(np.float32, 1, elements=st.floats(-2.0, 3.0, width=32))),
-    "MagVQF-v0": (8, arrays(np.float32, 1, elements=st.floats(-2.0, 3.0, width=32))),
+    env_id.split("/")[1]: (
+        case.decision_every,
+        arrays(np.float32, case.action_dim, elements=st.floats(*case.action_range, width=32)),
+    )
+    for env_id, case in ENV_CASES.items()
 }
 
 

@@ -14,9 +14,9 @@ The graph computes, for a batch of the env's observations ``obs`` (N, n_obs) flo
    (an action, or the rule's) where the student's guard holds.
 
 Outputs ``action`` (N, action_dim) and ``probabilities`` (N, C + S). Each env's derived columns are written here
-a second time, as graph nodes (the names in :data:`DERIVED`); ``tests/test_train_export.py`` holds them to the numpy
-student on 10 000 recorded observations of every env, and a student constant the builder does not know is
-refused (:func:`check_meta`).
+as graph nodes (the names in :data:`DERIVED`; the Fan rule's by its one definition, ``magenv.filters.rules``, run
+on :class:`Node`); ``tests/test_train_export.py`` holds them to the numpy student on 10 000 recorded observations
+of every env, and a student constant the builder does not know is refused (:func:`check_meta`).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import numpy as np
 
 from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID, VQF_ID
 from magenv.envs.features import DIP_SCALE_DEG
+from magenv.filters.rules import fan_lambda
 
 OPSET = 17
 IR_VERSION = 8  # readable by onnxruntime ≥ 1.10
@@ -113,6 +114,24 @@ class Graph:
         return self.op("Where", cond, a, b)
 
 
+class Node(np.lib.mixins.NDArrayOperatorsMixin):
+    """A tensor of graph ``g`` in ``dtype`` that numpy's functions and Python's arithmetic extend by ONNX nodes,
+    so that a formula written for arrays (``magenv.filters.rules``) builds its own graph: ``np.minimum(x, 1.0)``
+    adds ``Min(x, 1.0)``; a number is a constant of ``dtype``."""
+
+    OPS = {np.minimum: "Min", np.absolute: "Abs", np.add: "Add", np.subtract: "Sub", np.multiply: "Mul",
+           np.divide: "Div"}  # fmt: skip
+
+    def __init__(self, g: Graph, name: str, dtype=np.float32):
+        self.g, self.name, self.dtype = g, name, dtype
+
+    def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):
+        if method != "__call__" or kwargs or ufunc not in self.OPS:
+            return NotImplemented
+        names = [x.name if isinstance(x, Node) else self.g.const(x, self.dtype) for x in inputs]
+        return Node(self.g, self.g.op(self.OPS[ufunc], *names), self.dtype)
+
+
 def _onnx_type(dtype) -> int:
     from onnx import TensorProto
 
@@ -124,9 +143,7 @@ def _onnx_type(dtype) -> int:
 
 def _blend(g: Graph, blk: str, meta: dict) -> list[str]:
     tol, th = float(meta["rule"][0]), float(meta["rule"][1])
-    lam1 = g.binary("Min", g.binary("Div", g.op("Abs", g.col(blk, 0)), tol), 1.0)
-    lam2 = g.binary("Min", g.binary("Div", g.op("Abs", g.binary("Mul", g.col(blk, 1), DIP_SCALE_DEG)), th), 1.0)
-    return [g.binary("Mul", g.op("Add", lam1, lam2), 0.5)]
+    return [fan_lambda(Node(g, g.col(blk, 0)), Node(g, g.col(blk, 1)) * DIP_SCALE_DEG, tol, th).name]
 
 
 def _square_over(g: Graph, x: str, scale: float, dtype) -> str:
@@ -197,12 +214,9 @@ def _fan_trust64(g: Graph, blk: str, meta: dict) -> str:
     """float64 (N, 1) ``magenv.envs.vqf.fan_trust`` of a float32 block (``VQFInputs.rule_trust``)."""
     from magenv.envs.vqf import FEATURES
 
-    f64 = np.float64
     tol, th = float(meta["rule"][0]), float(meta["rule"][1])
-    col = lambda name: g.op("Abs", g.col(blk, FEATURES.index(name), f64))
-    lam1 = g.binary("Min", g.binary("Div", col("norm_dev"), tol, f64), 1.0, f64)
-    lam2 = g.binary("Min", g.binary("Div", g.binary("Mul", col("dip_dev"), DIP_SCALE_DEG, f64), th, f64), 1.0, f64)
-    return g.op("Sub", g.const([[1.0]], f64), g.binary("Mul", g.op("Add", lam1, lam2), 0.5, f64))
+    col = lambda name: Node(g, g.col(blk, FEATURES.index(name), np.float64), np.float64)
+    return (1.0 - fan_lambda(col("norm_dev"), col("dip_dev") * DIP_SCALE_DEG, tol, th)).name
 
 
 def _vqf(g: Graph, blk: str, meta: dict) -> list[str]:

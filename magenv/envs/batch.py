@@ -20,15 +20,17 @@ few rows instead of per-sample histories, so a vector env keeps no history
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
 from gymnasium.utils import seeding
+from numba import njit, prange
 
 from magenv.checks import check_int
-from magenv.envs.common import TrialRunner, TrustEnv, check_reset_args, cut_trial
-from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL, N_ERR
+from magenv.envs.common import TrialRunner, TrustEnv, Truth, check_reset_args, cut_trial
+from magenv.filters.sensors import Sensors
+from magenv.metrics import N_ERR, N_STEP, S_DIST, S_HEADING, S_INCL, S_REWARD, S_TOTAL, step_means_rows
 from magenv.trial import Trial
 
 
@@ -142,6 +144,92 @@ def check_box_actions(actions, num_envs: int, low: np.ndarray, high: np.ndarray)
     return values, (values != a).any(axis=1)
 
 
+#: the store's channels every env has: sensors (rad/s, m/s², µT) and truth (:func:`trial_rows`)
+ROWS: dict[str, tuple[tuple[int, ...], Any]] = {
+    "gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float), "dist": ((), float),
+}  # fmt: skip
+
+
+def trial_rows(trial: Trial) -> dict[str, np.ndarray]:
+    """The :data:`ROWS` of ``trial``: its sensors and truth (``magenv.envs.common.Truth``)."""
+    truth = Truth.of(trial)
+    return {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist}
+
+
+class Steps(NamedTuple):
+    """What every env's batch kernel reads and writes besides its own ``Batch``: N envs on the store's M rows."""
+
+    gyr: np.ndarray  # (M, 3) the store's rows (ROWS): sensors …
+    acc: np.ndarray
+    mag: np.ndarray
+    q_true: np.ndarray  # (M, 4) … and truth
+    dist: np.ndarray  # (M,)
+    off: np.ndarray  # (N,) each env's first row in the store
+    n: np.ndarray  # (N,) samples of each env's episode
+    pos: np.ndarray  # (N,) next sample to fuse
+    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
+    err: np.ndarray  # (N, N_ERR) error sums of the step
+    feat: np.ndarray  # (N, len(FEATURES)) observations
+    failed: np.ndarray  # (N,) −1, or the sample where the env's filter failed
+
+
+class Window(NamedTuple):
+    """Env i's rows for one kernel call: the sample before its step, the step's samples, the one after (so that
+    the env's kernel reads and writes exactly what it does for the single env)."""
+
+    start: int  # the step's first sample, counted from the window's first
+    stop: int  # one past its last
+    base: int  # the window's first sample in the episode
+    r0: int  # the window's rows in the store, r0:r1
+    r1: int
+
+
+@njit(cache=True, inline="always")
+def window(s, i):
+    """The :class:`Window` of env i's ``todo[i]`` samples (:class:`Steps` ``s``)."""
+    start = s.pos[i]
+    stop = min(start + s.todo[i], s.n[i])
+    base, end = max(start - 1, 0), min(stop + 1, s.n[i])
+    return Window(start - base, stop - base, base, s.off[i] + base, s.off[i] + end)
+
+
+@njit(cache=True, inline="always")
+def window_rows(s, w):
+    """(``Sensors``, ``Truth``) of the rows of window ``w``."""
+    return Sensors(s.gyr[w.r0 : w.r1], s.acc[w.r0 : w.r1], s.mag[w.r0 : w.r1]), Truth(
+        s.q_true[w.r0 : w.r1], s.dist[w.r0 : w.r1]
+    )
+
+
+@njit
+def _advance(advance_env, b, s, i):
+    w = window(s, i)
+    bad = advance_env(b, s, i, w)
+    if bad < 0:
+        s.pos[i] = w.base + w.stop
+    else:
+        s.failed[i] = w.base + bad
+
+
+@njit
+def each_env(advance_env, b, s):
+    """The batch kernel of every vector env: each env i with ``todo[i] ≥ 0`` does it, ``advance_env(b, s, i,
+    window(s, i))`` → −1, or the window's sample where its filter failed (recorded in ``s.failed``; the env stays
+    where it was). Compiled once per process and env (numba caches no function taking a function);
+    ``advance_env``, the part that takes long to compile, comes from its cache."""
+    for i in range(s.todo.shape[0]):
+        if s.todo[i] >= 0:
+            _advance(advance_env, b, s, i)
+
+
+@njit(parallel=True)
+def each_env_threads(advance_env, b, s):
+    """:func:`each_env` with the envs spread over numba's threads."""
+    for i in prange(s.todo.shape[0]):
+        if s.todo[i] >= 0:
+            _advance(advance_env, b, s, i)
+
+
 class BatchVectorEnv(gym.vector.VectorEnv):
     """``num_envs`` envs of ``env_class`` advanced together: their state as arrays, one kernel call per step.
 
@@ -163,24 +251,35 @@ class BatchVectorEnv(gym.vector.VectorEnv):
     ``n_samples``, ``sample``.
 
     Subclasses set ``env_class``, ``features`` (its FeatureTable), ``channels`` (the store's per-sample
-    channels), ``first`` (the first sample a step fuses), ``kernels`` (the serial and the threaded batch
-    kernel) and implement ``_alloc(n)``, ``_prepare(trial) → (rows, description)``, ``_start(i,
-    description)``, ``_set_actions(values, stepping) → action infos`` and ``_batch()`` (the kernels'
-    argument). ``todo[i]`` tells the kernel what env i does: fuse that many samples (≥ 1), only compute its
-    observation (0), or nothing (−1).
+    channels: :data:`ROWS` and the env's own), ``first`` (the first sample a step fuses), ``advance_env`` (the
+    numba kernel ``(batch, steps, i, window) → −1 or the failing sample`` that does env i's ``todo``;
+    :func:`each_env` runs it for every env), ``extended_batched`` (it also computes ``features="extended"``),
+    ``idle_action`` (the action value of an env that does not step) and implement ``_alloc(n)``,
+    ``_prepare(trial) → (rows, description)`` (rows: :func:`trial_rows` and the env's own), ``_start(i,
+    description)``, ``_batch()`` (the kernel's env arrays, a ``Batch``), ``_failure(i, sample)`` (the error of a
+    failing filter, if its filter can fail) and, for an action of more than one number,
+    ``_set_actions(values, stepping) → action infos``. ``todo[i]`` tells the kernel what env i does: fuse that
+    many samples (≥ 1), only compute its observation (0), or nothing (−1).
     """
 
     metadata = {"autoreset_mode": gym.vector.AutoresetMode.NEXT_STEP, "render_modes": []}
     env_class: type[TrustEnv]
     features: Any  # the env's magenv.envs.features.FeatureTable
-    channels: dict[str, tuple[tuple[int, ...], Any]]
-    kernels: tuple  # (serial, threaded) numba kernels taking the _batch() tuple
+    channels: dict[str, tuple[tuple[int, ...], Any]] = ROWS
+    idle_action = 0.0  # the action value of the envs that do not step (the single action of _set_actions)
+    advance_env: Any  # numba kernel (the _batch() tuple, i): env i does todo[i]
+    extended_batched = False  # the kernel also computes the memory of features="extended"
     first = 0
 
     def __init__(self, num_envs: int = 1, parallel: bool = False, **kwargs):
         self.num_envs = n = check_int("num_envs", num_envs, 1)
-        self.template: Any = self.env_class(**kwargs)  # the env subclass's options (filter_kwargs, …)
+        self.template: Any = self.env_class(**kwargs)  # the env subclass's options (its typed ``options``, …)
         env = self.template
+        if env.extended and not self.extended_batched:
+            raise ValueError(
+                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
+                'vectorization_mode="sync")'
+            )
         self.env_kwargs = dict(kwargs)
         self.trials = env.trials
         self.trials.cache_size = 0  # the store keeps the trials in use
@@ -206,8 +305,11 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         self.pos = np.zeros(n, np.int64)  # next sample to fuse
         self.todo = np.zeros(n, np.int64)  # what the next kernel call does per env (see class docstring)
         self.err = np.zeros((n, N_ERR))  # the last step's error sums (magenv.metrics.E_*)
+        self._means = np.zeros((n, N_STEP))  # the last step's rewards and mean errors (magenv.metrics.S_*)
         self.feat = np.zeros((n, len(self.features)))  # observations, all features, float64
         self.has_dist = np.zeros(n, bool)  # the episode's trial has a true disturbance
+        self.action = np.full(n, self.idle_action)  # the step's action (the default _set_actions)
+        self.failed = np.full(n, -1, np.int64)  # −1, or the sample where the env's filter failed
         self._returns = np.zeros(n)
         self._lengths = np.zeros(n, np.int64)
         self._alloc(n)
@@ -227,22 +329,34 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         raise NotImplementedError
 
     def _set_actions(self, values: np.ndarray | None, stepping: np.ndarray) -> dict:
-        raise NotImplementedError
+        """``action`` ← the stepping envs' single action value (``idle_action`` elsewhere, and everywhere when
+        ``values`` is None); the ``infos`` entry named as the single env's."""
+        if values is None:
+            self.action[:] = self.idle_action
+            return {}
+        np.copyto(self.action, np.where(stepping, values[:, 0], self.idle_action))
+        return {self.template.action_key: self.action.copy()}
 
     def _batch(self) -> tuple:
         raise NotImplementedError
 
-    def _run(self) -> None:
-        """The one compiled call: every env does ``todo``; then checks the kernel's status (``_check``)."""
-        if self._args_version != self.store.version:
-            self._args, self._args_version = self._batch(), self.store.version
-            kernel = self.kernels[1 if self.parallel else 0]
-            self._entry = TrialRunner.compiled(kernel, self._args)
-        self._entry(self._args)
-        self._check()
+    def _failure(self, i: int, sample: int) -> Exception:
+        raise NotImplementedError
 
-    def _check(self) -> None:
-        """Raise if the kernel reported a failing env (filters that can fail override it)."""
+    def _run(self) -> None:
+        """The one compiled call: every env does ``todo``; then raises ``_failure`` of the first failing env."""
+        if self._args_version != self.store.version:
+            a = self.store.arrays
+            steps = Steps(a["gyr"], a["acc"], a["mag"], a["q_true"], a["dist"], self.off, self.n, self.pos,
+                          self.todo, self.err, self.feat, self.failed)  # fmt: skip
+            self._args, self._args_version = (self.advance_env, self._batch(), steps), self.store.version
+            self._entry = TrialRunner.compiled(each_env_threads if self.parallel else each_env, *self._args)
+        self._entry(*self._args)
+        bad = np.flatnonzero(self.failed >= 0)
+        if bad.size:
+            i = int(bad[0])
+            sample, self.failed[:] = int(self.failed[i]), -1
+            raise self._failure(i, sample)
 
     def _step_info(self) -> dict:
         """The env's own ``infos`` arrays after a step (beyond the action's)."""
@@ -332,21 +446,19 @@ class BatchVectorEnv(gym.vector.VectorEnv):
         before = self.pos.copy()
         action_info = self._set_actions(values, stepping)
         self._run()
-        err = self.err
-        has = err[:, E_COUNT] > 0
-        cnt = np.where(has, err[:, E_COUNT], 1.0)
-        total = np.where(has, err[:, E_TOTAL] / cnt, np.nan)
-        rewards = np.where(has, -total, 0.0)
+        fused = np.maximum(self.pos - before, 1)
+        means = self._means
+        step_means_rows(self.err, fused, self.has_dist & stepping, means)
+        rewards = means[:, S_REWARD].copy()
         truncated = stepping & (self.pos >= self.n)
         self._needs_reset = truncated.copy()
         self._returns += rewards
         self._lengths += stepping
-        fused = np.maximum(self.pos - before, 1)
         infos = {
-            "error_total": total,
-            "error_heading": np.where(has, err[:, E_HEADING] / cnt, np.nan),
-            "error_inclination": np.where(has, err[:, E_INCL] / cnt, np.nan),
-            "disturbance_norm": np.where(self.has_dist & stepping, err[:, E_DIST] / fused, np.nan),
+            "error_total": means[:, S_TOTAL].copy(),
+            "error_heading": means[:, S_HEADING].copy(),
+            "error_inclination": means[:, S_INCL].copy(),
+            "disturbance_norm": means[:, S_DIST].copy(),
             "action_clipped": clipped & stepping,
             "sample": self.pos.copy(),
             **action_info,

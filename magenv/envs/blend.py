@@ -19,19 +19,18 @@ it: the extra causal features of ``magenv.envs.blend_memory`` and the memory
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from magenv.checks import check_bool
 from magenv.envs import BLEND_ID, blend_memory, lagged
-from magenv.envs.batch import BatchVectorEnv
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
+from magenv.envs.common import TrialRunner, TrustEnv, episode_view
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import blend, stationary
 from magenv.filters.madgwick import BETA_DEFAULT
-from magenv.filters.sensors import Sensors
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
@@ -128,10 +127,7 @@ def _norm3(v):
     return np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    """Feature value ``x`` clipped to the range of feature ``i``."""
-    return min(_HIGH[i], max(_LOW[i], x))
+_clip = clipper(FEATURES)
 
 
 @njit(cache=True, inline="always")
@@ -302,12 +298,6 @@ class BlendRunner(TrialRunner):
         return self.est
 
 
-def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
-    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
-    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
-    return lagged.observation_table(features, FEATURES, EXTENDED)
-
-
 @document(blend_memory.EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagBlendEnv(TrustEnv):
@@ -420,9 +410,13 @@ class MagBlendEnv(TrustEnv):
 
     ## Version History
 
-    - v0: initial version.
+    - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
+      2026-12-01 first version (Fan et al.'s complementary blend on the MuJoCo gimbal), the batched vector env
+      on the same kernel, ``features="extended"`` (29 causal features, lags of 8 and 32 decisions);
+      2026-12-02 long episodes held in bounded memory (no change to any observation or reward).
     """
 
+    observation = (FEATURES, EXTENDED)
     env_name = BLEND_ID.split("/")[1]
 
     def __init__(
@@ -441,48 +435,22 @@ class MagBlendEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
-        features, table = observation_table(features)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            prefetch=prefetch,
-            trial_pool=trial_pool,
-        )
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
+        )  # fmt: skip
         # bad filter arguments fail here, not at reset (ValueError / TypeError naming the argument)
-        params = blend.make_params(1.0, beta, check_bool("stationary_hold", stationary_hold), th_acc_g, th_gyro_dps)
-        stationary.make_state(1.0, t0)
-        self.stationary_hold = params.hold
-        self.filter_kwargs: dict[str, Any] = dict(
-            beta=params.beta,
-            hold=params.hold,
-            t0=float(t0),
-            th_acc_g=float(th_acc_g),
-            th_gyro_dps=float(th_gyro_dps),
-            extended=table is EXTENDED,
-        )
+        hold = check_bool("stationary_hold", stationary_hold)
+        self.options = blend.Options(beta, hold, t0, th_acc_g, th_gyro_dps)
+        self.stationary_hold = hold
 
     def _make_runner(self, trial: Trial) -> BlendRunner:
-        return BlendRunner(trial, **self.filter_kwargs)
-
-    def step(self, action):
-        runner = self._step_runner()
-        lam, clipped = scalar_action(action, "λ")
-        runner.advance(self.k_steps, lam)
-        return self._step_result(runner, {"lambda": lam, "action_clipped": clipped})
+        o = self.options
+        return BlendRunner(trial, o.beta, o.hold, o.t0, o.th_acc_g, o.th_gyro_dps, extended=self.extended)
 
     # ------------------------------------------------------------ evaluation access
 
-    @property
-    def lambdas(self) -> np.ndarray:
-        """(N,) λ used per sample (NaN where not fused yet)."""
-        return self._need_reset().lam
+    lambdas = episode_view("lam", "(N,) λ used per sample (NaN where not fused yet).")
 
     @property
     def stationary(self) -> np.ndarray:
@@ -504,56 +472,24 @@ class Batch(NamedTuple):
     buf: np.ndarray  # (N, L_max, 3) stationary ring buffers, first ``blen[i]`` rows used (stationary.State.buf)
     blen: np.ndarray  # (N,) ring length of each env
     ctr: np.ndarray  # (N, 2) ring counters (stationary.State.ctr)
-    gyr: np.ndarray  # (M, 3) the store's rows: sensors …
-    acc: np.ndarray
-    mag: np.ndarray
-    q_true: np.ndarray  # (M, 4) … and truth (Truth)
-    dist: np.ndarray  # (M,)
-    off: np.ndarray  # (N,) each env's first row in the store
-    n: np.ndarray  # (N,) samples of each env's episode
-    pos: np.ndarray  # (N,) next sample to fuse
-    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
     lam: np.ndarray  # (N,) λ of the step
-    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window (a step's samples, one before, one after)
+    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window (magenv.envs.batch.Window)
     lam_h: np.ndarray  # (N, k + 2)
     dip: np.ndarray  # (N, k + 2)
     cand: np.ndarray  # (N, k + 2)
     still: np.ndarray  # (N, k + 2) bool
-    err: np.ndarray  # (N, N_ERR) error sums of the step
-    feat: np.ndarray  # (N, len(FEATURES)) observations
 
 
 @njit(cache=True)
-def _advance_env(b, i):
-    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` on the window of its step (rows ``base:end``
-    of its episode: the sample before the step, the step's, the one after), so that the kernel reads and
-    writes exactly what it does for the single env."""
-    o, start = b.off[i], b.pos[i]
-    stop = min(start + b.todo[i], b.n[i])
-    base, end = max(start - 1, 0), min(stop + 1, b.n[i])
+def _advance_env(b, s, i, w):
+    """Env i of :class:`Batch` (``s``: ``magenv.envs.batch.Steps``) does its step: :func:`advance` on window
+    ``w``."""
     p = blend.Params(b.beta, b.dt[i], b.th_acc, b.th_gyro, b.hold)
     state = blend.State(b.q[i], stationary.State(b.buf[i, : b.blen[i]], b.ctr[i]))
-    sensors = Sensors(b.gyr[o + base : o + end], b.acc[o + base : o + end], b.mag[o + base : o + end])
-    truth = Truth(b.q_true[o + base : o + end], b.dist[o + base : o + end])
-    out = Outputs(b.est[i], b.lam_h[i], b.dip[i], b.cand[i], b.still[i], b.err[i], b.feat[i])
-    advance(p, Site(b.m0[i], b.dip0[i]), state, sensors, truth, out, b.lam[i], start - base, stop - base)
-    b.pos[i] = stop
-
-
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
+    sensors, truth = window_rows(s, w)
+    out = Outputs(b.est[i], b.lam_h[i], b.dip[i], b.cand[i], b.still[i], s.err[i], s.feat[i])
+    advance(p, Site(b.m0[i], b.dip0[i]), state, sensors, truth, out, b.lam[i], w.start, w.stop)
+    return -1
 
 
 class MagBlendVectorEnv(BatchVectorEnv):
@@ -563,40 +499,29 @@ class MagBlendVectorEnv(BatchVectorEnv):
     ``gymnasium.make_vec("magenv/MagBlend-v0", num_envs=256, vectorization_mode="vector_entry_point", …)``
     with the single env's arguments. Sub-env i is the single env seeded s + i bit for bit; seeding, next-step
     autoreset and ``infos`` (with ``lambda``): see ``magenv.envs.batch.BatchVectorEnv``. The filter state
-    (``blend.State``) of the N envs is held as arrays with a leading axis N, and :func:`advance_batch` hands env
+    (``blend.State``) of the N envs is held as arrays with a leading axis N, and :func:`_advance_env` hands env
     i's views to :func:`advance`.
     """
 
     env_class = MagBlendEnv
     features = FEATURES
-    channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
-                "dist": ((), float)}  # fmt: skip
-    kernels = (advance_batch, advance_batch_threads)
+    advance_env = _advance_env
 
     def _alloc(self, n: int) -> None:
-        kw = self.template.filter_kwargs
-        if kw["extended"]:
-            raise ValueError(
-                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
-                'vectorization_mode="sync")'
-            )
-        self.params = blend.make_params(1.0, kw["beta"], kw["hold"], kw["th_acc_g"], kw["th_gyro_dps"])
+        self.params = self.template.options.params(1.0)
         rows = self.k_steps + 2
         self.dt, self.m0, self.dip0 = np.ones(n), np.ones(n), np.zeros(n)
         self.q = np.zeros((n, 4))
         self.buf, self.blen, self.ctr = np.zeros((n, 1, 3)), np.ones(n, np.int64), np.zeros((n, 2), np.int64)
-        self.lam = np.zeros(n)
         self.scratch = Outputs(
             np.zeros((n, rows, 4)), np.zeros((n, rows)), np.zeros((n, rows)), np.zeros((n, rows)),
             np.zeros((n, rows), np.bool_), self.err, self.feat,
         )  # fmt: skip
 
     def _prepare(self, trial: Trial):
-        truth = Truth.of(trial)
-        rows = {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist}
-        kw = self.template.filter_kwargs
-        state = blend.make_state(trial, kw["t0"])
-        return rows, (float(trial.dt), trial.field_norm, trial.field_dip, state.q, state.detector.buf.shape[0])
+        state = blend.make_state(trial, self.template.options.t0)
+        description = (float(trial.dt), trial.field_norm, trial.field_dip, state.q, state.detector.buf.shape[0])
+        return trial_rows(trial), description
 
     def _start(self, i: int, description) -> None:
         self.dt[i], self.m0[i], self.dip0[i], q0, length = description
@@ -609,17 +534,10 @@ class MagBlendVectorEnv(BatchVectorEnv):
         self.blen[i] = length
         self.ctr[i] = 0
 
-    def _set_actions(self, values, stepping) -> dict:
-        if values is None:
-            self.lam[:] = 0.0
-            return {}
-        np.copyto(self.lam, np.where(stepping, values[:, 0], 0.0))
-        return {"lambda": self.lam.copy()}
-
     def _batch(self) -> Batch:
-        p, s, a = self.params, self.scratch, self.store.arrays
+        p, s = self.params, self.scratch
         return Batch(
-            p.beta, p.th_acc, p.th_gyro, p.hold, self.dt, self.m0, self.dip0, self.q, self.buf, self.blen,
-            self.ctr, a["gyr"], a["acc"], a["mag"], a["q_true"], a["dist"], self.off, self.n, self.pos,
-            self.todo, self.lam, s.est, s.lam, s.dip, s.cand_angle, s.stationary, self.err, self.feat,
+            beta=p.beta, th_acc=p.th_acc, th_gyro=p.th_gyro, hold=p.hold, dt=self.dt, m0=self.m0, dip0=self.dip0,
+            q=self.q, buf=self.buf, blen=self.blen, ctr=self.ctr, lam=self.action, est=s.est, lam_h=s.lam, dip=s.dip,
+            cand=s.cand_angle, still=s.stationary,
         )  # fmt: skip

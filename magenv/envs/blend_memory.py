@@ -29,18 +29,16 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from magenv.envs.features import Feature, FeatureTable
+from magenv.envs.features import DEG, HEADING, SHARED, Feature, FeatureTable
 from magenv.filters.madgwick import MODE_IMU, MODE_MIMU, NO_REF, step
 from magenv.quaternion import GRAVITY
 
-_DEG = "°"
-_HEADING = -180.0, 180.0
 _DIFF = -360.0, 360.0
 
 EXTRA = FeatureTable(
-    Feature("mh_ema_025", *_HEADING, _DEG, "EMA (τ 0.25 s) of the mag heading (≈ −heading error in a clean field)"),
-    Feature("mh_ema_1", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading"),
-    Feature("mh_ema_4", *_HEADING, _DEG, "EMA (τ 4 s) of the mag heading"),
+    Feature("mh_ema_025", *HEADING, DEG, "EMA (τ 0.25 s) of the mag heading (≈ −heading error in a clean field)"),
+    SHARED["mh_ema_1"],
+    SHARED["mh_ema_4"],
     Feature(
         "pull_h",
         -100.0,
@@ -50,24 +48,22 @@ EXTRA = FeatureTable(
     ),
     Feature("pull_tilt", 0.0, 100.0, "units of β·Δt", "mean tilt part magnitude of q_MIMU ⊗ q_IMU* over the step"),
     Feature("pull_h_ema_1", -100.0, 100.0, "units of β·Δt", "EMA (τ 1 s) of pull_h"),
-    Feature("d_imu", *_HEADING, _DEG, "heading(q ⊗ q_IMU*), q_IMU the parallel λ = 1 filter"),
-    Feature("d_mimu", *_HEADING, _DEG, "heading(q_MIMU ⊗ q*), q_MIMU the parallel λ = 0 filter"),
-    Feature(
-        "d_slow", *_HEADING, _DEG, "heading(q_slow ⊗ q*), q_slow a parallel filter with λ = 0.9 when clean, else 1"
-    ),
+    Feature("d_imu", *HEADING, DEG, "heading(q ⊗ q_IMU*), q_IMU the parallel λ = 1 filter"),
+    Feature("d_mimu", *HEADING, DEG, "heading(q_MIMU ⊗ q*), q_MIMU the parallel λ = 0 filter"),
+    Feature("d_slow", *HEADING, DEG, "heading(q_slow ⊗ q*), q_slow a parallel filter with λ = 0.9 when clean, else 1"),
     Feature(
         "d_anchor",
-        *_HEADING,
-        _DEG,
+        *HEADING,
+        DEG,
         "heading(q ⊗ q_anc*), q_anc the IMU filter re-anchored to the estimate on clean samples",
     ),
     Feature("t_anchor", 0.0, 3.0, "units of 10 s", "time since the last clean sample (clipped)"),
-    Feature("nd_ema_05", -1.0, 10.0, "fraction of m0", "EMA (τ 0.5 s) of the field-norm deviation"),
-    Feature("nd_ema_2", -1.0, 10.0, "fraction of m0", "EMA (τ 2 s) of the field-norm deviation"),
-    Feature("nd_ema_8", 0.0, 10.0, "fraction of m0", "EMA (τ 8 s) of the absolute field-norm deviation"),
-    Feature("dd_ema_05", 0.0, 180.0, _DEG, "EMA (τ 0.5 s) of the absolute dip deviation"),
-    Feature("dd_ema_2", -180.0, 180.0, _DEG, "EMA (τ 2 s) of the signed dip deviation"),
-    Feature("gyro_ema_1", 0.0, 100.0, "rad/s", "EMA (τ 1 s) of ‖ω‖"),
+    SHARED["nd_ema_05"],
+    SHARED["nd_ema_2"],
+    SHARED["nd_ema_8"],
+    SHARED["dd_ema_05"],
+    SHARED["dd_ema_2"],
+    SHARED["gyro_ema_1"],
     Feature(
         "resid_ema",
         0.0,
@@ -78,19 +74,19 @@ EXTRA = FeatureTable(
     ),
     Feature("still_ema_1", 0.0, 1.0, "–", "EMA (τ 1 s) of the stationary flag"),
     Feature("t_still", 0.0, 3.0, "units of 10 s", "time since the last stationary sample (clipped)"),
-    Feature("d_imu_d1", *_DIFF, _DEG, "change of d_imu over the last 32 decisions (1 s at k = 8, 256 Hz)"),
-    Feature("d_imu_d4", *_DIFF, _DEG, "change of d_imu over the last 128 decisions (4 s at k = 8, 256 Hz)"),
-    Feature("mh_raw", *_HEADING, _DEG, "mag heading of the next sample j with the current estimate q_{j−1}"),
+    Feature("d_imu_d1", *_DIFF, DEG, "change of d_imu over the last 32 decisions (1 s at k = 8, 256 Hz)"),
+    Feature("d_imu_d4", *_DIFF, DEG, "change of d_imu over the last 128 decisions (4 s at k = 8, 256 Hz)"),
+    Feature("mh_raw", *HEADING, DEG, "mag heading of the next sample j with the current estimate q_{j−1}"),
     Feature("clean_frac_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
     Feature("b_up", -1000.0, 1000.0, "°/s", "earth-up component of the gyro-bias estimate b̂ rotated by q"),
     Feature(
         "d_bc_anchor",
-        *_HEADING,
-        _DEG,
+        *HEADING,
+        DEG,
         "heading(q ⊗ q_bca*), q_bca the bias-corrected (ω − b̂) IMU filter re-anchored to q on clean samples",
     ),
-    Feature("d_bc_imu", *_HEADING, _DEG, "heading(q ⊗ q_bci*), q_bci the parallel bias-corrected IMU filter"),
-    Feature("mh_clean", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading over clean samples only"),
+    Feature("d_bc_imu", *HEADING, DEG, "heading(q ⊗ q_bci*), q_bci the parallel bias-corrected IMU filter"),
+    Feature("mh_clean", *HEADING, DEG, "EMA (τ 1 s) of the mag heading over clean samples only"),
     Feature("b_norm", 0.0, 1000.0, "°/s", "‖b̂‖"),
 )
 X = EXTRA.ix

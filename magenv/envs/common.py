@@ -25,17 +25,21 @@ The batched vector env every env module builds its ``vector_entry_point`` on is 
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numba
 import numpy as np
+from numba.core.dispatcher import Dispatcher
 
 from magenv.checks import check_bool, check_int, check_mapping, check_number
+from magenv.envs import lagged
+from magenv.envs.features import FeatureTable
 from magenv.envs.render import RenderMixin, check_render_mode
 from magenv.filters.sensors import Sensors
-from magenv.metrics import E_COUNT, E_DIST, E_HEADING, E_INCL, E_TOTAL
+from magenv.metrics import N_STEP, step_means
 from magenv.seeding import draw_training_seed
 from magenv.trial import Trial
 
@@ -402,6 +406,8 @@ def _type_key(value):
         return value.dtype.str, value.ndim, flags.c_contiguous, flags.f_contiguous, flags.writeable, flags.aligned
     if isinstance(value, tuple):
         return type(value), tuple(_type_key(v) for v in value)
+    if isinstance(value, Dispatcher):  # a numba function as an argument: its type is the function itself
+        return value
     return type(value)
 
 
@@ -466,6 +472,13 @@ class TrialRunner:
         return stop - start
 
 
+def episode_view(path: str, doc: str) -> Any:
+    """A read-only property of an env: its current episode's runner's attribute ``path`` (dotted), RuntimeError
+    before the first ``reset()``."""
+    get = operator.attrgetter(path)
+    return property(lambda env: get(env._need_reset()), doc=doc)
+
+
 class TrustEnv(RenderMixin, gym.Env):
     """Bookkeeping every trust env shares: arguments, trial per ``reset``, step checks, errors, histories.
 
@@ -482,26 +495,29 @@ class TrustEnv(RenderMixin, gym.Env):
     """
 
     env_name = "TrustEnv"  # registered id without the namespace, for messages
+    action_symbol = "λ"  # the scalar action's symbol in messages (:meth:`_decode`)
+    action_key = "lambda"  # and its ``info`` key
+    observation: tuple[FeatureTable, FeatureTable]  # the env's FEATURES and EXTENDED tables (``features`` option)
+    extended = False  # the observation is EXTENDED's (memory features)
 
     def _setup(
         self,
+        *,
         scenario,
         decision_every,
         episode_seconds,
         render_mode,
         scenario_kwargs,
         features,
-        names: tuple[str, ...],
-        low: np.ndarray,
-        high: np.ndarray,
         action_dim: int = 1,
         prefetch: bool = False,
         world: str | None = None,
         require: Callable[[Trial], None] | None = None,
         trial_pool=None,
     ) -> None:
-        """Check the common arguments; set ``k_steps``, ``trials`` (a :class:`TrialSource`), ``scenario``,
-        ``features``, the spaces."""
+        """Check the options every env shares (keywords only; ``features`` selects from the env's ``observation``
+        tables, ``magenv.envs.lagged.observation_table``); set ``k_steps``, ``trials`` (a :class:`TrialSource`),
+        ``scenario``, ``features``, ``extended``, the spaces."""
         self.k_steps = check_env_args(self.env_name, decision_every, episode_seconds, render_mode)
         scenario_kwargs = check_mapping("scenario_kwargs", scenario_kwargs)
         prefetch = check_bool("prefetch", prefetch)
@@ -511,11 +527,16 @@ class TrustEnv(RenderMixin, gym.Env):
         self.episode = 0  # episodes since the last seeded reset (a trial pool's generation counts them)
         self.scenario = self.trials.label
         self.episode_seconds = episode_seconds
-        self.features, self._idx, self._all, self.observation_space = select_features(features, names, low, high)
+        features, table = lagged.observation_table(features, *self.observation)
+        self.extended = table is self.observation[1]
+        self.features, self._idx, self._all, self.observation_space = select_features(
+            features, table.names, table.low, table.high
+        )
         self.action_space = gym.spaces.Box(0.0, 1.0, (action_dim,), dtype=np.float32)
         self.render_mode = render_mode
         self._runner: Any = None  # the env's TrialRunner subclass after reset
         self._steps = 0  # steps since the last reset, for the divergence message
+        self._means = np.zeros(N_STEP)  # the last step's reward and mean errors (magenv.metrics.step_means)
         self.trial: Trial | None = None
 
     def _make_runner(self, trial: Trial):
@@ -538,6 +559,7 @@ class TrustEnv(RenderMixin, gym.Env):
         self.trial = cut_trial(trial, self.episode_seconds)
         self._runner = self._make_runner(self.trial)
         self._steps = 0
+        self._step_means = TrialRunner.compiled(step_means, self._runner.err, 1, self._runner.has_dist, self._means)
         info = {
             "trial": self.trial.name,
             "rate": self.trial.rate,
@@ -554,28 +576,35 @@ class TrustEnv(RenderMixin, gym.Env):
         feat = self._runner.feat
         return (feat if self._all else feat[self._idx]).astype(np.float32)
 
-    def _step_runner(self):
-        """The runner, checked for ``step()``: RuntimeError before ``reset()`` or after truncation."""
+    def _decode(self, action) -> tuple[Any, dict]:
+        """Hook: (the runner's action, its ``info`` entries) from ``step``'s ``action``. By default one trust
+        value in [0, 1] (:func:`scalar_action`, named ``action_symbol`` in messages, ``action_key`` in info)."""
+        value, clipped = scalar_action(action, self.action_symbol)
+        return value, {self.action_key: value, "action_clipped": clipped}
+
+    def _step_info(self, runner, start: int) -> dict:
+        """Hook: the env's own ``info`` entries after a step that fused samples ``start`` … ``runner.pos``−1."""
+        return {}
+
+    def step(self, action):
+        """Fuse the next ``decision_every`` samples with ``action`` (the hooks :meth:`_decode` and
+        :meth:`_step_info` are what an env adds); RuntimeError before ``reset()`` or after truncation.
+
+        Returns reward −(mean total error, °) over the step (0 if no sample had truth;
+        ``magenv.metrics.step_means``); info ``t``, ``sample``, the action's entries, the mean errors (°),
+        ``disturbance_norm`` (µT), ``q_est``, ``q_true`` (last fused sample), the env's entries."""
         runner = self._runner
         name = type(self).__name__
         if runner is None:
             raise RuntimeError(f"{name}.step() called before reset(); call env.reset() first")
         if runner.done:
             raise RuntimeError(f"{name}.step() called after the episode was truncated; call env.reset()")
-        return runner
-
-    def _step_result(self, runner, action_info: dict, extra_info: dict | None = None):
-        """``step()``'s return after ``runner`` advanced: reward −(mean total error, °) over the step (0 if none
-        had truth); info ``t``, ``sample``, ``action_info``, the mean errors (°), ``disturbance_norm`` (µT),
-        ``q_est``, ``q_true`` (last fused sample), ``extra_info``."""
-        err = runner.err.tolist()  # Python floats: the same doubles, faster arithmetic than numpy scalars
-        cnt = err[E_COUNT]
-        if cnt > 0:
-            total, heading, incl = err[E_TOTAL] / cnt, err[E_HEADING] / cnt, err[E_INCL] / cnt
-            reward = -total
-        else:
-            total = heading = incl = math.nan
-            reward = 0.0
+        value, action_info = self._decode(action)
+        start = runner.pos
+        runner.advance(self.k_steps, value)
+        means = self._means
+        self._step_means(runner.err, runner.last_count, runner.has_dist, means)
+        reward, total, heading, incl, dist = means.tolist()
         last = runner.pos - 1
         trial = self.trial
         assert trial is not None  # set with the runner by reset()
@@ -585,7 +614,7 @@ class TrustEnv(RenderMixin, gym.Env):
         # ranges within ±1e3), at a quarter of the cost of np.isfinite(x).all()
         if not (math.isfinite(reward) and math.isfinite(q_est.dot(q_est)) and math.isfinite(obs.dot(obs))):
             raise FloatingPointError(
-                f"{type(self).__name__}: the filter diverged in step {self._steps} after reset (samples "
+                f"{name}: the filter diverged in step {self._steps} after reset (samples "
                 f"{runner.pos - runner.last_count}…{last} of trial {trial.name!r}): non-finite "
                 f"{'observation' if np.isfinite(q_est).all() else 'estimate'}; check the env's filter arguments"
             )
@@ -596,14 +625,14 @@ class TrustEnv(RenderMixin, gym.Env):
             "error_total": total,
             "error_heading": heading,
             "error_inclination": incl,
-            "disturbance_norm": (err[E_DIST] / runner.last_count) if runner.has_dist else math.nan,
+            "disturbance_norm": dist,
             "q_est": q_est,
             "q_true": runner.q_true[last].copy(),
-            **(extra_info or {}),
+            **self._step_info(runner, start),
         }
         if self.render_mode == "human":
             self.render()
-        return obs, float(reward), False, runner.done, info
+        return obs, reward, False, runner.done, info
 
     def _need_reset(self):
         """The runner of the current episode (RuntimeError before the first ``reset()``)."""
@@ -611,7 +640,6 @@ class TrustEnv(RenderMixin, gym.Env):
             raise RuntimeError("no episode yet; call env.reset() first")
         return self._runner
 
-    @property
-    def estimate(self) -> np.ndarray:
-        """(N, 4) per-sample estimate sensor → ENU of the current episode (NaN rows not fused yet)."""
-        return self._need_reset().est
+    estimate = episode_view(
+        "est", "(N, 4) per-sample estimate sensor → ENU of the current episode (NaN rows not fused yet)."
+    )

@@ -12,16 +12,17 @@ decision per sample reproduces the paper's filter.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from magenv.checks import check_bool, check_positive
 from magenv.envs import CONSTRAINT_ID, constraint_memory, lagged
-from magenv.envs.batch import BatchVectorEnv, check_box_actions
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.envs.batch import ROWS, BatchVectorEnv, check_box_actions
+from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array, episode_view
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import constraint as cf
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
@@ -54,10 +55,7 @@ EXTENDED = lagged.extended_table((*FEATURES.features, *constraint_memory.EXTRA.f
 _LOW, _HIGH = FEATURES.low64, FEATURES.high64
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    """Feature value ``x`` clipped to the range of feature ``i``."""
-    return min(max(x, _LOW[i]), _HIGH[i])
+_clip = clipper(FEATURES)
 
 
 @njit(cache=True, inline="always")
@@ -118,6 +116,22 @@ def _features(p, inputs, q, trace, start, stop, feat):
     for i in range(start, stop):
         s += trace.mag_dev[i]
     feat[F.mag_dev_mean] = _clip(s / (stop - start + 1), F.mag_dev_mean)
+
+
+@dataclass(frozen=True)
+class Options:
+    """The env's eq. 18 gain rule, checked once (``constraint.check_rule_params``): th2 (a weight), th3 (‖Δq‖),
+    gains k_min ≤ k_max (1/s)."""
+
+    th2: float
+    th3: float
+    k_min: float
+    k_max: float
+
+    def __post_init__(self):
+        _, *checked = cf.check_rule_params(th2=self.th2, th3=self.th3, k_min=self.k_min, k_max=self.k_max)
+        for name, value in zip(("th2", "th3", "k_min", "k_max"), checked):
+            object.__setattr__(self, name, value)
 
 
 class ConstraintRunner(TrialRunner):
@@ -263,9 +277,14 @@ class MagConstraintEnv(TrustEnv):
 
     ## Version History
 
-    - v0: initial version.
+    - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
+      2026-12-01 first version (the two-link constraint filter, w per step), the batched vector env;
+      2026-12-02 ``features="extended"``; 2026-12-05 gyro-bias features (bias from rest, drift, bias-corrected
+      parallel filters); 2026-12-06 the bias-corrected twin applies the env's k where the action sets it.
     """
 
+    action_symbol = action_key = "w"
+    observation = (FEATURES, EXTENDED)
     env_name = CONSTRAINT_ID.split("/")[1]
 
     def __init__(
@@ -286,31 +305,19 @@ class MagConstraintEnv(TrustEnv):
     ):
         # bad arguments fail here, not at reset (ValueError / TypeError naming the argument)
         control_gain, gain_max = check_bool("control_gain", control_gain), check_positive("gain_max", gain_max)
-        _, th2, th3, k_min, k_max = cf.check_rule_params(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
-        features, table = lagged.observation_table(features, FEATURES, EXTENDED)
+        options = Options(th2, th3, k_min, k_max)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            2 if control_gain else 1,
-            world="twolink",
-            require=cf.require_two_link,
-            trial_pool=trial_pool,
-        )
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool,
+            action_dim=2 if control_gain else 1, world="twolink", require=cf.require_two_link,
+        )  # fmt: skip
         self.control_gain, self.gain_max = control_gain, gain_max
-        self.filter_kwargs: dict[str, Any] = dict(th2=th2, th3=th3, k_min=k_min, k_max=k_max)
-        self.extended = table is EXTENDED
+        self.options = options
 
     def _make_runner(self, trial: Trial) -> ConstraintRunner:
-        return ConstraintRunner(trial, self.extended, **self.filter_kwargs)  # checks link j's channels
+        return ConstraintRunner(trial, self.extended, **asdict(self.options))  # checks link j's channels
 
-    def _action(self, action) -> tuple[float, float | None, bool]:
+    def _decode(self, action) -> tuple[tuple[float, float | None], dict]:
         dim = 2 if self.control_gain else 1  # the action Box's length
         what = "[w, k/gain_max]" if self.control_gain else "w"
         a = action_array(action, f"{what} in [0, 1]")
@@ -323,28 +330,16 @@ class MagConstraintEnv(TrustEnv):
         clipped = bool(np.any(c != a))
         w = float(c[0])
         k = float(c[1]) * self.gain_max if self.control_gain else None  # None: eq. 18
-        return w, k, clipped
+        return (w, k), {"w": w, "action_clipped": clipped}
 
-    def step(self, action):
-        runner = self._step_runner()
-        w, k, clipped = self._action(action)
-        start = runner.pos
-        runner.advance(self.k_steps, (w, k))
-        return self._step_result(
-            runner, {"w": w, "k": float(np.mean(runner.trace.gain[start : runner.pos])), "action_clipped": clipped}
-        )
+    def _step_info(self, runner, start: int) -> dict:
+        return {"k": float(np.mean(runner.trace.gain[start : runner.pos]))}  # the mean gain over the step
 
     # ------------------------------------------------------------ evaluation access
 
-    @property
-    def weights(self) -> np.ndarray:
-        """(N,) constraint weight w per sample (NaN where not fused yet)."""
-        return self._need_reset().trace.weight
+    weights = episode_view("trace.weight", "(N,) constraint weight w per sample (NaN where not fused yet).")
 
-    @property
-    def gains(self) -> np.ndarray:
-        """(N,) gain k per sample (NaN where not fused yet)."""
-        return self._need_reset().trace.gain
+    gains = episode_view("trace.gain", "(N,) gain k per sample (NaN where not fused yet).")
 
     @property
     def lambdas(self) -> np.ndarray:
@@ -366,59 +361,28 @@ class Batch(NamedTuple):
     m0: np.ndarray  # (N,) … field norm, µT …
     field_dir: np.ndarray  # (N, 3) … unit Earth field, ENU
     q: np.ndarray  # (N, 4) link i's estimates (the filter's state)
-    gyr: np.ndarray  # (M, 3) the store's rows: constraint.Inputs …
-    acc: np.ndarray
-    mag: np.ndarray
-    joint_i: np.ndarray
+    joint_i: np.ndarray  # (M, 3) the store's rows of constraint.Inputs beyond the sensors (ROWS)
     joint_j: np.ndarray
-    q_true: np.ndarray  # (M, 4) … and truth
-    dist: np.ndarray  # (M,)
-    off: np.ndarray  # (N,) each env's first row in the store
-    n: np.ndarray  # (N,) samples of each env's episode
-    pos: np.ndarray  # (N,) next sample to fuse
-    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
     w: np.ndarray  # (N,) the step's constraint weight
     k: np.ndarray  # (N,) the step's gain (when not by eq. 18)
-    est: np.ndarray  # (N, k + 2, 4) scratch Trace of the step's window
+    est: np.ndarray  # (N, k + 2, 4) scratch Trace of the step's window (magenv.envs.batch.Window)
     weight: np.ndarray  # (N, k + 2)
     gain: np.ndarray  # (N, k + 2)
     mag_dev: np.ndarray  # (N, k + 2)
-    err: np.ndarray  # (N, N_ERR)
-    feat: np.ndarray  # (N, len(FEATURES))
 
 
 @njit(cache=True)
-def _advance_env(b, i):
-    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` on the window of its step (from the sample
-    before the step to the one after)."""
-    o, start = b.off[i], b.pos[i]
-    stop = min(start + b.todo[i], b.n[i])
-    base, end = max(start - 1, 0), min(stop + 1, b.n[i])
+def _advance_env(b, s, i, w):
+    """Env i of :class:`Batch` (``s``: ``magenv.envs.batch.Steps``) does its step: :func:`advance` on window
+    ``w``."""
     fd = b.field_dir[i]
     p = cf.Params(b.dt[i], b.m0[i], (fd[0], fd[1], fd[2]), b.th1, b.th2, b.th3, b.k_min, b.k_max, b.use_constraint)
-    r0, r1 = o + base, o + end
-    inputs = cf.Inputs(b.gyr[r0:r1], b.acc[r0:r1], b.mag[r0:r1], b.joint_i[r0:r1], b.joint_j[r0:r1])
+    r0, r1 = w.r0, w.r1
+    inputs = cf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.joint_i[r0:r1], b.joint_j[r0:r1])
     control = cf.Control(b.w[i], b.k[i], False, b.gain_by_rule)
     trace = cf.Trace(b.est[i], b.weight[i], b.gain[i], b.mag_dev[i])
-    q_true, dist = b.q_true[r0:r1], b.dist[r0:r1]
-    advance(p, b.q[i], inputs, control, start - base, stop - base, trace, q_true, dist, b.err[i], b.feat[i])
-    b.pos[i] = stop
-
-
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
+    advance(p, b.q[i], inputs, control, w.start, w.stop, trace, s.q_true[r0:r1], s.dist[r0:r1], s.err[i], s.feat[i])
+    return -1
 
 
 class MagConstraintVectorEnv(BatchVectorEnv):
@@ -431,26 +395,20 @@ class MagConstraintVectorEnv(BatchVectorEnv):
 
     env_class = MagConstraintEnv
     features = FEATURES
-    channels = {name: ((3,), float) for name in cf.Inputs._fields} | {"q_true": ((4,), float), "dist": ((), float)}
-    kernels = (advance_batch, advance_batch_threads)
+    channels = {**ROWS, "joint_i": ((3,), float), "joint_j": ((3,), float)}
+    advance_env = _advance_env
 
     def _alloc(self, n: int) -> None:
         env = self.template
-        if env.extended:
-            raise ValueError(
-                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
-                'vectorization_mode="sync")'
-            )
-        kw = env.filter_kwargs
-        self.constants = (cf.TH1, kw["th2"], kw["th3"], kw["k_min"], kw["k_max"], True, not env.control_gain)
+        self.constants = dict(th1=cf.TH1, **asdict(env.options), use_constraint=True, gain_by_rule=not env.control_gain)
         rows = self.k_steps + 2
         self.dt, self.m0, self.field_dir = np.ones(n), np.ones(n), np.zeros((n, 3))
         self.q = np.zeros((n, 4))
-        self.w, self.k = np.zeros(n), np.zeros(n)
+        self.k = np.zeros(n)
         self.trace = cf.Trace(np.zeros((n, rows, 4)), np.zeros((n, rows)), np.zeros((n, rows)), np.zeros((n, rows)))
 
     def _prepare(self, trial: Trial):
-        filt = cf.ConstraintFilter(trial, **self.template.filter_kwargs)  # checks link j's channels
+        filt = cf.ConstraintFilter(trial, **asdict(self.template.options))  # checks link j's channels
         truth = Truth.of(trial)
         rows = {**filt.inputs._asdict(), "q_true": truth.q_true, "dist": truth.dist}
         return rows, (filt.params, filt.q0)
@@ -471,17 +429,14 @@ class MagConstraintVectorEnv(BatchVectorEnv):
 
     def _set_actions(self, values, stepping) -> dict:
         if values is None:
-            self.w[:], self.k[:] = 0.0, 0.0
-            return {}
-        np.copyto(self.w, np.where(stepping, values[:, 0], 0.0))
-        if self.template.control_gain:
+            self.k[:] = 0.0
+        elif self.template.control_gain:
             np.copyto(self.k, np.where(stepping, values[:, 1], 0.0))
-        return {"w": self.w.copy()}
+        return super()._set_actions(values, stepping)  # w
 
     def _batch(self) -> Batch:
         t, a = self.trace, self.store.arrays
         return Batch(
-            *self.constants, self.dt, self.m0, self.field_dir, self.q, a["gyr"], a["acc"], a["mag"], a["joint_i"],
-            a["joint_j"], a["q_true"], a["dist"], self.off, self.n, self.pos, self.todo, self.w, self.k, t.est,
-            t.weight, t.gain, t.mag_dev, self.err, self.feat,
+            **self.constants, dt=self.dt, m0=self.m0, field_dir=self.field_dir, q=self.q, joint_i=a["joint_i"],
+            joint_j=a["joint_j"], w=self.action, k=self.k, est=t.est, weight=t.weight, gain=t.gain, mag_dev=t.mag_dev,
         )  # fmt: skip

@@ -59,57 +59,53 @@ import numpy as np
 from numba import njit
 
 from magenv.envs.blend_memory import _ema, _heading
-from magenv.envs.features import Feature, FeatureTable
+from magenv.envs.features import DEG, HEADING, SHARED, Feature, FeatureTable
 from magenv.envs.headings import dip_deg, norm3, planar_heading, wrap_deg
 from magenv.filters import constraint as cf
 from magenv.filters import stationary
 from magenv.quaternion import GRAVITY, conj1, from_rotvec1, integrate_gyro1, mul1, rotate1, to_rotvec1
 
-_DEG = "°"
-_HEADING = -180.0, 180.0
 _ERR = -30.0, 30.0  # degrees: the range of the error estimates
 EXTRA = FeatureTable(
-    Feature("mh_ema_025", *_HEADING, _DEG, "EMA (τ 0.25 s) of the mag heading"),
-    Feature("mh_ema_1", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading"),
-    Feature("mh_ema_4", *_HEADING, _DEG, "EMA (τ 4 s) of the mag heading"),
+    SHARED["mh_ema_025"],
+    SHARED["mh_ema_1"],
+    SHARED["mh_ema_4"],
     Feature(
         "jh_ema_025",
-        *_HEADING,
-        _DEG,
+        *HEADING,
+        DEG,
         "EMA (τ 0.25 s) of the joint heading, each sample weighted by min(a_h/(0.2 g), 1), a_h the horizontal "
         "joint-centre acceleration ‖C(q_j)h_j‖ in the ENU plane",
     ),
-    Feature("jh_ema_1", *_HEADING, _DEG, "as `jh_ema_025` with τ 1 s"),
-    Feature("jh_ema_4", *_HEADING, _DEG, "as `jh_ema_025` with τ 4 s"),
+    Feature("jh_ema_1", *HEADING, DEG, "as `jh_ema_025` with τ 1 s"),
+    Feature("jh_ema_4", *HEADING, DEG, "as `jh_ema_025` with τ 4 s"),
     Feature("ja_h_ema_1", 0.0, 10.0, "units of g", "EMA (τ 1 s) of a_h (how much the constraint sees the heading)"),
-    Feature("d_mag", *_HEADING, _DEG, "heading(q_mag ⊗ q*), q_mag the parallel w = 0 filter (magnetometer)"),
-    Feature("d_con", *_HEADING, _DEG, "heading(q_con ⊗ q*), q_con the parallel w = 1 filter (constraint)"),
-    Feature(
-        "d_anchor", *_HEADING, _DEG, "heading(q ⊗ q_anc*), q_anc the gyro (k = 0) re-anchored to q on clean samples"
-    ),
-    Feature("t_clean", 0.0, 3.0, "units of 10 s", "time since the last clean sample (clipped)"),
+    Feature("d_mag", *HEADING, DEG, "heading(q_mag ⊗ q*), q_mag the parallel w = 0 filter (magnetometer)"),
+    Feature("d_con", *HEADING, DEG, "heading(q_con ⊗ q*), q_con the parallel w = 1 filter (constraint)"),
+    Feature("d_anchor", *HEADING, DEG, "heading(q ⊗ q_anc*), q_anc the gyro (k = 0) re-anchored to q on clean samples"),
+    SHARED["t_clean"],
     Feature("dev_ema_05", 0.0, 10.0, "fraction of m0", "EMA (τ 0.5 s) of eq. 16's deviation"),
     Feature("dev_ema_2", 0.0, 10.0, "fraction of m0", "EMA (τ 2 s) of eq. 16's deviation"),
     Feature("nd_ema_2", -1.0, 10.0, "fraction of m0", "EMA (τ 2 s) of (‖y_M‖ − m0)/m0"),
-    Feature("dd_ema_2", *_HEADING, _DEG, "EMA (τ 2 s) of the signed dip deviation of C(q)y_M"),
+    Feature("dd_ema_2", *HEADING, DEG, "EMA (τ 2 s) of the signed dip deviation of C(q)y_M"),
     Feature("gyro_ema_1", 0.0, 100.0, "rad/s", "EMA (τ 1 s) of ‖ω_i‖"),
-    Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
-    Feature("d_btwin", *_HEADING, _DEG, "heading(q_bt ⊗ q*), q_bt the parallel filter on ω_i − b̂ with the w applied"),
-    Feature("d_bcon", *_HEADING, _DEG, "heading(q_bc ⊗ q*), q_bc the parallel w = 1 filter on ω_i − b̂"),
+    SHARED["clean_ema_4"],
+    Feature("d_btwin", *HEADING, DEG, "heading(q_bt ⊗ q*), q_bt the parallel filter on ω_i − b̂ with the w applied"),
+    Feature("d_bcon", *HEADING, DEG, "heading(q_bc ⊗ q*), q_bc the parallel w = 1 filter on ω_i − b̂"),
     Feature("drift", -5.0, 5.0, "°/s", "C(q)b̂'s up component: the heading drift b̂ causes (+ anticlockwise, as d_*)"),
-    Feature("cerr_e_05", *_ERR, _DEG, "constraint error estimate of q (τ 0.5 s), east component (tilt)"),
-    Feature("cerr_n_05", *_ERR, _DEG, "as `cerr_e_05`, north component (tilt)"),
-    Feature("cerr_e_2", *_ERR, _DEG, "constraint error estimate of q (τ 2 s), east component"),
-    Feature("cerr_n_2", *_ERR, _DEG, "as `cerr_e_2`, north component"),
-    Feature("cerr_e_30", *_ERR, _DEG, "constraint error estimate of q (τ 30 s), east component"),
-    Feature("cerr_n_30", *_ERR, _DEG, "as `cerr_e_30`, north component"),
-    Feature("cerr_u_30", *_ERR, _DEG, "as `cerr_e_30`, up component (heading: only as the joint centre accelerates)"),
-    Feature("step0_e", *_HEADING, "° per unit gain", "step with w = 0 (gravity + magnetometer), east component"),
-    Feature("step0_n", *_HEADING, "° per unit gain", "as `step0_e`, north component"),
-    Feature("step0_u", *_HEADING, "° per unit gain", "as `step0_e`, up component"),
-    Feature("step1_e", *_HEADING, "° per unit gain", "step with w = 1 (gravity + constraint), east component"),
-    Feature("step1_n", *_HEADING, "° per unit gain", "as `step1_e`, north component"),
-    Feature("step1_u", *_HEADING, "° per unit gain", "as `step1_e`, up component"),
+    Feature("cerr_e_05", *_ERR, DEG, "constraint error estimate of q (τ 0.5 s), east component (tilt)"),
+    Feature("cerr_n_05", *_ERR, DEG, "as `cerr_e_05`, north component (tilt)"),
+    Feature("cerr_e_2", *_ERR, DEG, "constraint error estimate of q (τ 2 s), east component"),
+    Feature("cerr_n_2", *_ERR, DEG, "as `cerr_e_2`, north component"),
+    Feature("cerr_e_30", *_ERR, DEG, "constraint error estimate of q (τ 30 s), east component"),
+    Feature("cerr_n_30", *_ERR, DEG, "as `cerr_e_30`, north component"),
+    Feature("cerr_u_30", *_ERR, DEG, "as `cerr_e_30`, up component (heading: only as the joint centre accelerates)"),
+    Feature("step0_e", *HEADING, "° per unit gain", "step with w = 0 (gravity + magnetometer), east component"),
+    Feature("step0_n", *HEADING, "° per unit gain", "as `step0_e`, north component"),
+    Feature("step0_u", *HEADING, "° per unit gain", "as `step0_e`, up component"),
+    Feature("step1_e", *HEADING, "° per unit gain", "step with w = 1 (gravity + constraint), east component"),
+    Feature("step1_n", *HEADING, "° per unit gain", "as `step1_e`, north component"),
+    Feature("step1_u", *HEADING, "° per unit gain", "as `step1_e`, up component"),
     Feature("step0_dot", -1.0e3, 1.0e3, "°²", "step0 · (cerr_e_05, cerr_n_05), east/north: < 0 corrects tilt"),
     Feature("step1_dot", -1.0e3, 1.0e3, "°²", "as `step0_dot` for step1"),
 )

@@ -13,6 +13,7 @@ from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 # Scales shared by the envs' features, so that a rule can recover physical values from an observation.
 DIP_SCALE_DEG = 90.0  # dip deviations in units of 90°
@@ -28,6 +29,29 @@ class Feature:
     high: float
     unit: str
     meaning: str
+
+
+DEG = "°"  # the unit of the features in degrees
+HEADING = -180.0, 180.0  # degrees: the range of a heading feature
+
+#: memory features (``features="extended"``) that several envs' EXTRA tables hold alike, by name: one name, one
+#: meaning across the envs
+SHARED = {
+    f.name: f
+    for f in (
+        Feature("mh_ema_025", *HEADING, DEG, "EMA (τ 0.25 s) of the mag heading"),
+        Feature("mh_ema_1", *HEADING, DEG, "EMA (τ 1 s) of the mag heading"),
+        Feature("mh_ema_4", *HEADING, DEG, "EMA (τ 4 s) of the mag heading"),
+        Feature("nd_ema_05", -1.0, 10.0, "fraction of m0", "EMA (τ 0.5 s) of the field-norm deviation"),
+        Feature("nd_ema_2", -1.0, 10.0, "fraction of m0", "EMA (τ 2 s) of the field-norm deviation"),
+        Feature("nd_ema_8", 0.0, 10.0, "fraction of m0", "EMA (τ 8 s) of the absolute field-norm deviation"),
+        Feature("dd_ema_05", 0.0, 180.0, DEG, "EMA (τ 0.5 s) of the absolute dip deviation"),
+        Feature("dd_ema_2", -180.0, 180.0, DEG, "EMA (τ 2 s) of the signed dip deviation"),
+        Feature("gyro_ema_1", 0.0, 100.0, "rad/s", "EMA (τ 1 s) of ‖ω‖"),
+        Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
+        Feature("t_clean", 0.0, 3.0, "units of 10 s", "time since the last clean sample (clipped)"),
+    )
+}
 
 
 class FeatureTable:
@@ -59,6 +83,22 @@ class FeatureTable:
         for i, f in enumerate(self.features):
             rows.append(f"| {i} | `{f.name}` | {f.meaning} | {f.unit} | {f.low:g} | {f.high:g} |")
         return "\n".join(rows)
+
+
+def clipper(table: FeatureTable, neutral_nan: bool = False):
+    """The numba function ``clip(x, i)``: value ``x`` clipped to the range of feature ``i`` of ``table``, as the
+    kernels clip each feature (float64 bounds; ``min(high, max(low, x))``, which reads NaN as the lower bound).
+    ``neutral_nan``: NaN (e.g. from a zero field) reads as the neutral value instead, 0 if in range, else the
+    lower bound."""
+    low, high = table.low64, table.high64
+
+    @njit(cache=True, inline="always")
+    def clip(x, i):
+        if neutral_nan and x != x:
+            return 0.0 if low[i] <= 0.0 <= high[i] else low[i]
+        return min(high[i], max(low[i], x))
+
+    return clip
 
 
 def document(table: FeatureTable, placeholder: str = "{observation_table}"):

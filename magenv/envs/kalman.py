@@ -23,15 +23,16 @@ samples 0…j only (causal).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, NamedTuple
+from dataclasses import astuple, dataclass, fields
+from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from magenv.envs import KALMAN_ID, kalman_memory, lagged
-from magenv.envs.batch import BatchVectorEnv
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.envs.batch import ROWS, BatchVectorEnv, trial_rows, window_rows
+from magenv.envs.common import TrialRunner, TrustEnv, episode_view
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
 from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
@@ -125,14 +126,35 @@ class Outputs(NamedTuple):
         )
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    """Feature value ``x`` clipped to the range of feature ``i``; NaN (e.g. from a zero field) reads as the
-    neutral value (0 if in range, else the lower bound)."""
-    lo, hi = _LOW[i], _HIGH[i]
-    if x != x:
-        return 0.0 if lo <= 0.0 <= hi else lo
-    return min(hi, max(lo, x))
+_clip = clipper(FEATURES, neutral_nan=True)
+
+
+@dataclass(frozen=True)
+class Options:
+    """The env's filter options, checked once: the trust KF's noise model (``kalman_trust.make_params``: σ's,
+    accelerometer threshold, heading-only update) and the Gauss–Markov split of ``model_dist``
+    (:func:`make_model_params`)."""
+
+    sigma_gyr: float
+    sigma_acc: float
+    sigma_mag: float
+    th_acc: float
+    heading_only: bool
+    model_c_a: float
+    model_c_b: float
+
+    def __post_init__(self):
+        probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, *astuple(self)[:5])  # ValueError / TypeError naming one
+        make_model_params(probe, self.model_c_a, self.model_c_b)
+        for f in fields(self):  # held as Python numbers (the checks take ints and numpy scalars too)
+            value = getattr(self, f.name)
+            object.__setattr__(self, f.name, bool(value) if f.name == "heading_only" else float(value))
+
+    def params(self, trial: Trial | None = None) -> kt.Params:
+        """The trust KF's parameters on ``trial``'s field and rate (None: a 46 µT, 49.6° field at 1 Hz, for the
+        constants alone)."""
+        field = (46.0, 49.6, 1.0) if trial is None else (trial.field_norm, trial.field_dip, trial.dt)
+        return kt.make_params(*field, self.sigma_gyr, self.sigma_acc, self.sigma_mag, self.th_acc, self.heading_only)
 
 
 def make_model_params(params: kt.Params, model_c_a=C_A, model_c_b=C_B, model_p0=1.0) -> VecParams:
@@ -268,12 +290,6 @@ def advance_extended(params, state, sensors, truth, mdist, out, gamma, start, st
         kalman_memory.update(params, sensors, mdist, out.est, out.sig, out.trust, out.peek, memory, start, stop)
     lagged.compose(out.feat, memory.value, rows, count, _LAGS, stop > start, feat)
     return status, repairs
-
-
-def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
-    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
-    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
-    return lagged.observation_table(features, FEATURES, EXTENDED)
 
 
 def trial_disturbance(trial: Trial, params: kt.Params, model_c_a: float, model_c_b: float, model_p0: float = 1.0):
@@ -469,9 +485,15 @@ class MagKalmanEnv(TrustEnv):
 
     ## Version History
 
-    - v0: initial version.
+    - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
+      2026-12-01 first version (the trust Kalman filter, γ per step), the batched vector env;
+      2026-12-02 the extended observation on the shared lag memory; 2026-12-03 still-anchor features
+      (``d_still``, ``pull_still``); 2026-12-05 ``d_perp`` (signed heading error across the disturbance);
+      2026-12-07 kernels without allocation (per-trial RMSEs unchanged to 1e-9°).
     """
 
+    action_symbol, action_key = "γ", "trust"
+    observation = (FEATURES, EXTENDED)
     env_name = KALMAN_ID.split("/")[1]
 
     def __init__(
@@ -492,64 +514,36 @@ class MagKalmanEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
-        features, table = observation_table(features)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            prefetch=prefetch,
-            trial_pool=trial_pool,
-        )
-        # validate the noise model now, not at reset (ValueError / TypeError naming the argument)
-        probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only)
-        make_model_params(probe, model_c_a, model_c_b)
-        self.filter_kwargs: dict[str, Any] = dict(
-            sigma_gyr=float(sigma_gyr),
-            sigma_acc=float(sigma_acc),
-            sigma_mag=float(sigma_mag),
-            th_acc=float(th_acc),
-            heading_only=bool(heading_only),
-        )
-        self.model_kwargs: dict[str, Any] = dict(model_c_a=float(model_c_a), model_c_b=float(model_c_b))
-        self.extended = table is EXTENDED
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
+        )  # fmt: skip
+        # the noise model checked now, not at reset (ValueError / TypeError naming the argument)
+        self.options = Options(sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only, model_c_a, model_c_b)
 
     def _make_runner(self, trial: Trial) -> KalmanRunner:
-        params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **self.filter_kwargs)
-        return KalmanRunner(trial, params, **self.model_kwargs, extended=self.extended)
+        o = self.options
+        return KalmanRunner(trial, o.params(trial), o.model_c_a, o.model_c_b, extended=self.extended)
 
-    def step(self, action):
-        runner = self._step_runner()
-        gamma, clipped = scalar_action(action, "γ")
-        runner.advance(self.k_steps, gamma)
-        return self._step_result(runner, {"trust": gamma, "action_clipped": clipped}, {"repairs": runner.repairs})
+    def _step_info(self, runner, start: int) -> dict:
+        return {"repairs": runner.repairs}
 
     # ------------------------------------------------------------ evaluation access
 
-    @property
-    def trust(self) -> np.ndarray:
-        """(N,) γ used per sample (sample 0, the TRIAD start, is 1; NaN where not fused yet)."""
-        return self._need_reset().trust
+    trust = episode_view("trust", "(N,) γ used per sample (sample 0, the TRIAD start, is 1; NaN where not fused yet).")
 
     @property
     def lambdas(self) -> np.ndarray:
         """(N,) 1 − γ: the MagBlend-style "IMU weight" view of the trust, for ``magenv.evaluation``."""
         return 1.0 - self._need_reset().trust
 
-    @property
-    def signals(self) -> np.ndarray:
-        """(N, 13) the filter's per-sample signals, columns ``kalman_trust.SIGNALS`` (NaN where not fused)."""
-        return self._need_reset().sig
+    signals = episode_view(
+        "sig", "(N, 13) the filter's per-sample signals, columns ``kalman_trust.SIGNALS`` (NaN where not fused)."
+    )
 
-    @property
-    def model_disturbance(self) -> np.ndarray:
-        """(N,) ‖d̂‖ of the model-based split, µT (the ``model_dist`` feature before scaling)."""
-        return self._need_reset().mdist
+    model_disturbance = episode_view(
+        "mdist", "(N,) ‖d̂‖ of the model-based split, µT (the ``model_dist`` feature before scaling)."
+    )
 
 
 class Batch(NamedTuple):
@@ -569,66 +563,31 @@ class Batch(NamedTuple):
     dip0: np.ndarray  # (N,) … dip, rad
     q: np.ndarray  # (N, 4) estimates (kalman_trust.State)
     p: np.ndarray  # (N, 3, 3) covariances
-    gyr: np.ndarray  # (M, 3) the store's rows: sensors …
-    acc: np.ndarray
-    mag: np.ndarray
-    q_true: np.ndarray  # (M, 4) … truth …
-    dist: np.ndarray  # (M,)
-    mdist: np.ndarray  # (M,) … and ‖d̂‖, µT (model_disturbance)
-    off: np.ndarray  # (N,) each env's first row in the store
-    n: np.ndarray  # (N,) samples of each env's episode
-    pos: np.ndarray  # (N,) next sample to fuse
-    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
+    mdist: np.ndarray  # (M,) the store's rows of ‖d̂‖, µT (model_disturbance)
     gamma: np.ndarray  # (N,) γ of the step
-    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window
+    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window (magenv.envs.batch.Window)
     sig: np.ndarray  # (N, k + 2, NSIG)
     trust: np.ndarray  # (N, k + 2)
-    err: np.ndarray  # (N, N_ERR)
-    feat: np.ndarray  # (N, len(FEATURES))
     peek: np.ndarray  # (N, NSIG)
-    status: np.ndarray  # (N,) OK, or the sample where the env's filter failed
     repairs: np.ndarray  # (N,) covariance repairs of each episode so far
 
 
 @njit(cache=True)
-def _advance_env(b, i):
-    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` on the window of its step (from the sample
-    before the step to the one after)."""
-    o, start = b.off[i], b.pos[i]
-    stop = min(start + b.todo[i], b.n[i])
-    base, end = start - 1, min(stop + 1, b.n[i])
+def _advance_env(b, s, i, w):
+    """Env i of :class:`Batch` (``s``: ``magenv.envs.batch.Steps``) does its step: :func:`advance` on window ``w``;
+    returns −1 (``OK``) or the window's sample where the filter failed."""
     params = kt.Params(
         b.dt[i], b.sigma_gyr, b.sigma_acc, b.sigma_mag, b.th_acc, b.heading_only, b.g_ref, b.h_ref[i], b.m0[i],
         b.dip0[i], b.cov_floor, b.p0,
     )  # fmt: skip
-    sensors = Sensors(b.gyr[o + base : o + end], b.acc[o + base : o + end], b.mag[o + base : o + end])
-    truth = Truth(b.q_true[o + base : o + end], b.dist[o + base : o + end])
-    out = Outputs(b.est[i], b.sig[i], b.trust[i], b.err[i], b.feat[i], b.peek[i])
+    sensors, truth = window_rows(s, w)
+    out = Outputs(b.est[i], b.sig[i], b.trust[i], s.err[i], s.feat[i], b.peek[i])
     status, repairs = advance(
-        params, kt.State(b.q[i], b.p[i]), sensors, truth, b.mdist[o + base : o + end], out, b.gamma[i],
-        start - base, stop - base,
-    )  # fmt: skip
-    if status != OK:
-        b.status[i] = status + base
-        return
-    b.repairs[i] += repairs
-    b.pos[i] = stop
-
-
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
+        params, kt.State(b.q[i], b.p[i]), sensors, truth, b.mdist[w.r0 : w.r1], out, b.gamma[i], w.start, w.stop
+    )
+    if status == OK:
+        b.repairs[i] += repairs
+    return status
 
 
 class MagKalmanVectorEnv(BatchVectorEnv):
@@ -642,37 +601,28 @@ class MagKalmanVectorEnv(BatchVectorEnv):
 
     env_class = MagKalmanEnv
     features = FEATURES
-    channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
-                "dist": ((), float), "mdist": ((), float)}  # fmt: skip
-    kernels = (advance_batch, advance_batch_threads)
+    channels = {**ROWS, "mdist": ((), float)}
+    advance_env = _advance_env
     first = 1
+    idle_action = 1.0
 
     def _alloc(self, n: int) -> None:
-        if self.template.extended:
-            raise ValueError(
-                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
-                'vectorization_mode="sync")'
-            )
-        self.params = kt.make_params(46.0, 49.6, 1.0, **self.template.filter_kwargs)  # the env-wide constants
+        self.params = self.template.options.params()  # the env-wide constants
         rows = self.k_steps + 2
         self.dt, self.h_ref, self.m0, self.dip0 = np.ones(n), np.zeros((n, 3)), np.ones(n), np.zeros(n)
         self.q, self.p = np.zeros((n, 4)), np.zeros((n, 3, 3))
-        self.gamma = np.ones(n)
         self.scratch = Outputs(
             np.zeros((n, rows, 4)), np.zeros((n, rows, kt.NSIG)), np.zeros((n, rows)), self.err, self.feat,
             np.zeros((n, kt.NSIG)),
         )  # fmt: skip
-        self.status = np.full(n, OK, np.int64)
         self.repairs = np.zeros(n, np.int64)
 
     def _prepare(self, trial: Trial):
         env = self.template
-        params = kt.make_params(trial.field_norm, trial.field_dip, trial.dt, **env.filter_kwargs)
-        mdist = trial_disturbance(trial, params, env.model_kwargs["model_c_a"], env.model_kwargs["model_c_b"])
-        truth = Truth.of(trial)
-        rows = {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist,
-                "mdist": mdist}  # fmt: skip
-        return rows, (params, kt.init(params, trial.acc[0], trial.mag[0]))
+        o = env.options
+        params = o.params(trial)
+        mdist = trial_disturbance(trial, params, o.model_c_a, o.model_c_b)
+        return {**trial_rows(trial), "mdist": mdist}, (params, kt.init(params, trial.acc[0], trial.mag[0]))
 
     def _start(self, i: int, description) -> None:
         params, state = description
@@ -681,31 +631,20 @@ class MagKalmanVectorEnv(BatchVectorEnv):
         self.scratch.trust[i, 0] = 1.0  # sample 0, the TRIAD start, uses the magnetometer fully
         self.repairs[i] = 0
 
-    def _set_actions(self, values, stepping) -> dict:
-        if values is None:
-            self.gamma[:] = 1.0
-            return {}
-        np.copyto(self.gamma, np.where(stepping, values[:, 0], 1.0))
-        return {"trust": self.gamma.copy()}
-
     def _step_info(self) -> dict:
         return {"repairs": self.repairs.copy()}
 
-    def _check(self) -> None:
-        bad = np.flatnonzero(self.status != OK)
-        if bad.size:
-            i = int(bad[0])
-            sample, self.status[:] = int(self.status[i]), OK
-            raise kt.FilterError(
-                f"trust KF: non-finite sample or covariance at sample {sample} of trial {self._names[i]!r} "
-                f"(env {i}, trust {self.gamma[i]})"
-            )
+    def _failure(self, i: int, sample: int) -> Exception:
+        return kt.FilterError(
+            f"trust KF: non-finite sample or covariance at sample {sample} of trial {self._names[i]!r} "
+            f"(env {i}, trust {self.action[i]})"
+        )
 
     def _batch(self) -> Batch:
-        p, s, a = self.params, self.scratch, self.store.arrays
+        p, s = self.params, self.scratch
         return Batch(
-            p.sigma_gyr, p.sigma_acc, p.sigma_mag, p.th_acc, p.heading_only, p.g_ref, p.cov_floor, p.p0, self.dt,
-            self.h_ref, self.m0, self.dip0, self.q, self.p, a["gyr"], a["acc"], a["mag"], a["q_true"], a["dist"],
-            a["mdist"], self.off, self.n, self.pos, self.todo, self.gamma, s.est, s.sig, s.trust, self.err,
-            self.feat, s.peek, self.status, self.repairs,
+            sigma_gyr=p.sigma_gyr, sigma_acc=p.sigma_acc, sigma_mag=p.sigma_mag, th_acc=p.th_acc,
+            heading_only=p.heading_only, g_ref=p.g_ref, cov_floor=p.cov_floor, p0=p.p0, dt=self.dt, h_ref=self.h_ref,
+            m0=self.m0, dip0=self.dip0, q=self.q, p=self.p, mdist=self.store.arrays["mdist"], gamma=self.action,
+            est=s.est, sig=s.sig, trust=s.trust, peek=s.peek, repairs=self.repairs,
         )  # fmt: skip

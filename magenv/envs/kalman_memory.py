@@ -56,46 +56,43 @@ import numpy as np
 from numba import njit
 
 from magenv.envs.blend_memory import _heading
-from magenv.envs.features import Feature, FeatureTable
+from magenv.envs.features import DEG, HEADING, SHARED, Feature, FeatureTable, clipper
 from magenv.filters.kalman_trust import SIG
 from magenv.quaternion import from_rotvec1, mul1, normalize1, rotate_inv1
 
-_DEG = "°"
-_HEADING = -180.0, 180.0
-
 EXTRA = FeatureTable(
-    Feature("mh_ema_025", *_HEADING, _DEG, "EMA (τ 0.25 s) of the mag heading"),
-    Feature("mh_ema_1", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading"),
-    Feature("mh_ema_4", *_HEADING, _DEG, "EMA (τ 4 s) of the mag heading"),
-    Feature("mh_clean", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading over clean samples only"),
-    Feature("mh_j", *_HEADING, _DEG, "mag heading of the next sample j (the peek's a-priori innovation)"),
-    Feature("d_anchor", *_HEADING, _DEG, "heading(q̂ ⊗ q_anc*), q_anc the gyro-only anchor re-set on clean samples"),
+    SHARED["mh_ema_025"],
+    SHARED["mh_ema_1"],
+    SHARED["mh_ema_4"],
+    Feature("mh_clean", *HEADING, DEG, "EMA (τ 1 s) of the mag heading over clean samples only"),
+    Feature("mh_j", *HEADING, DEG, "mag heading of the next sample j (the peek's a-priori innovation)"),
+    Feature("d_anchor", *HEADING, DEG, "heading(q̂ ⊗ q_anc*), q_anc the gyro-only anchor re-set on clean samples"),
     Feature("t_anchor", 0.0, 3.0, "units of 10 s", "time since the last clean sample (clipped)"),
-    Feature("d_gyro", *_HEADING, _DEG, "heading(q̂ ⊗ q_gyr*), q_gyr the gyro-only propagation from the start"),
-    Feature("nd_ema_05", -1.0, 10.0, "fraction of m0", "EMA (τ 0.5 s) of the field-norm deviation"),
-    Feature("nd_ema_2", -1.0, 10.0, "fraction of m0", "EMA (τ 2 s) of the field-norm deviation"),
-    Feature("nd_ema_8", 0.0, 10.0, "fraction of m0", "EMA (τ 8 s) of the absolute field-norm deviation"),
-    Feature("dd_ema_05", 0.0, 180.0, _DEG, "EMA (τ 0.5 s) of the absolute dip deviation"),
-    Feature("dd_ema_2", -180.0, 180.0, _DEG, "EMA (τ 2 s) of the signed dip deviation"),
+    Feature("d_gyro", *HEADING, DEG, "heading(q̂ ⊗ q_gyr*), q_gyr the gyro-only propagation from the start"),
+    SHARED["nd_ema_05"],
+    SHARED["nd_ema_2"],
+    SHARED["nd_ema_8"],
+    SHARED["dd_ema_05"],
+    SHARED["dd_ema_2"],
     Feature("md_ema_1", 0.0, 10.0, "fraction of m0", "EMA (τ 1 s) of ‖d̂‖/m0"),
     Feature("md_ema_4", 0.0, 10.0, "fraction of m0", "EMA (τ 4 s) of ‖d̂‖/m0"),
-    Feature("gyro_ema_1", 0.0, 100.0, "rad/s", "EMA (τ 1 s) of ‖ω‖"),
+    SHARED["gyro_ema_1"],
     Feature("trust_ema_1", 0.0, 1.0, "–", "EMA (τ 1 s) of the trust γ applied"),
     Feature("nis_ema_1", 0.0, 10.0, "decades", "log10(1 + EMA (τ 1 s) of the NIS)"),
-    Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
-    Feature("d_still", *_HEADING, _DEG, "heading(q̂ ⊗ q_still*), q_still the still anchor"),
+    SHARED["clean_ema_4"],
+    Feature("d_still", *HEADING, DEG, "heading(q̂ ⊗ q_still*), q_still the still anchor"),
     Feature(
         "pull_still",
-        *_HEADING,
-        _DEG,
+        *HEADING,
+        DEG,
         "−sign(d_still)·ν_m,j,east/(m0 cos θ0): a full update's heading correction toward the still anchor",
     ),
-    Feature("d_perp", *_HEADING, _DEG, "heading error seen by the field across the disturbance direction u"),
+    Feature("d_perp", *HEADING, DEG, "heading error seen by the field across the disturbance direction u"),
     Feature("perp_info", 0.0, 1.0, "–", "EMA (τ 0.25 s) of ‖P_u g‖²/(m0 cos θ0)²: how much heading d_perp sees"),
     Feature(
         "pull_perp",
-        *_HEADING,
-        _DEG,
+        *HEADING,
+        DEG,
         "−sign(d_perp)·ν_m,j,east/(m0 cos θ0): a full update's heading correction against d_perp",
     ),
 )
@@ -141,11 +138,7 @@ def _ema(old, new, a):
     return old + a * (new - old)
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    if x != x:
-        return 0.0 if _LOW[i] <= 0.0 <= _HIGH[i] else _LOW[i]
-    return min(_HIGH[i], max(_LOW[i], x))
+_clip = clipper(EXTRA, neutral_nan=True)
 
 
 @njit(cache=True, inline="always")

@@ -23,14 +23,15 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from gymnasium import spaces
-from numba import njit, prange
+from numba import njit
 
 from magenv.checks import check_choice, check_mapping
 from magenv.envs import QSF_ID, lagged, qsf_memory
-from magenv.envs.batch import BatchVectorEnv
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array
+from magenv.envs.batch import ROWS, BatchVectorEnv, trial_rows
+from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import qsf
+from magenv.filters.linalg import clip
 from magenv.filters.qsf import SIGNAL
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
@@ -87,15 +88,6 @@ RAD_TO_DEG = 180.0 / math.pi  # as math.degrees
 
 
 @njit(cache=True, inline="always")
-def _clip(x, lo, hi):
-    """``numpy.clip`` of one value: NaN stays NaN; ties and signed zeros as numpy gives them."""
-    if x != x:
-        return x
-    m = x if x > lo else lo
-    return m if m < hi else hi
-
-
-@njit(cache=True, inline="always")
 def _norm3(v):
     return np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
@@ -143,7 +135,7 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
     f[F.heading_std] = hstd
     f[F.trust_prev] = trust_prev
     for k in range(f.shape[0]):
-        f[k] = _clip(f[k], _LOW[k], _HIGH[k])
+        f[k] = clip(f[k], _LOW[k], _HIGH[k])
 
 
 @njit(cache=True)
@@ -360,9 +352,13 @@ class MagQSFEnv(TrustEnv):
 
     ## Version History
 
-    - v0: initial version.
+    - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
+      2026-12-01 first version (the hand-held QSF filters, trust of each quasi-static period), the batched vector
+      env; 2026-12-02 ``features="extended"``; 2026-12-07 kernels rewritten without allocation (per-trial RMSEs
+      unchanged to 1e-9°).
     """
 
+    observation = (FEATURES, EXTENDED)
     env_name = QSF_ID.split("/")[1]
 
     def __init__(
@@ -382,19 +378,10 @@ class MagQSFEnv(TrustEnv):
         check_choice("variant", variant, VARIANTS)
         check_choice("init", init, qsf.INITS)
         filter_kwargs = check_mapping("filter_kwargs", filter_kwargs)
-        features, table = lagged.observation_table(features, FEATURES, EXTENDED)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            trial_pool=trial_pool,
-        )
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool,
+        )  # fmt: skip
         self.action_space = spaces.Box(
             np.array([-1.0, 0.0], np.float32), np.array([1.0, 1.0], np.float32), dtype=np.float32
         )
@@ -405,28 +392,23 @@ class MagQSFEnv(TrustEnv):
             raise TypeError(f"detector must be a QSFDetector or a mapping of its thresholds, got {detector!r}")
         self.detector = detector or qsf.QSFDetector()
         self.filter_kwargs: dict[str, Any] = filter_kwargs
-        self.extended = table is EXTENDED
         qsf.make_params(50.0, 60.0, mode=variant, **self.filter_kwargs)  # bad keywords fail here, not at reset
 
     def _make_runner(self, trial: Trial) -> QSFRunner:
         return QSFRunner(trial, self.variant, self.detector, self.init, self.filter_kwargs, self.extended)
 
-    def step(self, action):
-        runner = self._step_runner()
+    def _decode(self, action) -> tuple[tuple[int, float], dict]:
         code, trust, clipped = decode_action(action)
-        runner.advance(self.k_steps, (code, trust))
-        return self._step_result(
-            runner,
-            {"decision": DECISIONS[code], "trust": trust, "action_clipped": clipped},
-            {"qsf_active": bool(runner.state.period_active[0])},
-        )
+        return (code, trust), {"decision": DECISIONS[code], "trust": trust, "action_clipped": clipped}
+
+    def _step_info(self, runner, start: int) -> dict:
+        return {"qsf_active": bool(runner.state.period_active[0])}
 
     # ------------------------------------------------------------ evaluation access
 
-    @property
-    def signals(self) -> np.ndarray:
-        """(N, N_SIGNALS) per-sample filter signals (``qsf.SIGNALS``), zeros where not fused yet."""
-        return self._need_reset().out.sig
+    signals = episode_view(
+        "out.sig", "(N, N_SIGNALS) per-sample filter signals (``qsf.SIGNALS``), zeros where not fused yet."
+    )
 
     @property
     def trust(self) -> np.ndarray:
@@ -451,69 +433,35 @@ class Batch(NamedTuple):
     age: np.ndarray  # (N, 1)
     mag_t0: np.ndarray  # (N, 3)
     mag_ref: np.ndarray  # (N, 3)
-    gyr: np.ndarray  # (M, 3) the store's rows: sensors …
-    acc: np.ndarray
-    mag: np.ndarray
-    q_true: np.ndarray  # (M, 4) … truth …
-    dist: np.ndarray  # (M,)
-    codes: np.ndarray  # (M,) int8 … and the detector's codes and spread
+    codes: np.ndarray  # (M,) int8 the store's rows of the detector's codes and spread
     spread: np.ndarray  # (M,)
-    off: np.ndarray  # (N,) each env's first row in the store
-    n: np.ndarray  # (N,) samples of each env's episode
-    pos: np.ndarray  # (N,) next sample to fuse
-    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
     code: np.ndarray  # (N,) the step's decision (qsf.MAG_*)
     trust: np.ndarray  # (N,) the step's trust
-    action_h: np.ndarray  # (N, k + 2) int8 scratch Inputs.action / trust of the step's window
+    action_h: np.ndarray  # (N, k + 2) int8 scratch Inputs.action / trust of the step's window (batch.Window)
     trust_h: np.ndarray  # (N, k + 2)
     q_h: np.ndarray  # (N, k + 2, 4) scratch Outputs
     sig_h: np.ndarray  # (N, k + 2, N_SIGNALS)
-    err: np.ndarray  # (N, N_ERR)
-    feat: np.ndarray  # (N, len(FEATURES))
-    bad: np.ndarray  # (N,) −1, or the sample where the env's filter failed
 
 
 @njit(cache=True)
-def _advance_env(b, i):
-    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` on the window of its step (from the sample
-    before the step to the one after)."""
-    o, start = b.off[i], b.pos[i]
-    stop = min(start + b.todo[i], b.n[i])
-    base, end = max(start - 1, 0), min(stop + 1, b.n[i])
+def _advance_env(b, s, i, w):
+    """Env i of :class:`Batch` (``s``: ``magenv.envs.batch.Steps``) does its step: :func:`advance` on window ``w``;
+    returns −1 or the window's sample where the filter failed."""
     f, g, e = b.pf[i], b.grav[i], b.earth[i]
     p = qsf.Params(
         b.mode, f[0], f[1], f[2], f[3], f[4], f[5], (g[0], g[1], g[2]), (e[0], e[1], e[2]), f[6], f[7],
         b.update_reference, f[8], f[9],
     )  # fmt: skip
     state = qsf.State(b.x[i], b.cov[i], b.active[i], b.age[i], b.mag_t0[i], b.mag_ref[i])
-    r0, r1 = o + base, o + end
-    inputs = qsf.Inputs(b.gyr[r0:r1], b.acc[r0:r1], b.mag[r0:r1], b.action_h[i], b.trust_h[i])
+    r0, r1 = w.r0, w.r1
+    inputs = qsf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.action_h[i], b.trust_h[i])
     out = qsf.Outputs(b.q_h[i], b.sig_h[i])
-    truth = Truth(b.q_true[r0:r1], b.dist[r0:r1])
+    truth = Truth(s.q_true[r0:r1], s.dist[r0:r1])
     bad, _ = advance(
         p, state, inputs, out, (b.codes[r0:r1], b.spread[r0:r1]), truth, b.dt[i], (b.m0[i], b.dip0[i]), b.code[i],
-        b.trust[i], start - base, stop - base, b.err[i], b.feat[i],
+        b.trust[i], w.start, w.stop, s.err[i], s.feat[i],
     )  # fmt: skip
-    if bad >= 0:
-        b.bad[i] = bad + base
-        return
-    b.pos[i] = stop
-
-
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
+    return bad
 
 
 class MagQSFVectorEnv(BatchVectorEnv):
@@ -527,19 +475,13 @@ class MagQSFVectorEnv(BatchVectorEnv):
 
     env_class = MagQSFEnv
     features = FEATURES
-    channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
-                "dist": ((), float), "codes": ((), np.int8), "spread": ((), float)}  # fmt: skip
-    kernels = (advance_batch, advance_batch_threads)
+    channels = {**ROWS, "codes": ((), np.int8), "spread": ((), float)}
+    advance_env = _advance_env
     _floats = ("sigma_gyr", "sigma_bias_walk", "sigma_acc_bias_walk", "sigma_acc", "sigma_mag", "th_acc",
                "cov_floor", "radial_eps", "max_age_s", "acc_adaptive")  # fmt: skip
 
     def _alloc(self, n: int) -> None:
         env = self.template
-        if env.extended:
-            raise ValueError(
-                'features="extended" is not batched: use single envs (gym.make, or gym.make_vec with '
-                'vectorization_mode="sync")'
-            )
         p = qsf.make_params(50.0, 60.0, mode=env.variant, **env.filter_kwargs)
         self.constants = (p.mode, p.update_reference)
         rows, na = self.k_steps + 2, qsf.N_AUGMENTED
@@ -554,15 +496,17 @@ class MagQSFVectorEnv(BatchVectorEnv):
             np.zeros((n, rows), np.int8), np.zeros((n, rows)), np.zeros((n, rows, 4)),
             np.zeros((n, rows, qsf.N_SIGNALS)),
         )  # fmt: skip
-        self.bad = np.full(n, -1, np.int64)
 
     def _prepare(self, trial: Trial):
         env = self.template
         params, (codes, spread), state = episode_start(trial, env.variant, env.detector, env.init, env.filter_kwargs)
-        truth = Truth.of(trial)
-        rows = {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist,
-                "codes": codes, "spread": spread}  # fmt: skip
-        return rows, (params, state, float(trial.dt), trial.field_norm, trial.field_dip)
+        return {**trial_rows(trial), "codes": codes, "spread": spread}, (
+            params,
+            state,
+            float(trial.dt),
+            trial.field_norm,
+            trial.field_dip,
+        )
 
     def _start(self, i: int, description) -> None:
         p, state, self.dt[i], self.m0[i], self.dip0[i] = description
@@ -584,19 +528,16 @@ class MagQSFVectorEnv(BatchVectorEnv):
     def _step_info(self) -> dict:
         return {"qsf_active": self.state.period_active[:, 0].copy()}
 
-    def _check(self) -> None:
-        bad = np.flatnonzero(self.bad >= 0)
-        if bad.size:
-            i = int(bad[0])
-            sample, self.bad[:] = int(self.bad[i]), -1
-            raise qsf.FilterError(
-                f"QSF filter: non-finite sample or covariance at sample {sample} of trial {self._names[i]!r} (env {i})"
-            )
+    def _failure(self, i: int, sample: int) -> Exception:
+        return qsf.FilterError(
+            f"QSF filter: non-finite sample or covariance at sample {sample} of trial {self._names[i]!r} (env {i})"
+        )
 
     def _batch(self) -> Batch:
-        a, st = self.store.arrays, self.state
+        a, st, (action_h, trust_h, q_h, sig_h) = self.store.arrays, self.state, self.scratch
         return Batch(
-            *self.constants, self.pf, self.grav, self.earth, self.dt, self.m0, self.dip0, *st, a["gyr"], a["acc"],
-            a["mag"], a["q_true"], a["dist"], a["codes"], a["spread"], self.off, self.n, self.pos, self.todo,
-            self.code, self.trust, *self.scratch, self.err, self.feat, self.bad,
+            mode=self.constants[0], update_reference=self.constants[1], pf=self.pf, grav=self.grav, earth=self.earth,
+            dt=self.dt, m0=self.m0, dip0=self.dip0, x=st.x, cov=st.cov, active=st.period_active, age=st.period_age,
+            mag_t0=st.mag_t0, mag_ref=st.mag_ref, codes=a["codes"], spread=a["spread"], code=self.code,
+            trust=self.trust, action_h=action_h, trust_h=trust_h, q_h=q_h, sig_h=sig_h,
         )  # fmt: skip

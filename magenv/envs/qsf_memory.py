@@ -31,35 +31,33 @@ import numpy as np
 from numba import njit
 
 from magenv.envs.blend_memory import _ema, _heading
-from magenv.envs.features import Feature, FeatureTable
+from magenv.envs.features import DEG, HEADING, SHARED, Feature, FeatureTable
 from magenv.envs.headings import dip_deg, norm3, planar_heading, wrap_deg
 from magenv.filters.qsf import SIGNAL
 from magenv.quaternion import GRAVITY, from_rotvec1, mul1, normalize1, rotate1
 
-_DEG = "°"
-_HEADING = -180.0, 180.0
 EXTRA = FeatureTable(
-    Feature("mh_ema_1", *_HEADING, _DEG, "EMA (τ 1 s) of the mag heading"),
-    Feature("mh_ema_4", *_HEADING, _DEG, "EMA (τ 4 s) of the mag heading"),
-    Feature("mh_ema_16", *_HEADING, _DEG, "EMA (τ 16 s) of the mag heading"),
-    Feature("mh_clean", *_HEADING, _DEG, "EMA (τ 2 s) of the mag heading over clean samples only"),
-    Feature("clean_ema_4", 0.0, 1.0, "–", "EMA (τ 4 s) of the clean flag"),
-    Feature("t_clean", 0.0, 3.0, "units of 10 s", "time since the last clean sample (clipped)"),
-    Feature("d_anchor", *_HEADING, _DEG, "heading(q̂ ⊗ q_anc*), q_anc the gyro anchor re-anchored on clean samples"),
+    SHARED["mh_ema_1"],
+    SHARED["mh_ema_4"],
+    Feature("mh_ema_16", *HEADING, DEG, "EMA (τ 16 s) of the mag heading"),
+    Feature("mh_clean", *HEADING, DEG, "EMA (τ 2 s) of the mag heading over clean samples only"),
+    SHARED["clean_ema_4"],
+    SHARED["t_clean"],
+    Feature("d_anchor", *HEADING, DEG, "heading(q̂ ⊗ q_anc*), q_anc the gyro anchor re-anchored on clean samples"),
     Feature(
         "d_period",
-        *_HEADING,
-        _DEG,
+        *HEADING,
+        DEG,
         "heading(q̂ ⊗ q_per*), q_per the gyro anchor re-anchored at each period start and outside periods "
         "(what the QSF updates turned since the period began)",
     ),
-    Feature("ref_h", *_HEADING, _DEG, "reference heading of the last fused sample (0 without period)"),
-    Feature("ref_h_ema_05", *_HEADING, _DEG, "EMA (τ 0.5 s, one update per step) of `ref_h`"),
+    Feature("ref_h", *HEADING, DEG, "reference heading of the last fused sample (0 without period)"),
+    Feature("ref_h_ema_05", *HEADING, DEG, "EMA (τ 0.5 s, one update per step) of `ref_h`"),
     Feature("spread_ema_1", 0.0, 100.0, "th_spread", "EMA (τ 1 s) of the detector's spread"),
     Feature("innov_ema_1", 0.0, 100.0, "σ_m", "EMA (τ 1 s) of ‖δz‖ (eq. 9) over the samples of a period"),
     Feature("nd_ema_2", -1.0, 20.0, "fraction of m0", "EMA (τ 2 s) of (‖y_m‖ − m0)/m0"),
-    Feature("dd_ema_2", *_HEADING, _DEG, "EMA (τ 2 s) of the signed dip deviation of q̂ y_m q̂*"),
-    Feature("gyro_ema_1", 0.0, 100.0, "rad/s", "EMA (τ 1 s) of ‖ω‖"),
+    Feature("dd_ema_2", *HEADING, DEG, "EMA (τ 2 s) of the signed dip deviation of q̂ y_m q̂*"),
+    SHARED["gyro_ema_1"],
     Feature("acc_ema_05", 0.0, 10.0, "fraction of g", "EMA (τ 0.5 s) of |‖y_a‖ − g|/g"),
 )
 X = EXTRA.ix

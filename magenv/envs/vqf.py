@@ -35,16 +35,16 @@ from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from magenv.checks import check_bool, check_number
 from magenv.envs import VQF_ID, lagged
-from magenv.envs.batch import BatchVectorEnv
+from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
 from magenv.envs.blend import NORM_RATE_SCALE, dip_deg
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, scalar_action
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
+from magenv.envs.common import TrialRunner, TrustEnv, episode_view
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import vqf
-from magenv.filters.sensors import Sensors
+from magenv.filters.rules import fan_lambda
 from magenv.filters.vqf import P, S, tau_of_trust
 from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import GRAVITY, rotate1
@@ -212,9 +212,7 @@ class Outputs(NamedTuple):
                    np.zeros(N_ERR), np.zeros(N_VQ), np.zeros(len(FEATURES)))  # fmt: skip
 
 
-@njit(cache=True, inline="always")
-def _clip(x, i):
-    return min(_HIGH[i], max(_LOW[i], x))
+_clip = clipper(FEATURES)
 
 
 @njit(cache=True, inline="always")
@@ -419,13 +417,10 @@ def advance_extended(p, s, w, reject, site, sensors, truth, out, u, start, stop,
 
 
 def fan_trust(norm_dev, dip_dev, norm_tol: float, th_dip_deg: float):
-    """u = 1 − λ of Fan et al. 2017's rule (eqs. 15–17) on MagVQF-v0's ``norm_dev`` and ``dip_dev`` (features of
-    the observation, numbers or arrays, read as float64): λ1 = min(|norm_dev|/norm_tol, 1), λ2 = min(|90°·dip_dev|
-    / th_dip, 1), λ = (λ1 + λ2)/2 — the ``vqf_fan_lambda`` rule's trust, computed once for the rule's teacher and
-    its student."""
-    lam1 = np.minimum(np.abs(np.float64(norm_dev)) / norm_tol, 1.0)
-    lam2 = np.minimum(np.abs(DIP_SCALE_DEG * np.float64(dip_dev)) / th_dip_deg, 1.0)
-    return 1.0 - 0.5 * (lam1 + lam2)
+    """u = 1 − λ of Fan et al. 2017's rule (``magenv.filters.rules.fan_lambda``) on MagVQF-v0's ``norm_dev`` and
+    ``dip_dev`` (features of the observation, numbers or arrays, read as float64) — the ``vqf_fan_lambda`` rule's
+    trust, computed once for the rule's teacher and its student."""
+    return 1.0 - fan_lambda(np.float64(norm_dev), DIP_SCALE_DEG * np.float64(dip_dev), norm_tol, th_dip_deg)
 
 
 def filter_options(rejection: str, tau_acc: float, tau_mag: float, rest_bias: bool, motion_bias: bool):
@@ -541,12 +536,6 @@ def check_choice(name: str, value, choices: tuple[str, ...]) -> str:
     return value
 
 
-def observation_table(features) -> tuple[Sequence[str] | None, FeatureTable]:
-    """The ``features`` option → (names to select, None = all; the table they come from): ``"extended"`` is
-    the whole EXTENDED table; a list of names uses FEATURES, or EXTENDED if it names any extended feature."""
-    return lagged.observation_table(features, FEATURES, EXTENDED)
-
-
 @document(EXTRA, "{extended_table}")
 @document(FEATURES)
 class MagVQFEnv(TrustEnv):
@@ -649,9 +638,15 @@ class MagVQFEnv(TrustEnv):
 
     ## Version History
 
-    - v0: initial version (VQF as numba kernels, bit for bit the C++ filter; the extended observation).
+    - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
+      2026-12-02 first version (trust u of VQF's magnetometer gain on the ``vqf`` package, rejection off/on);
+      2026-12-07 VQF as numba kernels (orientation equal to the C++ filter's to 1e-6 rad; ``backend="cpp"``
+      keeps the package), the batched vector env in one compiled call, the extended observation (ψ-change,
+      field-deviation and applied-gain EMAs; zeroed at every autoreset of the vector env).
     """
 
+    action_symbol, action_key = "u", "trust"
+    observation = (FEATURES, EXTENDED)
     env_name = VQF_ID.split("/")[1]
 
     def __init__(
@@ -671,23 +666,12 @@ class MagVQFEnv(TrustEnv):
         trial_pool=None,
         render_mode: str | None = None,
     ):
-        features, table = observation_table(features)
         self._setup(
-            scenario,
-            decision_every,
-            episode_seconds,
-            render_mode,
-            scenario_kwargs,
-            features,
-            table.names,
-            table.low,
-            table.high,
-            prefetch=prefetch,
-            trial_pool=trial_pool,
-        )
+            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
+            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
+        )  # fmt: skip
         self.rejection = check_choice("rejection", rejection, REJECTION)
         self.backend = check_choice("backend", backend, BACKENDS)
-        self.extended = table is EXTENDED
         if self.extended and self.backend == "cpp":
             raise ValueError('features="extended" needs backend="numba"')
         self.options = filter_options(
@@ -703,26 +687,18 @@ class MagVQFEnv(TrustEnv):
             return VQFCppRunner(trial, self.options)
         return VQFRunner(trial, self.options, self.extended)
 
-    def step(self, action):
-        runner = self._step_runner()
-        u, clipped = scalar_action(action, "u")
-        runner.advance(self.k_steps, u)
-        return self._step_result(runner, {"trust": u, "action_clipped": clipped}, {"mag_dist": runner.mag_dist})
+    def _step_info(self, runner, start: int) -> dict:
+        return {"mag_dist": runner.mag_dist}
 
-    @property
-    def trust(self) -> np.ndarray:
-        """(N,) u applied to each sample (NaN where not fused yet)."""
-        return self._need_reset().trust
+    trust = episode_view("trust", "(N,) u applied to each sample (NaN where not fused yet).")
 
-    @property
-    def vqf_gain(self) -> np.ndarray:
-        """(N,) the trust that reached VQF's gain: u, or 0 where ``rejection="on"`` zeroed it."""
-        return self._need_reset().gain
+    vqf_gain = episode_view(
+        "gain", """(N,) the trust that reached VQF's gain: u, or 0 where ``rejection="on"`` zeroed it."""
+    )
 
-    @property
-    def mag_dist_detected(self) -> np.ndarray:
-        """(N,) VQF's disturbance flag per fused sample (0 where not fused yet)."""
-        return self._need_reset().dist_flag
+    mag_dist_detected = episode_view(
+        "dist_flag", "(N,) VQF's disturbance flag per fused sample (0 where not fused yet)."
+    )
 
 
 class Batch(NamedTuple):
@@ -735,24 +711,13 @@ class Batch(NamedTuple):
     w: np.ndarray  # (N, W_SIZE) scratch
     m0: np.ndarray  # (N,) undisturbed field norm, µT (Site)
     dip0: np.ndarray  # (N,) undisturbed dip, degrees (Site)
-    gyr: np.ndarray  # (M, 3) the store's rows: sensors …
-    acc: np.ndarray
-    mag: np.ndarray
-    q_true: np.ndarray  # (M, 4) … and truth (Truth)
-    dist: np.ndarray  # (M,)
-    off: np.ndarray  # (N,) each env's first row in the store
-    n: np.ndarray  # (N,) samples of each env's episode
-    pos: np.ndarray  # (N,) next sample to fuse
-    todo: np.ndarray  # (N,) samples to fuse now (0: observation only, −1: nothing)
     u: np.ndarray  # (N,) trust of the step
-    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window (a step's samples, one before, one after)
+    est: np.ndarray  # (N, k + 2, 4) scratch Outputs of the step's window (magenv.envs.batch.Window)
     trust: np.ndarray  # (N, k + 2)
     gain: np.ndarray  # (N, k + 2)
     flags: np.ndarray  # (N, k + 2)
     sums: np.ndarray  # (N, N_SUMS)
-    err: np.ndarray  # (N, N_ERR) error sums of the step
     vq: np.ndarray  # (N, N_VQ)
-    feat: np.ndarray  # (N, len(FEATURES)) base observations
     memory: np.ndarray  # (N, N_MEMORY) extended only (else (0, …) …)
     extra: np.ndarray  # (N, len(EXTRA))
     rows: np.ndarray  # (N, max(LAGS) + 1, len(_CURRENT))
@@ -761,42 +726,21 @@ class Batch(NamedTuple):
 
 
 @njit(cache=True)
-def _advance_env(b, i):
-    """Env i of :class:`Batch` does ``todo[i]``: :func:`advance` (or :func:`advance_extended`) on the window of
-    its step (rows ``base:end`` of its episode: the sample before the step, the step's, the one after), so that
-    the kernel reads and writes exactly what it does for the single env."""
-    o, start = b.off[i], b.pos[i]
-    stop = min(start + b.todo[i], b.n[i])
-    base, end = max(start - 1, 0), min(stop + 1, b.n[i])
-    sensors = Sensors(b.gyr[o + base : o + end], b.acc[o + base : o + end], b.mag[o + base : o + end])
-    truth = Truth(b.q_true[o + base : o + end], b.dist[o + base : o + end])
-    out = Outputs(b.est[i], b.trust[i], b.gain[i], b.flags[i], b.sums[i], b.err[i], b.vq[i], b.feat[i])
-    if start > 0:  # the window's first row: the estimate after sample start − 1, the current one
+def _advance_env(b, s, i, w):
+    """Env i of :class:`Batch` (``s``: ``magenv.envs.batch.Steps``) does its step: :func:`advance` (or
+    :func:`advance_extended`) on window ``w``."""
+    sensors, truth = window_rows(s, w)
+    out = Outputs(b.est[i], b.trust[i], b.gain[i], b.flags[i], b.sums[i], s.err[i], b.vq[i], s.feat[i])
+    if w.start > 0:  # not the episode's first sample: the window's first row holds the current estimate
         q = out.est[0]
         q[0], q[1], q[2], q[3] = vqf.quat9d(b.s[i])
     site = Site(b.m0[i], b.dip0[i])
     if b.extended:
-        advance_extended(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], start - base,
-                         stop - base, b.memory[i], b.extra[i], b.rows[i], b.decisions[i], b.feat_ext[i])  # fmt: skip
+        advance_extended(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], w.start, w.stop,
+                         b.memory[i], b.extra[i], b.rows[i], b.decisions[i], b.feat_ext[i])  # fmt: skip
     else:
-        advance(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], start - base, stop - base, False)
-    b.pos[i] = stop
-
-
-@njit(cache=True)
-def advance_batch(b):
-    """Every env of :class:`Batch` does its ``todo`` (one call per vector step)."""
-    for i in range(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
-
-
-@njit(cache=True, parallel=True)
-def advance_batch_threads(b):
-    """:func:`advance_batch` with the envs spread over numba's threads."""
-    for i in prange(b.todo.shape[0]):
-        if b.todo[i] >= 0:
-            _advance_env(b, i)
+        advance(b.p[i], b.s[i], b.w[i], b.reject, site, sensors, truth, out, b.u[i], w.start, w.stop, False)
+    return -1
 
 
 class MagVQFVectorEnv(BatchVectorEnv):
@@ -805,15 +749,15 @@ class MagVQFVectorEnv(BatchVectorEnv):
     Registered as the ``vector_entry_point`` of ``magenv/MagVQF-v0``. Seeding, trial draws, next-step
     autoreset, action checks and ``infos`` (with ``trust``, ``mag_dist``) are
     ``magenv.envs.batch.BatchVectorEnv``'s; sub-env i is the single env seeded s + i bit for bit. The N filter
-    states are the rows of one array (``magenv.filters.vqf.STATE``), and :func:`advance_batch` hands env i's
+    states are the rows of one array (``magenv.filters.vqf.STATE``), and :func:`_advance_env` hands env i's
     rows to :func:`advance`.
     """
 
     env_class = MagVQFEnv
     features = FEATURES
-    channels = {"gyr": ((3,), float), "acc": ((3,), float), "mag": ((3,), float), "q_true": ((4,), float),
-                "dist": ((), float)}  # fmt: skip
-    kernels = (advance_batch, advance_batch_threads)
+    advance_env = _advance_env
+    extended_batched = True
+    idle_action = 1.0
 
     def _alloc(self, n: int) -> None:
         env = self.template
@@ -825,7 +769,6 @@ class MagVQFVectorEnv(BatchVectorEnv):
         self.s = np.tile(vqf.init_state(self.p[0]), (n, 1))
         self.w = np.zeros((n, vqf.W_SIZE))
         self.m0, self.dip0 = np.ones(n), np.zeros(n)
-        self.u = np.ones(n)
         self.scratch = Outputs(np.zeros((n, rows, 4)), np.zeros((n, rows)), np.zeros((n, rows)), np.zeros((n, rows)),
                                np.zeros((n, N_SUMS)), self.err, np.zeros((n, N_VQ)), self.feat)  # fmt: skip
         e = n if self.extended else 0
@@ -834,28 +777,19 @@ class MagVQFVectorEnv(BatchVectorEnv):
         self.feat_ext = np.zeros((e, len(EXTENDED)))
 
     def _prepare(self, trial: Trial):
-        truth = Truth.of(trial)
-        rows = {"gyr": trial.gyr, "acc": trial.acc, "mag": trial.mag, "q_true": truth.q_true, "dist": truth.dist}
         p = vqf.make_params(trial.dt, self.template.options)
-        return rows, (p, float(trial.field_norm), float(trial.field_dip))
+        return trial_rows(trial), (p, float(trial.field_norm), float(trial.field_dip))
 
     def _start(self, i: int, description) -> None:
         p, self.m0[i], self.dip0[i] = description
         self.p[i] = p
         self.s[i] = vqf.init_state(p)
-        self.u[i] = 1.0
+        self.action[i] = 1.0
         if self.extended:  # as a single env's reset: fresh memory, extra features, lag rows and count
             self.memory[i] = 0.0
             self.extra[i] = 0.0
             self.rows[i] = 0.0
             self.count[i] = 0
-
-    def _set_actions(self, values, stepping) -> dict:
-        if values is None:
-            self.u[:] = 1.0
-            return {}
-        np.copyto(self.u, np.where(stepping, values[:, 0], 1.0))
-        return {"trust": self.u.copy()}
 
     def _obs(self) -> np.ndarray:
         env = self.template
@@ -866,11 +800,10 @@ class MagVQFVectorEnv(BatchVectorEnv):
         return {"mag_dist": self.scratch.vq[:, V_DIST] > 0}
 
     def _batch(self) -> Batch:
-        o = self.scratch
-        a = self.store.arrays
+        o, options = self.scratch, self.template.options
         return Batch(
-            self.template.options.mag_rejection and self.template.options.mag_max_rejection_time >= 0.0,
-            self.extended, self.p, self.s, self.w, self.m0, self.dip0, a["gyr"], a["acc"], a["mag"], a["q_true"],
-            a["dist"], self.off, self.n, self.pos, self.todo, self.u, o.est, o.trust, o.gain, o.flags, o.sums,
-            self.err, o.vq, self.feat, self.memory, self.extra, self.rows, self.count, self.feat_ext,
+            reject=options.mag_rejection and options.mag_max_rejection_time >= 0.0, extended=self.extended, p=self.p,
+            s=self.s, w=self.w, m0=self.m0, dip0=self.dip0, u=self.action, est=o.est, trust=o.trust, gain=o.gain,
+            flags=o.flags, sums=o.sums, vq=o.vq, memory=self.memory, extra=self.extra, rows=self.rows,
+            decisions=self.count, feat_ext=self.feat_ext,
         )  # fmt: skip

@@ -22,6 +22,7 @@ MIMU filter, and any λ in between pulls one estimate between the two.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -55,6 +56,29 @@ class State(NamedTuple):
 
     q: np.ndarray  # (4,) blended estimate q_{t−1}, sensor → ENU
     detector: stationary.State  # eqs. 11–13
+
+
+@dataclass(frozen=True)
+class Options:
+    """The blend's options for every trial (an env's arguments, checked once): gain β rad/s, the stationary hold,
+    the detector's interval t0 s and thresholds (g, °/s). :meth:`params` gives a trial's :class:`Params`."""
+
+    beta: float
+    hold: bool
+    t0: float
+    th_acc_g: float
+    th_gyro_dps: float
+
+    def __post_init__(self):
+        p = self.params(1.0)  # ValueError / TypeError naming a bad option
+        stationary.make_state(1.0, self.t0)
+        for name, value in (("beta", p.beta), ("t0", float(self.t0)), ("th_acc_g", float(self.th_acc_g))):
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "th_gyro_dps", float(self.th_gyro_dps))
+
+    def params(self, dt: float) -> Params:
+        """The :class:`Params` of a trial sampled every ``dt`` s."""
+        return make_params(dt, self.beta, self.hold, self.th_acc_g, self.th_gyro_dps)
 
 
 def make_params(

@@ -43,6 +43,15 @@ def diag3(d):
 
 
 @njit(cache=True, inline="always")
+def clip(x, lo, hi):
+    """``numpy.clip`` of one number: NaN stays NaN; ties and signed zeros as numpy gives them."""
+    if x != x:
+        return x
+    m = x if x > lo else lo
+    return m if m < hi else hi
+
+
+@njit(cache=True, inline="always")
 def skew3(v):
     """[v×] with ``[v×] u = v × u``, as a 9-tuple."""
     return (0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0)

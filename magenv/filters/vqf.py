@@ -72,6 +72,7 @@ import numpy as np
 from numba import njit
 
 from magenv.checks import check_bool, check_number
+from magenv.filters.linalg import clip
 
 EPS = float(np.finfo(float).eps)
 DEG = math.pi / 180.0  # rad per degree
@@ -430,11 +431,6 @@ def _inverse3(m):
     return aa / det, dd / det, gg / det, bb / det, ee / det, hh / det, cc / det, ff / det, ii / det
 
 
-@njit(cache=True, inline="always")
-def _clip(x, lim):
-    return -lim if x < -lim else (lim if x > lim else x)
-
-
 # ----------------------------------------------------------------- the three updates
 
 
@@ -448,8 +444,8 @@ def _update_gyr(p, s, w, g0, g1, g2):
         s[S.rest_gyr_last], s[S.rest_gyr_last + 1], s[S.rest_gyr_last + 2] = lp0, lp1, lp2
         dev = (g0 - lp0) * (g0 - lp0) + (g1 - lp1) * (g1 - lp1) + (g2 - lp2) * (g2 - lp2)
         s[S.rest_sq_dev] = dev
-        clip = p[P.bias_clip]
-        if dev >= p[P.rest_th_gyr_sq] or abs(lp0) > clip or abs(lp1) > clip or abs(lp2) > clip:
+        lim = p[P.bias_clip]
+        if dev >= p[P.rest_th_gyr_sq] or abs(lp0) > lim or abs(lp1) > lim or abs(lp2) > lim:
             s[S.rest_t] = 0.0
             s[S.rest] = 0.0
     x, y, z = g0 - s[S.bias], g1 - s[S.bias + 1], g2 - s[S.bias + 2]
@@ -509,7 +505,7 @@ def _update_bias(p, s, w, e0, e1):
     """The bias Kalman filter (eqs. 10–26): at rest the measurement is the low-passed gyro (eq. 24), in motion
     the inclination correction the low-passed accelerometer (e0, e1: its unit x, y in E_i) asks for, as a rate,
     through the low-passed rotation matrix (eqs. 18–21)."""
-    ts, clip, b = p[P.ts], p[P.bias_clip], S.bias
+    ts, lim, b = p[P.ts], p[P.bias_clip], S.bias
     q0, q1, q2, q3 = quat6d(s)
     r = W_R  # R of q6D, then low-passed (eq. 19)
     w[r] = 1 - 2 * q2 * q2 - 2 * q3 * q3
@@ -548,7 +544,7 @@ def _update_bias(p, s, w, e0, e1):
             s[bp + 4 * d] += p[P.bias_v]
     if not update:
         return
-    y0, y1, y2 = _clip(y0, clip), _clip(y1, clip), _clip(y2, clip)
+    y0, y1, y2 = clip(y0, -lim, lim), clip(y1, -lim, lim), clip(y2, -lim, lim)
     rm = (w[r], w[r + 1], w[r + 2], w[r + 3], w[r + 4], w[r + 5], w[r + 6], w[r + 7], w[r + 8])
     pm = (s[bp], s[bp + 1], s[bp + 2], s[bp + 3], s[bp + 4], s[bp + 5], s[bp + 6], s[bp + 7], s[bp + 8])
     k = _mm(rm, _mm(pm, _transpose(rm)))  # R P Rᵀ
@@ -561,7 +557,7 @@ def _update_bias(p, s, w, e0, e1):
     for i in range(9):
         s[bp + i] = pm[i] - krp[i]
     for i in range(3):
-        s[b + i] = _clip(s[b + i], clip)
+        s[b + i] = clip(s[b + i], -lim, lim)
 
 
 @njit(cache=True, inline="always")
