@@ -47,7 +47,16 @@ WEIGHTS = {"best": "best.safetensors", "last": "last.safetensors"}
 NO_ENV = "a loaded agent acts on observations; it has no env of its own to step"
 SB3_EXPORTS = {"best": "best_model.zip", "last": "last_model.zip"}
 
-__all__ = ["RUN_FILE", "AgentPolicy", "RunError", "build_model", "load_agent", "pretrained_agents", "read_run"]
+__all__ = [
+    "RUN_FILE",
+    "AgentPolicy",
+    "RunError",
+    "build_model",
+    "load_agent",
+    "load_weights_file",
+    "pretrained_agents",
+    "read_run",
+]
 
 
 def pretrained_agents() -> dict[str, Path]:
@@ -250,4 +259,26 @@ def load_agent(
         action_bounds=run.get("action_bounds"),
         source=str(path),
         which=found,
+    )
+
+
+def load_weights_file(path: str | Path) -> AgentPolicy:
+    """An SB3 agent from one weights-only file of a run folder (``best.safetensors``, ``last.safetensors`` or
+    ``checkpoints/step_T.safetensors``), rebuilt from its folder's ``run.yaml`` (the file's folder, or the one
+    above ``checkpoints/``). RunError naming the file if it is not a ``.safetensors`` file of an SB3 run folder."""
+    path = Path(path)
+    if path.suffix != ".safetensors" or not path.is_file():
+        raise RunError(f"{path}: not a .safetensors weights file")
+    run_dir = path.parent.parent if path.parent.name == "checkpoints" else path.parent
+    run = read_run(run_dir)  # a DAgger run's run.yaml has no SB3 hyperparameters: RunError here
+    model = build_model(run, where=str(run_dir / RUN_FILE))
+    load_policy(model, path)
+    return AgentPolicy(
+        model,
+        run["env_id"],
+        run["env_kwargs"],
+        name=f"agent:{run_dir.name}/{path.stem}",
+        action_bounds=run.get("action_bounds"),
+        source=str(path),
+        which=path.stem,
     )

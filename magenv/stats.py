@@ -89,6 +89,23 @@ def interquartile_mean(x: np.ndarray) -> np.ndarray:
     return np.sort(x, axis=-1)[..., k : n - k].mean(axis=-1)
 
 
+def resamples(n: int, n_boot: int, seed: int):
+    """The bootstrap's resamples of ``n`` units: index arrays of shape (k, n), ``n_boot`` rows in all, drawn
+    with replacement from ``numpy.random.default_rng(seed)`` (same seed, same resamples), a block at a time so
+    that memory stays bounded for thousands of units. The one resampler of every interval here."""
+    rng = np.random.default_rng(seed)
+    rows = max(1, _BOOT_CELLS // n)
+    for i in range(0, n_boot, rows):
+        yield rng.integers(0, n, size=(min(rows, n_boot - i), n))
+
+
+def _check_boot(n_boot, level) -> None:
+    if not (isinstance(n_boot, int) and n_boot >= 1):
+        raise ValueError(f"n_boot must be an integer ≥ 1, got {n_boot!r}")
+    if not 0 < level < 1:
+        raise ValueError(f"level must be in (0, 1), got {level!r}")
+
+
 def paired_ratio(
     method, reference, n_boot: int = DEFAULT_BOOT, seed: int = 0, level: float = DEFAULT_LEVEL
 ) -> PairedRatio:
@@ -98,10 +115,7 @@ def paired_ratio(
     m, r = _scores("method", method), _scores("reference", reference)
     if len(m) != len(r):
         raise ValueError(f"method and reference must pair unit by unit: {len(m)} errors against {len(r)}")
-    if not (isinstance(n_boot, int) and n_boot >= 1):
-        raise ValueError(f"n_boot must be an integer ≥ 1, got {n_boot!r}")
-    if not 0 < level < 1:
-        raise ValueError(f"level must be in (0, 1), got {level!r}")
+    _check_boot(n_boot, level)
     log_ratio = np.log(m) - np.log(r)
     n = len(log_ratio)
     win = float(np.mean((m < r) + 0.5 * (m == r)))
@@ -109,14 +123,69 @@ def paired_ratio(
     worst = float(np.exp(log_ratio.max()))
     if n < 2:
         return PairedRatio(n, ratio, float("nan"), float("nan"), win, iqm, float("nan"), float("nan"), level, worst)
-    rng = np.random.default_rng(seed)
-    rows = max(1, _BOOT_CELLS // n)  # resamples per draw: memory stays bounded for thousands of units
     boot, boot_iqm = [], []
-    for i in range(0, n_boot, rows):
-        resample = log_ratio[rng.integers(0, n, size=(min(rows, n_boot - i), n))]
+    for index in resamples(n, n_boot, seed):
+        resample = log_ratio[index]
         boot.append(resample.mean(axis=1))
         boot_iqm.append(interquartile_mean(resample))
     q = [(1 - level) / 2, (1 + level) / 2]
     low, high = np.exp(np.quantile(np.concatenate(boot), q))  # on the log scale: swap-symmetric
     iqm_low, iqm_high = np.exp(np.quantile(np.concatenate(boot_iqm), q))
     return PairedRatio(n, ratio, float(low), float(high), win, iqm, float(iqm_low), float(iqm_high), level, worst)
+
+
+@dataclass(frozen=True)
+class Normalised:
+    """A method's score between a reference (0) and a better bound (1) over ``n`` paired units.
+
+    Attributes:
+        n: number of units (each with the method's, the reference's and the bound's error).
+        score: mean over units of ``(reference_i − method_i) / gap``, ``gap`` = mean(reference − bound):
+            (mean reference − mean method) / (mean reference − mean bound).
+        low, high: bootstrap interval of ``score`` at ``level``, the triples resampled together (the gap too);
+            NaN when n < 2.
+        per_unit: the per-unit scores ``(reference_i − method_i) / gap``.
+        worst: the lowest per-unit score.
+        gap: the mean reference-to-bound gap (errors' unit).
+    """
+
+    n: int
+    score: float
+    low: float
+    high: float
+    per_unit: tuple[float, ...]
+    worst: float
+    gap: float
+    level: float = DEFAULT_LEVEL
+
+    def text(self, digits: int = 2) -> str:
+        """ "score [low, high]" with ``digits`` decimals."""
+        return f"{self.score:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+
+
+def normalised_score(
+    method, reference, bound, n_boot: int = DEFAULT_BOOT, seed: int = 0, level: float = DEFAULT_LEVEL
+) -> Normalised:
+    """``method``'s errors normalised between ``reference``'s (0) and ``bound``'s (1), unit by unit (equal-length
+    arrays, entry i of each from unit i): see :class:`Normalised`. The interval resamples units with
+    :func:`resamples`. ValueError naming the bad input, or when the bound is not better than the reference on
+    average (no gap to normalise by)."""
+    m, r, b = (_scores(name, v) for name, v in (("method", method), ("reference", reference), ("bound", bound)))
+    if not len(m) == len(r) == len(b):
+        raise ValueError(f"method, reference and bound must pair unit by unit: {len(m)}, {len(r)}, {len(b)} errors")
+    _check_boot(n_boot, level)
+    gap = float(np.mean(r - b))
+    if not gap > 0:
+        raise ValueError(f"the bound is not better than the reference on average (gap {gap:.4g}): no normalised score")
+    per_unit = (r - m) / gap
+    n = len(m)
+    nan = float("nan")
+    low = high = nan
+    if n >= 2:
+        boot = np.concatenate(
+            [np.mean(r[i] - m[i], axis=1) / np.mean(r[i] - b[i], axis=1) for i in resamples(n, n_boot, seed)]
+        )
+        low, high = (float(x) for x in np.quantile(boot, [(1 - level) / 2, (1 + level) / 2]))
+    return Normalised(
+        n, float(per_unit.mean()), low, high, tuple(map(float, per_unit)), float(per_unit.min()), gap, level
+    )

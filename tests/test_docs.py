@@ -57,6 +57,6 @@ def test_navigation_holds_every_page_and_the_home_page_links_into_the_site(pages
             yield from leaves(value) if isinstance(value, list) else [value]
 
     in_nav = set(leaves(gen_pages._expand(config["nav"])))
-    written = {p.name for p in (ROOT / "docs").glob("*.md")}
+    written = {p.relative_to(ROOT / "docs").as_posix() for p in (ROOT / "docs").rglob("*.md")}
     assert (set(pages) | written) - in_nav == set() and in_nav - set(pages) - written == set()
     assert "](docs/" not in pages["index.md"] and "](results.md)" in pages["index.md"]

@@ -137,6 +137,61 @@ def test_without_ray_the_command_names_the_extra(tmp_path, capsys, monkeypatch):
     assert "magenv sweep needs Ray Tune" in err and "pip install 'magenv[scale]'" in err
 
 
+def test_null_drops_a_shipped_key_and_scenarios_may_differ_per_env(tmp_path):
+    kalman = "magenv/MagKalman-v0"
+    doc = {
+        ENV: {**TINY, "pretrain": {"teacher": "fan_lambda", "steps": 64}},
+        kalman: {**TINY, "pretrain": None},  # the shipped MagKalman-v0 section clones kf_model_tuned first
+        "search": {
+            **SEARCH,
+            "params": {},
+            "eval_scenarios": {ENV: ["dynamic_clean"], kalman: "stationary_magnet"},
+            "report": {"seeds": [0]},  # its scenarios: each env's eval_scenarios
+        },
+    }
+    path = tmp_path / "two.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    runs = {r.env_id: r for r in load_sweep(path, seeds=[7])}
+    assert "pretrain" in runs[ENV].section and "pretrain" not in runs[kalman].section
+    assert runs[kalman].eval_scenarios == ["stationary_magnet"] == runs[kalman].report_scenarios
+    assert runs[ENV].eval_scenarios == ["dynamic_clean"] and runs[ENV].seed == 7 and runs[ENV].name.endswith("-s7")
+    doc["search"]["eval_scenarios"] = {ENV: ["dynamic_clean"]}
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match="gives no scenarios for magenv/MagKalman-v0"):
+        load_sweep(path)
+
+
+def test_a_dagger_section_names_its_teacher_and_each_seed_draws_its_own_trials(tmp_path):
+    search = {"algos": ["dagger"], "seeds": "0:2", "eval_scenarios": ["dynamic_clean"], "eval_seeds": "5000:5002"}
+    path = tmp_path / "dagger.yaml"
+    path.write_text(yaml.safe_dump({ENV: {"teacher": "oracle", "iterations": 1, "ensemble": 1}, "search": search}))
+    first, second = load_sweep(path)
+    assert first.section["teacher"] == "oracle" and first.section["val_seeds"] == [5000, 5002]
+    assert first.section["train_seed"] != second.section["train_seed"] and second.section["seed"] == 1
+    assert first.section["val_scenarios"] == ["dynamic_clean"]
+    path.write_text(yaml.safe_dump({ENV: {"iterations": 1, "ensemble": 1}, "search": search}))
+    with pytest.raises(ConfigError, match="a dagger section needs teacher"):
+        load_sweep(path)
+    path.write_text(yaml.safe_dump({ENV: {"teacher": "oracle", "iterations": 0}, "search": search}))
+    with pytest.raises(ConfigError, match="'iterations' must be a positive integer"):
+        load_sweep(path)
+
+
+def test_a_dagger_run_trains_resumes_and_is_scored_like_the_others(tmp_path):
+    search = {"algos": ["dagger"], "seeds": [0], "eval_scenarios": ["dynamic_clean"], "eval_seeds": [5000]}
+    section = {"teacher": "oracle", "scenarios": ["dynamic_clean"], "iterations": 2, "trials_per_scenario": 1}
+    path = tmp_path / "dagger.yaml"
+    path.write_text(yaml.safe_dump({ENV: {**section, "fit_steps": 50, "ensemble": 1}, "search": search}))
+    runs = {r.name: json.loads(json.dumps(r.as_dict())) for r in load_sweep(path)}
+    (name,) = runs
+    record = run_trial(name, str(tmp_path / "out"), runs)
+    assert record["timesteps"] == 2 * 2240 and record["start_timesteps"] == 0  # 70 s at 256 Hz, k = 8, twice
+    assert len(record["agent"]) == len(record["reference"]) == 5 and record["agent_rmse"] > 0  # report seeds 0:5
+    (tmp_path / "out" / "results" / f"{name}.json").unlink()  # as if stopped after training: resumed, not redone
+    again = run_trial(name, str(tmp_path / "out"), runs)
+    assert again["start_timesteps"] == 2 * 2240 and again["agent"] == record["agent"]
+
+
 # ----------------------------------------------------------------- one run, without Ray
 
 

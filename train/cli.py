@@ -28,6 +28,8 @@ COMMANDS = {
     ),
     "evaluate": ("magenv.train.evaluate", "score a trained agent on scenarios or recordings"),
     "export": ("magenv.train.export", "a DAgger student as an ONNX model with a JSON sidecar (features, lags, action)"),
+    "benchmark": ("magenv.train.benchmark", "score a policy on the benchmark suite (magenv-bench v1): its score card"),
+    "datasets": ("magenv.train.datasets", "offline datasets (Minari) of the oracles' and tuned rules' rollouts"),
     "tune": ("magenv.train.tune", "optimise the hand-crafted rules' parameters with CMA-ES"),
     "pictures": ("magenv.train.pictures", "draw the README's pictures: a rendered frame and trust over time"),
     "report": ("magenv.train.report", "write a Markdown report with tables and plots"),

@@ -1,6 +1,6 @@
 """``magenv sweep``: many ``magenv train`` runs on Ray Tune, then one table per configuration against a tuned rule.
 
-    magenv sweep CONFIG.yaml [--out runs/sweep] [--workers N] [--address ADDR] [--dry-run]
+    magenv sweep CONFIG.yaml [--out runs/sweep] [--workers N] [--address ADDR] [--seeds 0:5] [--dry-run]
 
 The sweep file (``magenv.train.sweep_config``) crosses env ids × algorithms
 × searched hyperparameter configurations × training seeds; each run is one
@@ -12,7 +12,7 @@ its best model and the reference rule on the same held-out trials. OUT holds::
     sweep.json           the runs (written first; a rerun may add runs, never change one)
     configs/NAME.yaml    each run's config section (its magenv train --config)
     runs/NAME/           each run's magenv train run folder (magenv evaluate, compare --agent take it)
-    results/NAME.json    each finished run: per-trial RMSE of the agent and the reference, timings
+    results/NAME.json    each finished run: per-trial RMSE of the agent and the reference, wall and CPU timings
     logs/NAME.log        what each run printed
     summary.csv          the table (SUMMARY_COLUMNS)
     tune/                Ray Tune's own files (never read back by magenv)
@@ -43,6 +43,8 @@ import yaml
 
 from magenv.agents.hyperparams import POSITIVE_INT
 from magenv.train.cli import PARTIAL, CommandError, output_folder, rule_arg
+from magenv.train.seeds import seeds_arg
+from magenv.train.sweep_config import DAGGER
 
 SUMMARY_COLUMNS = (
     "env",
@@ -72,6 +74,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="runs at a time, one CPU each (default: every CPU of the local machine or the cluster)",
     )
     p.add_argument("--address", default=None, help="an existing Ray cluster (e.g. auto, or HOST:6379); default local")
+    p.add_argument(
+        "--seeds", type=seeds_arg, default=None, help="training seeds, replacing the file's search.seeds (e.g. 0:2)"
+    )
     p.add_argument("--dry-run", action="store_true", help="list the runs and stop (Ray not needed)")
 
 
@@ -85,7 +90,7 @@ def _write_atomic(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
-def _finished(out: Path, name: str, spec: dict) -> dict | None:
+def finished_record(out: Path, name: str, spec: dict) -> dict | None:
     """The results record of run ``name`` in sweep folder ``out`` if it finished with these settings, else None."""
     path = out / "results" / f"{name}.json"
     try:
@@ -93,6 +98,37 @@ def _finished(out: Path, name: str, spec: dict) -> dict | None:
     except (OSError, ValueError):
         return None
     return record if isinstance(record, dict) and record.get("run") == spec else None
+
+
+def _train_dagger(spec: dict, run_dir: Path) -> None:
+    """DAgger run ``spec`` into ``run_dir``, or its continuation where the folder holds it."""
+    from magenv import registry
+    from magenv.agents import dagger
+
+    config = dict(spec["section"])
+    teacher = registry.make(config.pop("teacher"))
+    resume = dagger.is_run(run_dir)
+    dagger.train(
+        run_dir,
+        teacher,
+        {"iterations": config["iterations"]} if resume else config,
+        env_id=spec["env_id"],
+        resume=resume,
+    )
+
+
+def _dagger_progress(run_dir: Path) -> dict | None:
+    """A DAgger run's progress as ``train``'s: ``timesteps`` = decisions labelled so far (its iterations.csv
+    ``samples``), ``best_score`` = its best validation score (its mean ratio to the rule, not an RMSE); None before
+    its first iteration."""
+    path = run_dir / "iterations.csv"
+    if not path.is_file():
+        return None
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return None
+    return {"timesteps": int(rows[-1]["samples"]), "best_score": float(rows[-1]["best"])}
 
 
 def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
@@ -105,35 +141,39 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
     from magenv.scenarios import make_trial
 
     spec, out_dir = runs[name], Path(out)
-    done = _finished(out_dir, name, spec)
+    done = finished_record(out_dir, name, spec)
     if done is not None:
         return done
     run_dir, config = out_dir / "runs" / name, out_dir / "configs" / f"{name}.yaml"
     _write_atomic(config, yaml.safe_dump({spec["env_id"]: spec["section"]}, sort_keys=False))
-    before = progress(run_dir, spec["algo"])
+    dagger_run = spec["algo"] == DAGGER
+    before = _dagger_progress(run_dir) if dagger_run else progress(run_dir, spec["algo"])
     start = before["timesteps"] if before is not None else 0
     (out_dir / "logs").mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with open(out_dir / "logs" / f"{name}.log", "a") as log, contextlib.redirect_stdout(log):
-        train(
-            spec["env_id"],
-            spec["algo"],
-            spec["steps"],
-            run_dir,
-            config=str(config),
-            seed=spec["seed"],
-            eval_every=spec["eval_every"],
-            eval_scenarios=tuple(spec["eval_scenarios"]),
-            eval_seeds=tuple(spec["eval_seeds"]),
-            progress_bar=False,
-            make_method=registry.make,
-        )
-    t1 = time.perf_counter()
+        if dagger_run:
+            _train_dagger(spec, run_dir)
+        else:
+            train(
+                spec["env_id"],
+                spec["algo"],
+                spec["steps"],
+                run_dir,
+                config=str(config),
+                seed=spec["seed"],
+                eval_every=spec["eval_every"],
+                eval_scenarios=tuple(spec["eval_scenarios"]),
+                eval_seeds=tuple(spec["eval_seeds"]),
+                progress_bar=False,
+                make_method=registry.make,
+            )
+    t1, c1 = time.perf_counter(), time.process_time()
     trials = [make_trial(s, seed) for s in spec["report_scenarios"] for seed in spec["report_seeds"]]
     reference = spec["reference"]
     runs_ = evaluation.evaluate({"agent": load_agent(run_dir), reference: registry.make(reference)}, trials)
     scores = {m: [r.scored.total for r in runs_ if r.method == m] for m in ("agent", reference)}
-    trained = progress(run_dir, spec["algo"])
+    trained = _dagger_progress(run_dir) if dagger_run else progress(run_dir, spec["algo"])
     if trained is None:
         raise CommandError(f"{run_dir}: training left no checkpoint")
     record = {
@@ -150,6 +190,8 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
         "timesteps": trained["timesteps"],
         "train_s": t1 - t0,
         "eval_s": time.perf_counter() - t1,
+        "train_cpu_s": c1 - c0,  # this process's CPU seconds: what a free core would take
+        "eval_cpu_s": time.process_time() - c1,
     }
     _write_atomic(out_dir / "results" / f"{name}.json", json.dumps(record, indent=1))
     return record
@@ -270,7 +312,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.dry_run:
         output_folder(args.out, "--out")
     try:
-        sweep = load_sweep(args.config)
+        sweep = load_sweep(args.config, args.seeds)
     except ConfigError as exc:
         raise CommandError(str(exc)) from None
     runs = {r.name: json.loads(json.dumps(r.as_dict())) for r in sweep}
@@ -298,7 +340,7 @@ def run(args: argparse.Namespace) -> int:
         elif result:
             print(f"  done {name}: agent {result['agent_rmse']:.2f}°, reference {result['reference_rmse']:.2f}°")
 
-    todo = [name for name in runs if _finished(out, name, runs[name]) is None]
+    todo = [name for name in runs if finished_record(out, name, runs[name]) is None]
     print(f"{len(runs) - len(todo)} run(s) finished before, {len(todo)} to run")
     interrupted, outcome = False, {}
     try:
@@ -313,7 +355,7 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t1
     records, failed, fresh = [], {}, []
     for name in runs:
-        record = _finished(out, name, runs[name])
+        record = finished_record(out, name, runs[name])
         if record is not None:
             records.append(record)
             if name in todo:

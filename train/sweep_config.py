@@ -5,6 +5,7 @@
     magenv/MagBlend-v0:              # base hyperparameters, merged over agents/configs/ALGO.yaml's section
       n_timesteps: 20000
       n_envs: 2
+      pretrain: null                 # null: the shipped section's key dropped
     search:
       envs: [magenv/MagBlend-v0]     # default: every env section of this file
       algos: [ppo]                   # default [ppo]
@@ -18,11 +19,12 @@
         gamma: {uniform: [0.95, 0.999]}                   # random only: uniform, loguniform, randint, choice
       steps: 20000                   # optional: total steps per run (default: the section's n_timesteps)
       eval_every: 10000              # held-out evaluation and checkpoint cadence of each run
-      eval_scenarios: [dynamic_magnet, dynamic_clean]     # validation (model selection), as magenv train
+      eval_scenarios: [dynamic_magnet, dynamic_clean]     # validation (model selection), as magenv train;
+                                                          # or a mapping env id → scenarios
       eval_seeds: "5000:5002"
       report:                        # the table: every run and the reference on the same held-out trials
         reference: fan_lambda_tuned  # or a mapping env id → method (default DEFAULT_REFERENCE)
-        scenarios: [dynamic_magnet, dynamic_clean]        # default: eval_scenarios
+        scenarios: [dynamic_magnet, dynamic_clean]        # default: eval_scenarios (a mapping too)
         seeds: "0:5"                 # seeds below 5000 (magenv.seeding)
 
 A *configuration* is one set of searched values; the same configurations
@@ -58,10 +60,11 @@ from magenv.agents.hyperparams import (
     read_yaml,
 )
 from magenv.envs import BLEND_ID, CONSTRAINT_ID, KALMAN_ID, QSF_ID, VQF_ID
-from magenv.seeding import VALIDATION_START
+from magenv.seeding import HELD_OUT_BELOW, VALIDATION_START
 from magenv.train.seeds import parse_seeds
 
 SEARCH = "search"
+DAGGER = "dagger"  # DAgger from a privileged teacher (magenv.agents.dagger): its section holds the teacher too
 SEARCH_KEYS = {
     "envs",
     "algos",
@@ -142,6 +145,18 @@ def _names(where: str, key: str, value, known) -> list[str]:
     return list(dict.fromkeys(items))
 
 
+def _per_env(where: str, key: str, value, envs: list[str], known) -> dict[str, list[str]]:
+    """Env id → scenario names: ``value`` a name or list for every env, or a mapping env id → name or list
+    (every env of the sweep given)."""
+    if not isinstance(value, dict):
+        names = _names(where, key, value, known)
+        return dict.fromkeys(envs, names)
+    missing = [e for e in envs if e not in value]
+    if missing:
+        raise ConfigError(f"{where}: {key} gives no scenarios for {', '.join(missing)}")
+    return {e: _names(where, f"{key}[{e}]", value[e], known) for e in envs}
+
+
 def _set(section: dict, dotted: str, value) -> dict:
     """``section`` with ``dotted`` (``a.b.c``) set to ``value``, nested mappings copied on the way."""
     head, _, rest = dotted.partition(".")
@@ -215,15 +230,49 @@ def _base_section(algo: str, env_id: str, sweep_section: dict | None) -> dict:
     """The shipped config's section of ``env_id`` (``agents/configs/ALGO.yaml``; none: empty) with the sweep
     file's section over it (unchecked YAML)."""
     shipped = yaml.safe_load((CONFIG_DIR / f"{algo}.yaml").read_text()) or {}
-    return {**(shipped.get(env_id) or {}), **(sweep_section or {})}
+    merged = {**(shipped.get(env_id) or {}), **(sweep_section or {})}
+    return {k: v for k, v in merged.items() if v is not None}  # a key set to null drops the shipped one
+
+
+def _dagger_section(where: str, section: dict, methods: list[str]) -> dict:
+    """A DAgger section (the keys of ``agents/configs/dagger.yaml`` and ``teacher``, the oracle's registry name)
+    checked with ``magenv.agents.dagger.check_config``; ConfigError naming ``where``."""
+    from magenv.agents import dagger
+
+    section = dict(section)
+    teacher = section.pop("teacher", None)
+    if teacher not in methods:
+        raise ConfigError(f"{where}: a dagger section needs teacher: the oracle's method name, got {teacher!r}")
+    try:
+        dagger.check_config(section)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    return {**section, "teacher": teacher}
+
+
+#: DAgger's training seed s draws its trials from train_seed + s × DAGGER_SEED_STRIDE (each seed its own trials)
+DAGGER_SEED_STRIDE = 1_000_000
+
+
+def dagger_seeded(section: dict, seed: int, scenarios: list[str], val_seeds: list[int]) -> dict:
+    """The DAgger section of training seed ``seed``: its fit seed, its own training trials, validated on
+    ``scenarios`` × ``val_seeds`` (model selection, as the other algorithms' ``eval_*``)."""
+    return {
+        **section,
+        "seed": seed,
+        "train_seed": section.get("train_seed", HELD_OUT_BELOW) + seed * DAGGER_SEED_STRIDE,
+        "val_seeds": [min(val_seeds), max(val_seeds) + 1],
+        "val_scenarios": list(scenarios),
+    }
 
 
 def _short(env_id: str) -> str:
     return env_id.rsplit("/", 1)[-1]
 
 
-def load_sweep(path: str | Path) -> list[SweepRun]:
-    """Every run of the sweep file ``path``, checked (ConfigError naming the file, the key and the problem)."""
+def load_sweep(path: str | Path, seeds: list[int] | None = None) -> list[SweepRun]:
+    """Every run of the sweep file ``path``, checked (ConfigError naming the file, the key and the problem);
+    ``seeds`` replaces the file's ``search.seeds``."""
     import gymnasium as gym
 
     from magenv import registry
@@ -249,23 +298,30 @@ def load_sweep(path: str | Path) -> list[SweepRun]:
     if not envs:
         raise ConfigError(f"{where}: no env to train: give search.envs or an env section")
     envs = _names(where, "search.envs", envs, envs_known)
-    algos = _names(where, "search.algos", search.get("algos", ["ppo"]), ["ppo", "sac", "recurrent_ppo"])
+    algos = _names(where, "search.algos", search.get("algos", ["ppo"]), ["ppo", "sac", "recurrent_ppo", DAGGER])
     for algo in algos:
-        algorithm_class(algo)
-    seeds = _seeds(where, "search.seeds", search.get("seeds", 0))
+        if algo != DAGGER:
+            algorithm_class(algo)
+    seeds = _seeds(where, "search.seeds", search.get("seeds", 0)) if seeds is None else seeds
     steps = search.get("steps")
     steps = None if steps is None else check_value(where, "search.steps", steps, POSITIVE_INT)
     eval_every = check_value(where, "search.eval_every", search.get("eval_every", DEFAULT_EVAL_EVERY), POSITIVE_INT)
     known_scenarios = scenario_names()
-    eval_scenarios = _names(
-        where, "search.eval_scenarios", search.get("eval_scenarios", list(DEFAULT_EVAL_SCENARIOS)), known_scenarios
+    eval_scenarios = _per_env(
+        where,
+        "search.eval_scenarios",
+        search.get("eval_scenarios", list(DEFAULT_EVAL_SCENARIOS)),
+        envs,
+        known_scenarios,
     )
     eval_seeds = _seeds(where, "search.eval_seeds", search.get("eval_seeds", list(DEFAULT_EVAL_SEEDS)))
     report = search.get("report") or {}
     if not isinstance(report, dict) or set(report) - REPORT_KEYS:
         raise ConfigError(f"{where}: search.report must be a mapping with keys {', '.join(sorted(REPORT_KEYS))}")
-    report_scenarios = _names(
-        where, "search.report.scenarios", report.get("scenarios", eval_scenarios), known_scenarios
+    report_scenarios = (
+        _per_env(where, "search.report.scenarios", report["scenarios"], envs, known_scenarios)
+        if "scenarios" in report
+        else eval_scenarios
     )
     report_seeds = _seeds(where, "search.report.seeds", report.get("seeds", DEFAULT_REPORT_SEEDS), VALIDATION_START)
     reference = report.get("reference", DEFAULT_REFERENCE)
@@ -287,9 +343,16 @@ def load_sweep(path: str | Path) -> list[SweepRun]:
             section = base
             for key, value in params.items():
                 section = _set(section, key, value)
-            checked = check_section(algo, section, f"{where} [{env_id}, {algo}, configuration {c}: {params}]")
-            run_steps = steps or int(checked.get("n_timesteps", 100_000))
+            label = f"{where} [{env_id}, {algo}, configuration {c}: {params}]"
+            if algo == DAGGER:
+                checked = _dagger_section(label, section, registry.names())
+                run_steps = 0  # DAgger's size is its iterations × trials (its section)
+            else:
+                checked = check_section(algo, section, label)
+                run_steps = steps or int(checked.get("n_timesteps", 100_000))
             for seed in seeds:
+                if algo == DAGGER:
+                    checked = dagger_seeded(checked, seed, eval_scenarios[env_id], eval_seeds)
                 runs.append(
                     SweepRun(
                         f"{_short(env_id)}-{algo}-c{c}-s{seed}",
@@ -301,10 +364,10 @@ def load_sweep(path: str | Path) -> list[SweepRun]:
                         checked,
                         run_steps,
                         eval_every,
-                        eval_scenarios,
+                        eval_scenarios[env_id],
                         eval_seeds,
                         references[env_id],
-                        report_scenarios,
+                        report_scenarios[env_id],
                         report_seeds,
                     )
                 )

@@ -1,0 +1,260 @@
+"""magenv-bench v1 (``magenv.benchmark``) and ``magenv benchmark``: the suite's tasks, seeds and budget, the
+normalised score, a user's callable scored in one command, bad agents refused before any work, the baselines'
+table with its missing cells shown."""
+
+from __future__ import annotations
+
+import json
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from magenv import stats
+from magenv.benchmark import suite
+from magenv.seeding import HELD_OUT_BELOW, VALIDATION_START
+from magenv.train import benchmark
+from magenv.train.cli import main as cli
+from magenv.train.seeds import REPORT_SEEDS, parse_seeds
+from magenv.train.sweep_config import load_sweep
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH_CONFIGS = sorted((ROOT / "agents" / "configs" / "bench").glob("*.yaml"))
+
+
+# ----------------------------------------------------------------- the suite
+
+
+def test_the_suite_holds_the_issues_tasks():
+    by_env = {}
+    for t in suite.TASKS:
+        by_env.setdefault(t.env.short, []).append(t.test)
+    assert by_env == {
+        "MagBlend-v0": ["dynamic_magnet", "stationary_magnet", "dynamic_clean"],
+        "MagKalman-v0": ["dynamic_magnet", "stationary_magnet"],
+        "MagConstraint-v0": ["constraint_test1", "constraint_test2", "constraint_test3"],
+        "MagQSF-v0": ["handheld_texting", "handheld_swinging", "handheld_corridor", "handheld_free"],
+        "MagVQF-v0": ["dynamic_magnet", "stationary_magnet", suite.RECORDINGS],
+    }
+    assert [t.name for t in suite.TASKS if not t.normalised] == ["MagVQF-v0/recordings"]
+
+
+def test_every_rule_and_oracle_of_the_suite_is_a_method_and_every_test_a_scenario():
+    from magenv import registry
+    from magenv.scenarios import scenario_names
+
+    names, scenarios = registry.names(), scenario_names()
+    assert [t.name for t in suite.TASKS if t.rule not in names or (t.oracle and t.oracle not in names)] == []
+    assert [t.name for t in suite.TASKS if t.test != suite.RECORDINGS and t.test not in scenarios] == []
+    assert [e.short for e in suite.ENVS if not set(e.mixture) <= set(scenarios)] == []
+
+
+def test_evaluation_seeds_are_held_out_and_unused_by_training_validation_and_the_projects_reports():
+    seeds = set(suite.EVAL_SEEDS)
+    assert max(seeds) < VALIDATION_START < HELD_OUT_BELOW
+    assert not seeds & set(parse_seeds(REPORT_SEEDS))
+    used = []  # every seed a shipped config names (training, validation)
+    for path in (ROOT / "agents" / "configs").rglob("*.yaml"):
+        text = path.read_text()
+        used += [int(x) for x in __import__("re").findall(r"\b\d{4,5}\b", text) if 4000 <= int(x) < 4100]
+    assert used == []
+
+
+@pytest.mark.parametrize("path", BENCH_CONFIGS, ids=[p.stem for p in BENCH_CONFIGS])
+def test_the_baseline_configs_train_every_env_on_its_mixture_at_the_budget(path):
+    runs = load_sweep(path)
+    assert {r.env_id for r in runs} == {e.env_id for e in suite.ENVS}
+    assert {r.seed for r in runs} == set(range(suite.BASELINE_SEEDS))
+    for r in runs:
+        spec = suite.env_spec(r.env_id)
+        if r.algo == "dagger":
+            assert r.section["scenarios"] == list(spec.mixture)
+            assert r.section["train_seed"] >= HELD_OUT_BELOW and r.section["val_seeds"][0] >= VALIDATION_START
+        else:
+            assert r.section["env_kwargs"]["scenario"].split(",") == list(spec.mixture)
+            assert r.steps == spec.steps_at(r.section["env_kwargs"].get("decision_every", spec.decision_every))
+            assert "pretrain" not in r.section  # from scratch
+        # validation on the suite's tests (MagQSF-v0's 13-minute free walk left out), never on their seeds
+        assert set(r.eval_scenarios) <= {t.test for t in suite.TASKS if t.env is spec}
+        assert max(r.eval_seeds) < HELD_OUT_BELOW and min(r.eval_seeds) >= VALIDATION_START
+
+
+def test_select_takes_tasks_envs_and_sim_and_names_what_matches_nothing():
+    assert [t.name for t in suite.select("MagKalman-v0")] == [
+        "MagKalman-v0/dynamic_magnet",
+        "MagKalman-v0/stationary_magnet",
+    ]
+    assert len(suite.select("sim")) == len(suite.TASKS) - 1
+    assert suite.select("MagBlend-v0/dynamic_clean,magenv/MagBlend-v0")[0].test == "dynamic_clean"
+    with pytest.raises(ValueError, match="unknown task 'MagBlend-v0/nope'.*MagBlend-v0/dynamic_magnet"):
+        suite.select("MagBlend-v0/nope")
+
+
+# ----------------------------------------------------------------- the normalised score
+
+
+def test_the_normalised_score_is_zero_for_the_rule_one_for_the_oracle_and_pairs_trials():
+    rng = np.random.default_rng(0)
+    rule = rng.uniform(1.0, 3.0, 30)
+    oracle = rule * rng.uniform(0.3, 0.9, 30)
+    assert stats.normalised_score(rule, rule, oracle).score == 0.0
+    assert stats.normalised_score(oracle, rule, oracle).score == pytest.approx(1.0)
+    half = (rule + oracle) / 2
+    s = stats.normalised_score(half, rule, oracle)
+    assert s.score == pytest.approx(0.5) and s.low < 0.5 < s.high
+    assert s.worst == pytest.approx(min(s.per_unit))
+    assert stats.normalised_score(half, rule, oracle).low == s.low  # same seed, same interval
+    with pytest.raises(ValueError, match="not better than the reference"):
+        stats.normalised_score(half, oracle, rule)
+    with pytest.raises(ValueError, match="pair unit by unit"):
+        stats.normalised_score(half[:3], rule, oracle)
+
+
+# ----------------------------------------------------------------- the command
+
+
+@pytest.fixture
+def user_module(tmp_path, monkeypatch):
+    """A user's module on the path: ``bench_user:rule`` acts as fan_lambda_tuned in MagBlend-v0 only."""
+    (tmp_path / "bench_user.py").write_text(
+        textwrap.dedent(
+            """
+            from magenv import registry
+
+            def rule(env_id):
+                return registry.make("fan_lambda_tuned") if env_id == "magenv/MagBlend-v0" else None
+
+            not_callable = 3
+            """
+        )
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield "bench_user"
+    sys.modules.pop("bench_user", None)
+
+
+def test_a_users_callable_is_scored_in_one_command(tmp_path, user_module, capsys):
+    out = tmp_path / "card"
+    argv = ["benchmark", "--agent", f"{user_module}:rule", "--tasks", "MagBlend-v0/dynamic_clean"]
+    assert cli([*argv, "--seeds", "0:3", "--duration", "8", "--out", str(out)]) == 0
+    card = json.loads((out / "card.json").read_text())
+    assert card["suite"] == suite.VERSION and not card["protocol"] and "instead of the suite's" in card["deviation"]
+    (task,) = card["tasks"]
+    # the callable is the rule itself: ratio 1 and normalised score 0 on every trial, the oracle's scores above
+    assert task["ratio"]["value"] == pytest.approx(1.0) and task["normalised"]["value"] == pytest.approx(0.0)
+    assert task["per_trial"]["agent"] == pytest.approx(task["per_trial"]["rule"])
+    assert task["oracle_rmse"] < task["rule_rmse"]
+    assert card["aggregates"]["oracle"]["iqm"][0] > 0.0 == pytest.approx(card["aggregates"]["agent"]["iqm"][0])
+    assert (out / "profile.png").stat().st_size > 0
+    assert "| MagBlend-v0/dynamic_clean | fan_lambda_tuned |" in (out / "card.md").read_text()
+
+
+def test_the_recordings_track_is_skipped_saying_so_where_there_are_none(tmp_path, monkeypatch, capsys):
+    (tmp_path / "vqf_user.py").write_text(
+        "from magenv import registry\n\ndef rule(env_id):\n    return registry.make('vqf_fan_lambda_tuned')\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("MAGENV_BROAD_DIR", str(tmp_path / "empty"))
+    (tmp_path / "empty").mkdir()
+    out = tmp_path / "card"
+    assert cli(["benchmark", "--agent", "vqf_user:rule", "--tasks", "MagVQF-v0/recordings", "--out", str(out)]) == 0
+    card = json.loads((out / "card.json").read_text())
+    assert card["tasks"] == [] and card["skipped"] == [
+        {"task": "MagVQF-v0/recordings", "reason": "no recordings: the folder holds no *.hdf5 file"}
+    ]
+    assert "| MagVQF-v0/recordings | skipped: no recordings" in (out / "card.md").read_text()
+    assert "MagVQF-v0/recordings: skipped (no recordings" in capsys.readouterr().out
+    sys.modules.pop("vqf_user", None)
+
+
+@pytest.mark.parametrize(
+    "agent, message",
+    [
+        ("no_such_module_xyz:fn", "cannot import module 'no_such_module_xyz'"),
+        ("bench_user:missing", "has no callable 'missing'"),
+        ("bench_user:not_callable", "has no callable 'not_callable'"),
+        ("pretrained:magenv/Nope-v0", "no pretrained agent for 'magenv/Nope-v0'"),
+        ("no/such/run", "no such run folder"),
+        ("no/such/best.safetensors", "not a .safetensors weights file"),
+    ],
+)
+def test_a_bad_agent_is_named_before_any_work(tmp_path, user_module, capsys, agent, message):
+    out = tmp_path / "card"
+    assert cli(["benchmark", "--agent", agent, "--tasks", "MagBlend-v0/dynamic_clean", "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_bad_tasks_seeds_and_outputs_are_named_before_any_work(tmp_path, user_module, capsys):
+    agent = ["benchmark", "--agent", f"{user_module}:rule"]
+    assert cli([*agent, "--tasks", "MagBlend-v0/nope"]) == 2
+    assert "unknown task 'MagBlend-v0/nope'" in capsys.readouterr().err
+    assert cli([*agent, "--tasks", "MagKalman-v0", "--out", str(tmp_path / "o")]) == 2
+    assert "returned None for every env" in capsys.readouterr().err
+    assert cli([*agent, "--seeds", "5000:5002", "--out", str(tmp_path / "o")]) == 2
+    assert "held-out seeds lie below 5000" in capsys.readouterr().err
+    (tmp_path / "file").write_text("")
+    assert cli([*agent, "--out", str(tmp_path / "file")]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+    assert cli(["benchmark", "--sweep", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "not a magenv sweep folder" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------- the baselines' table
+
+
+def test_the_baselines_table_shows_what_did_not_finish():
+    rows = [
+        {"env": suite.BLEND.env_id, "task": t, "method": m, "seed": s, "rmse": 1.0 + s, "normalised": 0.1 * s + n}
+        for t in ("MagBlend-v0/dynamic_magnet", "MagBlend-v0/dynamic_clean")
+        for m, n in (("PPO", 0.0), ("DAgger", 0.5))
+        for s in (0, 1)
+    ]
+    names = [t.name for t in suite.TASKS if t.normalised]
+    matrices, covered = benchmark.baseline_matrices(rows, names)
+    assert matrices["DAgger"].shape == (2, 2) and covered["PPO"] == f"2 of {len(names)} tasks, seeds 0, 1"
+    records = [
+        {"run": {"env_id": suite.BLEND.env_id, "algo": "ppo"}, "train_s": 600.0, "eval_s": 60.0},
+        {"run": {"env_id": suite.BLEND.env_id, "algo": "dagger"}, "train_s": 9.0, "eval_s": 1.0,
+         "train_cpu_s": 1140.0, "eval_cpu_s": 60.0},
+    ] * 2  # fmt: skip
+    page = benchmark.index_markdown(rows, records, 100, {}, covered)
+    assert "**4 of 100 runs finished and scored**: the table is incomplete" in page
+    assert "| MagBlend-v0/dynamic_magnet | 0.05 (1.50°) n = 2 | – | – | 0.55 (1.50°) n = 2 |" in page
+    assert "| MagKalman-v0/dynamic_magnet | – | – | – | – |" in page
+    # minutes per run: CPU where recorded, else wall (*); 5 seeds × (11 + 20) min = 2.6 CPU-hours
+    assert (
+        "| MagBlend-v0 | 11* | – | – | 20 |" in page
+        and "The 2 of 20 (env, method) cells measured would take 2.6" in page
+    )
+    for t in suite.TASKS:
+        assert f"| {t.name} | {', '.join(t.env.mixture)} | `{t.rule}` |" in page
+
+
+def test_the_baseline_configs_are_what_train_sh_runs():
+    script = (ROOT / "agents" / "configs" / "bench" / "train.sh").read_text()
+    algos = yaml.safe_load("[" + script.split("for algo in ")[1].split(";")[0].replace(" ", ", ") + "]")
+    assert sorted(algos) == sorted(p.stem for p in BENCH_CONFIGS) == sorted(benchmark.ALGO_LABELS)
+
+
+def test_a_weights_file_acts_as_its_run_folders_model(tmp_path):
+    from magenv.agents.loading import RunError, load_agent, load_weights_file
+    from magenv.agents.training import train
+
+    env_id = suite.BLEND.env_id
+    config = tmp_path / "ppo.yaml"
+    section = {"n_envs": 2, "n_steps": 64, "batch_size": 64, "n_epochs": 1, "env_kwargs": {"episode_seconds": 3.0}}
+    config.write_text(yaml.safe_dump({env_id: section}))
+    run = train(env_id, "ppo", 128, tmp_path / "run", config=str(config), eval_every=128,
+                eval_scenarios=["dynamic_clean"], eval_seeds=[5000], progress_bar=False)  # fmt: skip
+    (step,) = sorted((run / "checkpoints").glob("step_*.safetensors"))
+    from_file, from_folder = load_weights_file(step), load_agent(run, which="last")
+    assert from_file.env_id == env_id and from_file.which == step.stem
+    obs = np.random.default_rng(0).uniform(-1, 1, (20, 13)).astype(np.float32)
+    assert np.array_equal([from_file(o) for o in obs], [from_folder(o) for o in obs])
+    (tmp_path / "loose.safetensors").write_bytes(step.read_bytes())  # no run.yaml beside it
+    with pytest.raises(RunError, match="not a magenv run folder"):
+        load_weights_file(tmp_path / "loose.safetensors")
