@@ -203,6 +203,16 @@ def test_bad_tasks_seeds_and_outputs_are_named_before_any_work(tmp_path, user_mo
     assert "not a magenv sweep folder" in capsys.readouterr().err
 
 
+def test_a_summary_names_what_is_not_a_score_card(tmp_path, capsys):
+    (tmp_path / "text.json").write_text("not json")
+    (tmp_path / "other.json").write_text('{"tasks": [{"task": "x"}]}')
+    for name, message in (("none.json", "no file"), ("text.json", "is not a JSON score card"),
+                          ("other.json", "is not a score card of `magenv benchmark --agent`")):  # fmt: skip
+        assert cli(["benchmark", "--summary", str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and name in err
+
+
 # ----------------------------------------------------------------- the baselines' table
 
 

@@ -66,20 +66,24 @@ def test_readme_env_table_is_the_registered_envs_with_their_default_scenarios():
         assert scenario.strip("`") == inspect.signature(cls.__init__).parameters["scenario"].default
 
 
-def test_readme_results_table_names_real_rules_scenarios_and_every_shipped_agent():
-    from magenv import registry
+def test_readme_results_table_is_the_benchmark_summary_of_every_shipped_agents_card():
+    """Every figure of the README's results table is ``magenv benchmark`` output: the summary of the shipped
+    agents' score cards, each a protocol run (the suite's seeds, full trials) of every task of its env."""
     from magenv.agents.loading import pretrained_agents
-    from magenv.scenarios import scenario_names
-    from magenv.train.sweep_config import DEFAULT_REFERENCE
+    from magenv.benchmark import suite
+    from magenv.train.benchmark import read_card, summary_lines
 
-    rows = _table(README, "| env | reference rule |")
-    envs = {f"magenv/{r[0]}": r[1].strip("`") for r in rows if r[0]}
-    assert sorted(envs) == sorted(pretrained_agents())
-    assert envs == {e: DEFAULT_REFERENCE[e] for e in envs}  # each env's first row names its reference
-    rules = {r[1].strip("`") for r in rows if r[1]}
-    assert rules <= set(registry.names())
-    tests = {r[2].split("`")[1] for r in rows}
-    assert tests <= set(scenario_names())
+    paths = sorted((ROOT / "docs" / "benchmark" / "shipped").glob("*.json"))
+    cards = [read_card(p) for p in paths]
+    assert sorted(c["agent"] for c in cards) == sorted(f"pretrained:{a}" for a in pretrained_agents())
+    for card in cards:
+        env = card["agent"].split("/")[-1]
+        assert card["protocol"] and card["suite"] == suite.VERSION and card["skipped"] == []
+        tasks = [t for t in suite.TASKS if t.env_id.endswith(env)]
+        assert [(t["task"], t["rule"]) for t in card["tasks"]] == [(t.name, t.rule) for t in tasks]
+    header = "| task | rule (score 0) |"
+    for page in (README, (ROOT / "docs" / "benchmark" / "shipped.md").read_text()):
+        assert page[page.index(header) :].split("\n\n", 1)[0].splitlines() == summary_lines(cards)
 
 
 def test_commands_and_scripts_that_the_docs_name_exist():

@@ -2,6 +2,7 @@
 
     magenv benchmark --agent AGENT [--tasks LIST] [--out DIR] [--seeds S] [--duration S] [--no-cache]
     magenv benchmark --sweep RUNS --out docs/benchmark      (the baselines' table)
+    magenv benchmark --summary CARD.json [CARD.json ...]    (one table of score cards: the README's results)
 
 AGENT is a run folder (``magenv train``), ``pretrained:ENV_ID`` (a shipped agent), one weights-only file of an SB3
 run folder (``RUN/best.safetensors``, ``RUN/checkpoints/step_T.safetensors``), or a Python callable
@@ -26,6 +27,10 @@ hash of magenv's source and tuned files, so a change of code recomputes them (``
 its env's tasks and writes OUT/baselines.csv (env, task, method, training seed, RMSE, normalised score),
 OUT/baselines.png and OUT/index.md (the protocol, the table with the number of training seeds finished of each
 cell, the aggregates); a run's scores are kept beside it (``SWEEP/benchmark/NAME.json``) for the next call.
+
+``--summary`` prints one Markdown table of the tasks of score cards (``card.json`` files, read as JSON only): per
+task the rule, the ratio agent / rule and the normalised score with their 95 % intervals, and the worst trial's
+ratio. The README's results table is this output for the shipped agents' cards (``docs/benchmark/shipped/``).
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--agent", help="run folder, pretrained:ENV_ID, RUN/FILE.safetensors, or module:function")
     what.add_argument("--sweep", nargs="+", type=Path, metavar="DIR", help="score the finished runs of sweeps")
+    what.add_argument("--summary", nargs="+", type=Path, metavar="CARD", help="one table of score cards' tasks")
     p.add_argument("--tasks", default=None, help="comma list of tasks, envs or sim (default: the agent's envs)")
     p.add_argument("--out", type=Path, default=Path("runs/benchmark"), help="output folder (default %(default)s)")
     p.add_argument("--seeds", type=seeds_arg, default=None, help="quick look: other held-out seeds (below 5000)")
@@ -613,5 +619,51 @@ def run_sweeps(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------- a summary of score cards
+
+CARD_TASK_KEYS = ("task", "rule", "ratio", "normalised")
+
+
+def read_card(path: Path) -> dict:
+    """A score card (``card.json``) read as JSON; CommandError naming the file where it is not one."""
+    try:
+        card = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise CommandError(f"--summary: no file {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CommandError(f"--summary: {path} is not a JSON score card ({exc})") from None
+    tasks = card.get("tasks") if isinstance(card, dict) else None
+    if not isinstance(tasks, list) or not all(
+        isinstance(t, dict) and all(k in t for k in CARD_TASK_KEYS) for t in tasks
+    ):
+        raise CommandError(f"--summary: {path} is not a score card of `magenv benchmark --agent` (no tasks)")
+    return card
+
+
+def summary_lines(cards: list[dict]) -> list[str]:
+    """The tasks of ``cards`` as one Markdown table (module docstring)."""
+    lines = [
+        "| task | rule (score 0) | agent / rule [95 % CI] | normalised [95 % CI] | worst trial's ratio |",
+        "|---|---|---|---|---|",
+    ]
+    for card in cards:
+        for t in card["tasks"]:
+            r, n = t["ratio"], t["normalised"]
+            norm = "–" if n is None else _interval(n["value"], n["low"], n["high"])
+            lines.append(
+                f"| {t['task']} | `{t['rule']}` | {_interval(r['value'], r['low'], r['high'], 3)} | {norm} "
+                f"| {_fmt(r['worst'])} |"
+            )
+    return lines
+
+
+def run_summary(args: argparse.Namespace) -> int:
+    cards = [read_card(p) for p in args.summary]
+    print("\n".join(summary_lines(cards)))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.summary:
+        return run_summary(args)
     return run_sweeps(args) if args.sweep else run_agent(args)
