@@ -1,7 +1,7 @@
 """MagVQF-v0: does a departure band chosen on real recordings transfer to a recording it was not chosen on?
 
-    python -m studies.vqf_band [--agent RUN|pretrained:ID ...] [--bands 0.1 0.25 0.5 1] [--recordings FILE ...]
-        [--json FILE]
+    python -m studies.vqf_band [--agent RUN|pretrained:ID ...] [--bands 0.1 0.25 0.5 1] [--shapes fixed,shrink]
+        [--recordings FILE ...] [--json FILE]
 
 A rule-guarded student (``guard.fallback: rule``) departs from its rule by at most its guard's ``band`` b. The
 candidates are the rule itself (``vqf_fan_rejection_tuned``: b = 0) and every student × b × band shape:
@@ -42,13 +42,13 @@ def shrink(student, band: float) -> None:
     student.bounded = bounded
 
 
-def candidates(agents: list[str], bands: list[float]) -> dict:
+def candidates(agents: list[str], bands: list[float], shapes: list[str]) -> dict:
     """name → method: the rule, and every agent × band × shape (``AGENT fixed|shrink b``)."""
     from magenv import registry
 
     out = {RULE: registry.make(RULE)}
     for agent in agents:
-        for shape in ("fixed", "shrink"):
+        for shape in shapes:
             for band in bands:
                 method = registry.make(registry.AGENT_PREFIX + agent)
                 student = method.student
@@ -83,17 +83,21 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--agent", action="append", default=None, help="rule-guarded student: run folder or pretrained:ID")
     p.add_argument("--bands", nargs="+", type=float, default=[0.1, 0.25, 0.5, 1.0], help="bands b > 0 to try")
+    p.add_argument("--shapes", default="fixed,shrink", help="band shapes to try (default %(default)s)")
     p.add_argument("--recordings", nargs="+", default=None, help="recording files (default: the shared BROAD ones)")
     p.add_argument("--json", type=Path, default=None, help="write the per-recording RMSEs")
     args = p.parse_args(argv)
     agents = args.agent or ["pretrained:magenv/MagVQF-v0"]
     if any(not b > 0 for b in args.bands):
         raise SystemExit(f"--bands must be positive (b = 0 is the rule, always a candidate), got {args.bands}")
+    shapes = args.shapes.split(",")
+    if not shapes or set(shapes) - {"fixed", "shrink"}:
+        raise SystemExit(f"--shapes: a comma list of fixed and shrink, got {args.shapes!r}")
     t0 = time.time()
     trials = [load_recording(f) for f in (args.recordings or list_recordings())]
     if len(trials) < 3:
         raise SystemExit(f"leave-one-recording-out needs at least 3 recordings, got {len(trials)}")
-    methods = candidates(agents, args.bands)
+    methods = candidates(agents, args.bands, shapes)
     shipped = {f"{a} (as shipped)": registry.make(registry.AGENT_PREFIX + a) for a in agents}
     scores = score({REFERENCE: registry.make(REFERENCE), **methods, **shipped}, trials)
     recs = [t.name for t in trials]
@@ -107,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\nnested leave-one-recording-out: recording → candidate chosen on the others, its ratio on the recording")
     for r, c, h in zip(recs, picks, held):
         print(f"  {r:48s} {c:40s} {np.exp(h):.2f}")
-    rows = {"band chosen on the other recordings": np.exp(held) * ref, RULE: np.array([scores[RULE][r] for r in recs])}
+    rows = {"chosen on the other recordings": np.exp(held) * ref, RULE: np.array([scores[RULE][r] for r in recs])}
     rows.update({name: np.array([scores[name][r] for r in recs]) for name in shipped})
     groups = sorted({group_of(r) for r in recs}) + ["all"]
     print("\nratio to " + REFERENCE + " (geometric mean [95 % CI]), worst recording")
@@ -119,9 +123,9 @@ def main(argv: list[str] | None = None) -> int:
             ratio = paired_ratio(rmse[idx], ref[idx])
             cells.append(ratio.ratio_text(2) if len(idx) > 1 else f"{ratio.ratio:.2f}")
         print(f"| {name} | " + " | ".join(cells) + f" | {np.max(rmse / ref):.2f} |")
-    nested = rows["band chosen on the other recordings"]
+    nested = rows["chosen on the other recordings"]
     for name in [RULE, *shipped]:
-        print(f"band chosen on the other recordings / {name}: {paired_ratio(nested, rows[name]).ratio_text(2)}")
+        print(f"chosen on the other recordings / {name}: {paired_ratio(nested, rows[name]).ratio_text(2)}")
     chosen = min(log_ratio, key=lambda c: float(np.mean(log_ratio[c])))
     print(f"\nchosen on all {len(recs)} (in-sample): {chosen}, {np.exp(log_ratio[chosen].mean()):.3f}")
     if args.json:
