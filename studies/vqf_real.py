@@ -1,7 +1,7 @@
 """MagVQF-v0 on real recordings it never trained on (docs/results.md): the sim-to-real table against VQF.
 
     python -m studies.vqf_real [--agent RUN|pretrained:ID ...] [--recordings FILE ...] [--oracle] [--cv RUN ...]
-        [--json FILE]
+        [--twins N] [--json FILE]
 
 Every method on each recording (default: the shared BROAD ones), paired recording by recording with VQF as
 published (``vqf``, the reference): per group of recordings (BROAD's own groups, from the recording's name:
@@ -14,8 +14,10 @@ of one (the shipped MagVQF-v0 student: simulation only) is scored as it is; ``--
 leave-recordings-out run (``magenv train --teacher oracle_vqf_rule --config CFG --cv recordings --out RUN``,
 CFG with recordings or their twins among its scenarios): each recording scored by the fold's student that
 never saw it nor its twin (its ``cv.csv``). ``--oracle`` adds the privileged ``oracle_vqf`` (it reads truth:
-headroom). For a guarded student, the share of its decisions that fell back on its guard's fallback. It prints
-what it measures; nothing here is a test.
+headroom). For a guarded student, the share of its decisions that fell back on its guard's fallback. ``--twins N``
+scores N twins of each recording (``twin:PATH``, validation seeds from 5000) in its place, grouped as the
+recording: whether simulation fitted to the recordings ranks the methods as the recordings do. It prints what it
+measures; nothing here is a test.
 """
 
 from __future__ import annotations
@@ -109,11 +111,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--recordings", nargs="+", default=None, help="recording files (default: the shared BROAD ones)")
     p.add_argument("--oracle", action="store_true", help="add the privileged oracle_vqf (headroom)")
     p.add_argument("--cv", action="append", type=Path, default=[], help="a leave-recordings-out run (repeatable)")
+    p.add_argument("--twins", type=int, default=0, help="score N twins of each recording in its place")
     p.add_argument("--json", type=Path, default=None, help="write the per-recording RMSEs")
     args = p.parse_args(argv)
+    if args.twins < 0 or (args.twins and args.cv):
+        raise SystemExit("--twins N needs N ≥ 0 and no --cv (a cross-validation run scored the recordings)")
     agents = args.agent if args.agent is not None else ["pretrained:magenv/MagVQF-v0"]
     t0 = time.time()
-    trials = [load_recording(f) for f in (args.recordings or list_recordings())]
+    files = args.recordings or list_recordings()
+    if args.twins:
+        from magenv.scenarios import make_trial
+        from magenv.seeding import VALIDATION_START
+
+        seeds = range(VALIDATION_START, VALIDATION_START + args.twins)
+        trials = [make_trial(f"twin:{f}", s) for f in files for s in seeds]
+        for t, (f, s) in zip(trials, [(f, s) for f in files for s in seeds]):
+            t.name = f"{Path(f).stem}#twin{s}"
+    else:
+        trials = [load_recording(f) for f in files]
     methods = {n: registry.make(n) for n in RULES + (("oracle_vqf",) if args.oracle else ())}
     methods.update({a: registry.make(registry.AGENT_PREFIX + a) for a in agents})
     scores = score(methods, trials)
