@@ -105,8 +105,8 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.checks import check_bool, check_choice, check_noise, check_number, check_positive, check_site, check_vector
-from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_sym
-from magenv.filters.linalg import inv3, joseph_update, project_quaternion, quad3
+from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, is_pd, repair_sym
+from magenv.filters.linalg import inv3, joseph_update, quad3
 from magenv.filters.solvers import triad1
 from magenv.quaternion import GRAVITY, from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
 from magenv.trial import START_FROM_TRUTH
@@ -409,22 +409,79 @@ def _kalman_update(w, na, c2, n2, nu, r_diag, gain):
 
 @njit(cache=True)
 def _renormalise(x, cov, na, eps):
-    """Normalise q (and the clone) and project the covariance on the unit-sphere tangent
-    (``linalg.project_quaternion``)."""
+    """Normalise q (and the clone) and project the covariance on the unit-sphere tangent (:func:`_project`)."""
     for off in (ORIENTATION.start, CLONE.start):
         if off + 4 > na:
             continue
         qn = np.sqrt(x[off] ** 2 + x[off + 1] ** 2 + x[off + 2] ** 2 + x[off + 3] ** 2)
         for i in range(4):
             x[off + i] /= qn
-        project_quaternion(cov, na, x[off : off + 4], off, eps)
+        _project(cov, na, (x[off], x[off + 1], x[off + 2], x[off + 3]), off, eps)
+
+
+@njit(cache=True)
+def _project(p, n, q, off, eps):
+    """``linalg.project_quaternion`` of the symmetric ``p`` (``P ← T P Tᵀ + eps·q qᵀ``, T = I − q qᵀ on rows and
+    columns ``off … off+3``) with its numbers: outside the quaternion's own rows, column i's entries are row i's
+    of the row pass (before it, P[i, q] = P[q, i], so the column pass would sum the same products), mirrored."""
+    q0, q1, q2, q3 = q
+    for j in range(n):  # rows: P[q, j] -= q (qᵀ P[q, j])
+        d = q0 * p[off, j] + q1 * p[off + 1, j] + q2 * p[off + 2, j] + q3 * p[off + 3, j]
+        p[off, j] -= q0 * d
+        p[off + 1, j] -= q1 * d
+        p[off + 2, j] -= q2 * d
+        p[off + 3, j] -= q3 * d
+    for i in range(n):  # columns: the quaternion's rows as linalg.project_quaternion, the others mirrored
+        if off <= i < off + 4:
+            d = q0 * p[i, off] + q1 * p[i, off + 1] + q2 * p[i, off + 2] + q3 * p[i, off + 3]
+            p[i, off] -= q0 * d
+            p[i, off + 1] -= q1 * d
+            p[i, off + 2] -= q2 * d
+            p[i, off + 3] -= q3 * d
+        else:
+            p[i, off], p[i, off + 1] = p[off, i], p[off + 1, i]
+            p[i, off + 2], p[i, off + 3] = p[off + 2, i], p[off + 3, i]
+    for a in range(4):
+        for b in range(a, 4):
+            v = 0.5 * (p[off + a, off + b] + p[off + b, off + a]) + eps * q[a] * q[b]
+            p[off + a, off + b] = v
+            p[off + b, off + a] = v
+
+
+@njit(cache=True)
+def _load(state, w, na):
+    """``w.x`` ← ``state.x``, ``w.p`` ← the leading na×na block of ``state.cov`` symmetrised (the rest is 0 by
+    construction); False (``w`` partly written) if any of it is not finite."""
+    xs, ps = w.x, w.p
+    for r in range(N_AUGMENTED):
+        xs[r] = state.x[r]
+        if not np.isfinite(xs[r]):
+            return False
+    for r in range(na):
+        for c in range(r, na):
+            a, b = state.cov[r, c], state.cov[c, r]
+            if not (np.isfinite(a) and np.isfinite(b)):
+                return False
+            v = 0.5 * (a + b)
+            ps[r, c] = v
+            ps[c, r] = v
+    return True
 
 
 @njit(cache=True)
 def _commit_healthy(state, w, na, cov_floor):
     """Covariance health of ``w`` (``kalman_threshold.repair_sym``), then ``w`` → ``state``. Returns the status
-    (−1: nothing committed)."""
-    status = repair_sym(w.p, na, cov_floor, w.lo)  # every update mirrors one triangle: exactly symmetric
+    (−1: nothing committed).
+
+    The Cholesky test comes first: when it passes and the diagonal is finite, every entry of the lower triangle
+    is finite (a non-finite p_ij, i > j, makes l_ij and then the pivot of row i non-finite or negative, which
+    fails the test), so ``repair_sym``'s finiteness pass would pass and its own Cholesky test (the same
+    arithmetic) would too: status 0 without them; otherwise ``repair_sym`` decides."""
+    p = w.p
+    healthy = is_pd(p, na, w.lo)  # every update mirrors one triangle: exactly symmetric
+    for r in range(na):
+        healthy = healthy and np.isfinite(p[r, r])
+    status = 0 if healthy else repair_sym(p, na, cov_floor, w.lo)
     if status < 0:
         return -1
     for r in range(na):
@@ -445,8 +502,10 @@ def _commit_healthy(state, w, na, cov_floor):
 
 
 @njit(cache=True)
-def step_work(p, state, inputs, i, dt, sig, w):
-    """:func:`step1` with the scratch ``w`` (:class:`Work`)."""
+def step_work(p, state, inputs, i, dt, sig, w, synced=False):
+    """:func:`step1` with the scratch ``w`` (:class:`Work`). ``synced``: ``w`` holds ``state`` already (the last
+    step committed it), so the copy and its checks are skipped — the committed state is finite and exactly
+    symmetric (every update mirrors one triangle), which the copy would reproduce bit for bit."""
     gyr_prev, gyr = inputs.gyr[i - 1 if i > 0 else 0], inputs.gyr[i]
     acc, mag, action, trust = inputs.acc[i], inputs.mag[i], inputs.action[i], inputs.trust[i]
     if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
@@ -459,18 +518,8 @@ def step_work(p, state, inputs, i, dt, sig, w):
     keep_clone = mode == MODE_DELAY and active and not p.update_reference  # eq. 24 literally
     na = N_AUGMENTED if (mode == MODE_DELAY and active) else N_STATE
     xs, ps = w.x, w.p
-    for r in range(N_AUGMENTED):  # copy the state into the scratch, checking it is finite
-        xs[r] = state.x[r]
-        if not np.isfinite(xs[r]):
-            return -1
-    for r in range(na):  # the covariance's leading block, symmetrised (the rest is 0 by construction)
-        for c in range(r, na):
-            a, b = state.cov[r, c], state.cov[c, r]
-            if not (np.isfinite(a) and np.isfinite(b)):
-                return -1
-            v = 0.5 * (a + b)
-            ps[r, c] = v
-            ps[c, r] = v
+    if not synced and not _load(state, w, na):
+        return -1
     # 1. prediction, eqs. 17–19
     if i > 0:
         q = (xs[0], xs[1], xs[2], xs[3])
@@ -610,7 +659,7 @@ def run_kernel(p, state, inputs, dt, start, stop, out):
     repairs = 0
     w = work()
     for i in range(start, stop):
-        st = step_work(p, state, inputs, i, dt, out.sig[i], w)
+        st = step_work(p, state, inputs, i, dt, out.sig[i], w, i > start)  # after a commit, w holds the state
         if st < 0:
             return i, repairs
         repairs += st
