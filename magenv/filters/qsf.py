@@ -370,16 +370,13 @@ def _kalman_update(w, na, c2, n2, nu, r_diag, gain):
     innovation ``nu`` (3-tuple), R = r_diag·I and gain ``gain``·K; ``w.h`` holds H, nonzero only in the q
     columns and ``n2`` columns from ``c2``. Returns ``(S⁻¹, |Δq|)`` (9-tuple; the norm of q's correction)."""
     p, h, hp, kt = w.p, w.h, w.hp, w.kt
-    for mm in range(3):  # H P, row by row (contiguous, summed over H's nonzero columns in order)
-        hm = hp[mm]
+    for mm in range(3):  # H P, row by row, summed over H's nonzero columns in order (from 0.0, in a register)
         for j in range(na):
-            hm[j] = 0.0
-        for t in range(4 + n2):
-            col = _hcol(t, c2)
-            f = h[mm, col]
-            pc = p[col]
-            for j in range(na):
-                hm[j] += f * pc[j]
+            v = 0.0
+            for t in range(4 + n2):
+                col = _hcol(t, c2)
+                v += h[mm, col] * p[col, j]
+            hp[mm, j] = v
     s00 = s01 = s02 = s11 = s12 = s22 = 0.0
     for t in range(4 + n2):  # S = H P Hᵀ + R, upper triangle
         col = _hcol(t, c2)
