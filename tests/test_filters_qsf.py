@@ -483,22 +483,6 @@ def test_named_parameters_state_and_signals():
     assert state.cov[qsf.CLONE, qsf.CLONE].any()  # Delay MAGYQ: the clone block is live during a period
 
 
-@pytest.mark.parametrize("off", [0, 11])
-def test_projection_gives_linalgs_numbers(off):
-    """The kernel's tangent projection mirrors what linalg.project_quaternion computes twice: bit for bit."""
-    from magenv.filters import linalg
-
-    rng = np.random.default_rng(off)
-    for _ in range(20):
-        a = rng.normal(size=(15, 30))
-        p = a @ a.T * 1e-4
-        q = quat.normalize1(rng.normal(size=4))
-        want, got = p.copy(), p.copy()
-        linalg.project_quaternion(want, 15, q, off, 1e-12)
-        qsf._project(got, 15, (q[0], q[1], q[2], q[3]), off, 1e-12)
-        np.testing.assert_array_equal(got, want)
-
-
 @pytest.mark.parametrize(
     "spoil", ["none", "inf_diagonal", "nan_diagonal", "inf_off_diagonal", "nan_off_diagonal", "not_pd", "last_row"]
 )

@@ -106,7 +106,7 @@ from numba import njit
 from magenv import quaternion as quat
 from magenv.checks import check_bool, check_choice, check_noise, check_number, check_positive, check_site, check_vector
 from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, is_pd, repair_sym
-from magenv.filters.linalg import inv3, joseph_update, quad3
+from magenv.filters.linalg import inv3, joseph_update, project_quaternion, quad3
 from magenv.filters.solvers import triad1
 from magenv.quaternion import GRAVITY, from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
 from magenv.trial import START_FROM_TRUTH
@@ -406,43 +406,15 @@ def _kalman_update(w, na, c2, n2, nu, r_diag, gain):
 
 @njit(cache=True)
 def _renormalise(x, cov, na, eps):
-    """Normalise q (and the clone) and project the covariance on the unit-sphere tangent (:func:`_project`)."""
+    """Normalise q (and the clone) and project the covariance on the unit-sphere tangent
+    (``linalg.project_quaternion``)."""
     for off in (ORIENTATION.start, CLONE.start):
         if off + 4 > na:
             continue
         qn = np.sqrt(x[off] ** 2 + x[off + 1] ** 2 + x[off + 2] ** 2 + x[off + 3] ** 2)
         for i in range(4):
             x[off + i] /= qn
-        _project(cov, na, (x[off], x[off + 1], x[off + 2], x[off + 3]), off, eps)
-
-
-@njit(cache=True)
-def _project(p, n, q, off, eps):
-    """``linalg.project_quaternion`` of the symmetric ``p`` (``P ← T P Tᵀ + eps·q qᵀ``, T = I − q qᵀ on rows and
-    columns ``off … off+3``) with its numbers: outside the quaternion's own rows, column i's entries are row i's
-    of the row pass (before it, P[i, q] = P[q, i], so the column pass would sum the same products), mirrored."""
-    q0, q1, q2, q3 = q
-    for j in range(n):  # rows: P[q, j] -= q (qᵀ P[q, j])
-        d = q0 * p[off, j] + q1 * p[off + 1, j] + q2 * p[off + 2, j] + q3 * p[off + 3, j]
-        p[off, j] -= q0 * d
-        p[off + 1, j] -= q1 * d
-        p[off + 2, j] -= q2 * d
-        p[off + 3, j] -= q3 * d
-    for i in range(n):  # columns: the quaternion's rows as linalg.project_quaternion, the others mirrored
-        if off <= i < off + 4:
-            d = q0 * p[i, off] + q1 * p[i, off + 1] + q2 * p[i, off + 2] + q3 * p[i, off + 3]
-            p[i, off] -= q0 * d
-            p[i, off + 1] -= q1 * d
-            p[i, off + 2] -= q2 * d
-            p[i, off + 3] -= q3 * d
-        else:
-            p[i, off], p[i, off + 1] = p[off, i], p[off + 1, i]
-            p[i, off + 2], p[i, off + 3] = p[off + 2, i], p[off + 3, i]
-    for a in range(4):
-        for b in range(a, 4):
-            v = 0.5 * (p[off + a, off + b] + p[off + b, off + a]) + eps * q[a] * q[b]
-            p[off + a, off + b] = v
-            p[off + b, off + a] = v
+        project_quaternion(cov, na, x[off : off + 4], off, eps)
 
 
 @njit(cache=True)
