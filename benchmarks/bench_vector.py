@@ -127,7 +127,7 @@ def magenv_rates(env_id: str, trial, num_envs: int, k: int, parallel: bool):
                 for _ in range(steps):
                     todo[:] = k
                     if entry is not None:
-                        entry(args)
+                        entry(*args)
                     else:
                         venv._run()
         return rounds * steps * num_envs, clock

@@ -481,3 +481,36 @@ def test_named_parameters_state_and_signals():
     assert state.period_active[0] and state.period_age[0] == pytest.approx((tr.n - 1) * tr.dt)
     np.testing.assert_array_equal(state.mag_t0, tr.mag[0])
     assert state.cov[qsf.CLONE, qsf.CLONE].any()  # Delay MAGYQ: the clone block is live during a period
+
+
+@pytest.mark.parametrize(
+    "spoil", ["none", "inf_diagonal", "nan_diagonal", "inf_off_diagonal", "nan_off_diagonal", "not_pd", "last_row"]
+)
+def test_health_check_decides_as_repair_sym(spoil):
+    """The commit's Cholesky-first health check gives repair_sym's status and matrix, healthy or not."""
+    from magenv.filters.kalman_threshold import COV_FLOOR, repair_sym
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(15, 30))
+    p = a @ a.T * 1e-4
+    i, j = 9, 4
+    if spoil == "inf_diagonal":
+        p[i, i] = np.inf
+    elif spoil == "nan_diagonal":
+        p[i, i] = np.nan
+    elif spoil in ("inf_off_diagonal", "nan_off_diagonal"):
+        p[i, j] = p[j, i] = np.inf if spoil.startswith("inf") else np.nan
+    elif spoil == "not_pd":
+        p[i, j] = p[j, i] = 2.0 * np.sqrt(p[i, i] * p[j, j])
+    elif spoil == "last_row":
+        p[14, 0] = p[0, 14] = np.inf
+    state = qsf.initial_state((1.0, 0.0, 0.0, 0.0), 0.01)
+    w = qsf.work()
+    w.x[:] = state.x
+    w.p[:, :] = p
+    want = p.copy()
+    status = qsf._commit_healthy(state, w, 15, COV_FLOOR)
+    want_status = repair_sym(want, 15, COV_FLOOR, np.empty((15, 15)))
+    assert status == want_status
+    if status >= 0:
+        np.testing.assert_array_equal(state.cov, want)

@@ -105,7 +105,7 @@ from numba import njit
 
 from magenv import quaternion as quat
 from magenv.checks import check_bool, check_choice, check_noise, check_number, check_positive, check_site, check_vector
-from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, repair_sym
+from magenv.filters.kalman_threshold import COV_FLOOR, FilterError, finite3, is_pd, repair_sym
 from magenv.filters.linalg import inv3, joseph_update, project_quaternion, quad3
 from magenv.filters.solvers import triad1
 from magenv.quaternion import GRAVITY, from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
@@ -370,16 +370,13 @@ def _kalman_update(w, na, c2, n2, nu, r_diag, gain):
     innovation ``nu`` (3-tuple), R = r_diag·I and gain ``gain``·K; ``w.h`` holds H, nonzero only in the q
     columns and ``n2`` columns from ``c2``. Returns ``(S⁻¹, |Δq|)`` (9-tuple; the norm of q's correction)."""
     p, h, hp, kt = w.p, w.h, w.hp, w.kt
-    for mm in range(3):  # H P, row by row (contiguous, summed over H's nonzero columns in order)
-        hm = hp[mm]
+    for mm in range(3):  # H P, row by row, summed over H's nonzero columns in order (from 0.0, in a register)
         for j in range(na):
-            hm[j] = 0.0
-        for t in range(4 + n2):
-            col = _hcol(t, c2)
-            f = h[mm, col]
-            pc = p[col]
-            for j in range(na):
-                hm[j] += f * pc[j]
+            v = 0.0
+            for t in range(4 + n2):
+                col = _hcol(t, c2)
+                v += h[mm, col] * p[col, j]
+            hp[mm, j] = v
     s00 = s01 = s02 = s11 = s12 = s22 = 0.0
     for t in range(4 + n2):  # S = H P Hᵀ + R, upper triangle
         col = _hcol(t, c2)
@@ -421,10 +418,39 @@ def _renormalise(x, cov, na, eps):
 
 
 @njit(cache=True)
+def _load(state, w, na):
+    """``w.x`` ← ``state.x``, ``w.p`` ← the leading na×na block of ``state.cov`` symmetrised (the rest is 0 by
+    construction); False (``w`` partly written) if any of it is not finite."""
+    xs, ps = w.x, w.p
+    for r in range(N_AUGMENTED):
+        xs[r] = state.x[r]
+        if not np.isfinite(xs[r]):
+            return False
+    for r in range(na):
+        for c in range(r, na):
+            a, b = state.cov[r, c], state.cov[c, r]
+            if not (np.isfinite(a) and np.isfinite(b)):
+                return False
+            v = 0.5 * (a + b)
+            ps[r, c] = v
+            ps[c, r] = v
+    return True
+
+
+@njit(cache=True)
 def _commit_healthy(state, w, na, cov_floor):
     """Covariance health of ``w`` (``kalman_threshold.repair_sym``), then ``w`` → ``state``. Returns the status
-    (−1: nothing committed)."""
-    status = repair_sym(w.p, na, cov_floor, w.lo)  # every update mirrors one triangle: exactly symmetric
+    (−1: nothing committed).
+
+    The Cholesky test comes first: when it passes and the diagonal is finite, every entry of the lower triangle
+    is finite (a non-finite p_ij, i > j, makes l_ij and then the pivot of row i non-finite or negative, which
+    fails the test), so ``repair_sym``'s finiteness pass would pass and its own Cholesky test (the same
+    arithmetic) would too: status 0 without them; otherwise ``repair_sym`` decides."""
+    p = w.p
+    healthy = is_pd(p, na, w.lo)  # every update mirrors one triangle: exactly symmetric
+    for r in range(na):
+        healthy = healthy and np.isfinite(p[r, r])
+    status = 0 if healthy else repair_sym(p, na, cov_floor, w.lo)
     if status < 0:
         return -1
     for r in range(na):
@@ -445,8 +471,10 @@ def _commit_healthy(state, w, na, cov_floor):
 
 
 @njit(cache=True)
-def step_work(p, state, inputs, i, dt, sig, w):
-    """:func:`step1` with the scratch ``w`` (:class:`Work`)."""
+def step_work(p, state, inputs, i, dt, sig, w, synced=False):
+    """:func:`step1` with the scratch ``w`` (:class:`Work`). ``synced``: ``w`` holds ``state`` already (the last
+    step committed it), so the copy and its checks are skipped — the committed state is finite and exactly
+    symmetric (every update mirrors one triangle), which the copy would reproduce bit for bit."""
     gyr_prev, gyr = inputs.gyr[i - 1 if i > 0 else 0], inputs.gyr[i]
     acc, mag, action, trust = inputs.acc[i], inputs.mag[i], inputs.action[i], inputs.trust[i]
     if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
@@ -459,18 +487,8 @@ def step_work(p, state, inputs, i, dt, sig, w):
     keep_clone = mode == MODE_DELAY and active and not p.update_reference  # eq. 24 literally
     na = N_AUGMENTED if (mode == MODE_DELAY and active) else N_STATE
     xs, ps = w.x, w.p
-    for r in range(N_AUGMENTED):  # copy the state into the scratch, checking it is finite
-        xs[r] = state.x[r]
-        if not np.isfinite(xs[r]):
-            return -1
-    for r in range(na):  # the covariance's leading block, symmetrised (the rest is 0 by construction)
-        for c in range(r, na):
-            a, b = state.cov[r, c], state.cov[c, r]
-            if not (np.isfinite(a) and np.isfinite(b)):
-                return -1
-            v = 0.5 * (a + b)
-            ps[r, c] = v
-            ps[c, r] = v
+    if not synced and not _load(state, w, na):
+        return -1
     # 1. prediction, eqs. 17–19
     if i > 0:
         q = (xs[0], xs[1], xs[2], xs[3])
@@ -610,7 +628,7 @@ def run_kernel(p, state, inputs, dt, start, stop, out):
     repairs = 0
     w = work()
     for i in range(start, stop):
-        st = step_work(p, state, inputs, i, dt, out.sig[i], w)
+        st = step_work(p, state, inputs, i, dt, out.sig[i], w, i > start)  # after a commit, w holds the state
         if st < 0:
             return i, repairs
         repairs += st
