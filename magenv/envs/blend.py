@@ -18,7 +18,6 @@ it: the extra causal features of ``magenv.envs.blend_memory`` and the memory
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -28,7 +27,7 @@ from magenv.checks import check_bool
 from magenv.envs import BLEND_ID, blend_memory, lagged
 from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
 from magenv.envs.common import TrialRunner, TrustEnv, episode_view
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, WINDOW, Feature, FeatureTable, clipper, deviations, document
 from magenv.filters import blend, stationary
 from magenv.filters.madgwick import BETA_DEFAULT
 from magenv.metrics import N_ERR, error_sums
@@ -36,7 +35,6 @@ from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
 
 NORM_RATE_SCALE = 10.0  # 1/s: the relative field-norm rate in units of 10 /s
-WINDOW = "the window"  # samples fused in the last step plus sample j
 
 FEATURES = FeatureTable(
     Feature(
@@ -60,15 +58,7 @@ FEATURES = FeatureTable(
         "mean angle between the IMU and MIMU candidate updates over the samples fused in the last step",
     ),
     Feature("lambda_prev", 0.0, 1.0, "–", "λ applied in the last step (0 after reset)"),
-    Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
-    Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
-    Feature(
-        "dip_dev_max",
-        0.0,
-        2.0,
-        f"units of {DIP_SCALE_DEG:g}°",
-        f"max of the absolute dip_dev over {WINDOW} (each with its own prior estimate)",
-    ),
+    *deviations("each with its own prior estimate"),
     Feature("norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s", f"rate of change of ‖m‖/m0 over {WINDOW}"),
     Feature(
         "mag_heading",
@@ -421,24 +411,14 @@ class MagBlendEnv(TrustEnv):
 
     def __init__(
         self,
-        scenario="random",
-        decision_every: int = 8,
-        episode_seconds: float | None = None,
         stationary_hold: bool = True,
-        features: Sequence[str] | None = None,
         beta: float = BETA_DEFAULT,
         t0: float = stationary.T0_S,
         th_acc_g: float = stationary.TH_ACC_G,
         th_gyro_dps: float = stationary.TH_GYRO_DPS,
-        scenario_kwargs: dict | None = None,
-        prefetch: bool = False,
-        trial_pool=None,
-        render_mode: str | None = None,
+        **options,
     ):
-        self._setup(
-            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
-        )  # fmt: skip
+        self._setup(**options)
         # bad filter arguments fail here, not at reset (ValueError / TypeError naming the argument)
         hold = check_bool("stationary_hold", stationary_hold)
         self.options = blend.Options(beta, hold, t0, th_acc_g, th_gyro_dps)

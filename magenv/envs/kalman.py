@@ -22,7 +22,6 @@ samples 0…j only (causal).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import astuple, dataclass, fields
 from typing import NamedTuple
 
@@ -32,7 +31,7 @@ from numba import njit
 from magenv.envs import KALMAN_ID, kalman_memory, lagged
 from magenv.envs.batch import ROWS, BatchVectorEnv, trial_rows, window_rows
 from magenv.envs.common import TrialRunner, TrustEnv, episode_view
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, WINDOW, Feature, FeatureTable, clipper, deviations, document
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
 from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
@@ -43,7 +42,6 @@ from magenv.quaternion import GRAVITY
 from magenv.trial import Trial
 
 FIELD_SCALE_UT = 50.0  # µT: the unit of field_ref
-WINDOW = "the window"  # samples fused in the last step plus sample j
 
 FEATURES = FeatureTable(
     Feature("norm_dev", -1.0, 10.0, "fraction of m0", "field-norm deviation (‖m_j‖ − m0)/m0"),
@@ -67,15 +65,7 @@ FEATURES = FeatureTable(
     Feature("log_nis", 0.0, 10.0, "decades", "log10(1 + ν_mᵀ S⁻¹ ν_m), NIS χ²₃-distributed if consistent"),
     Feature("heading_std", -4.0, 2.0, "decades of 1°", "log10 of the a-priori heading std sqrt(P_zz) at sample j"),
     Feature("trust_prev", 0.0, 1.0, "–", "γ applied in the last step (1 after reset: the TRIAD start uses m fully)"),
-    Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
-    Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
-    Feature(
-        "dip_dev_max",
-        0.0,
-        2.0,
-        f"units of {DIP_SCALE_DEG:g}°",
-        f"max of the absolute dip_dev over {WINDOW} (each with its own a-priori estimate)",
-    ),
+    *deviations("each with its own a-priori estimate"),
     Feature("acc_dev_max", 0.0, 10.0, "fraction of g", f"max of the absolute acc_dev over {WINDOW}"),
     Feature("gyro_norm_mean", 0.0, 10.0, "units of 2π rad/s", f"mean gyro_norm over {WINDOW}"),
     Feature("innov_norm_mean", 0.0, 10.0, "fraction of m0", f"mean innov_norm over {WINDOW}"),
@@ -498,10 +488,6 @@ class MagKalmanEnv(TrustEnv):
 
     def __init__(
         self,
-        scenario="random",
-        decision_every: int = 8,
-        episode_seconds: float | None = None,
-        features: Sequence[str] | None = None,
         sigma_gyr: float = SIGMA_GYR,
         sigma_acc: float = SIGMA_ACC,
         sigma_mag: float = SIGMA_MAG,
@@ -509,15 +495,9 @@ class MagKalmanEnv(TrustEnv):
         heading_only: bool = True,
         model_c_a: float = C_A,
         model_c_b: float = C_B,
-        scenario_kwargs: dict | None = None,
-        prefetch: bool = False,
-        trial_pool=None,
-        render_mode: str | None = None,
+        **options,
     ):
-        self._setup(
-            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
-        )  # fmt: skip
+        self._setup(**options)
         # the noise model checked now, not at reset (ValueError / TypeError naming the argument)
         self.options = Options(sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only, model_c_a, model_c_b)
 

@@ -31,7 +31,6 @@ against; base features only.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -42,7 +41,7 @@ from magenv.envs import VQF_ID, lagged
 from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
 from magenv.envs.blend import NORM_RATE_SCALE, dip_deg
 from magenv.envs.common import TrialRunner, TrustEnv, episode_view
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, WINDOW, Feature, FeatureTable, clipper, deviations, document
 from magenv.filters import vqf
 from magenv.filters.rules import fan_lambda
 from magenv.filters.vqf import P, S, tau_of_trust
@@ -54,7 +53,6 @@ REJECTION = ("off", "on")  # the rejection option: the policy replaces VQF's rej
 BACKENDS = ("numba", "cpp")  # the filter: magenv.filters.vqf, or the vqf package's C++ class
 BIAS_SCALE_DPS = 1.0  # °/s: bias norms and uncertainties in °/s
 DELTA_RATE_SCALE_DPS = 10.0  # °/s: the rate of δ in units of 10 °/s
-WINDOW = "the window"  # samples fused in the last step plus sample j
 
 FEATURES = FeatureTable(
     Feature("mag_dist", 0.0, 1.0, "0/1", "VQF's magnetic disturbance flag after the last fused sample"),
@@ -93,15 +91,7 @@ FEATURES = FeatureTable(
     ),
     Feature("gyro_norm", 0.0, 10.0, "units of 2π rad/s", "‖ω_j‖"),
     Feature("acc_dev", -1.0, 10.0, "fraction of g", "accelerometer-norm deviation (‖a_j‖ − g)/g"),
-    Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
-    Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
-    Feature(
-        "dip_dev_max",
-        0.0,
-        2.0,
-        f"units of {DIP_SCALE_DEG:g}°",
-        f"max of the absolute dip_dev over {WINDOW} (each with the estimate after the sample before it)",
-    ),
+    *deviations("each with the estimate after the sample before it"),
     Feature("norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s", f"rate of change of ‖m‖/m0 over {WINDOW}"),
     Feature(
         "mag_heading",
@@ -651,25 +641,15 @@ class MagVQFEnv(TrustEnv):
 
     def __init__(
         self,
-        scenario="random",
-        decision_every: int = 8,
-        episode_seconds: float | None = None,
         rejection: str = "off",
         tau_acc: float = vqf.Options.tau_acc,
         tau_mag: float = vqf.Options.tau_mag,
         rest_bias: bool = True,
         motion_bias: bool = True,
-        features: Sequence[str] | None = None,
         backend: str = "numba",
-        scenario_kwargs: dict | None = None,
-        prefetch: bool = False,
-        trial_pool=None,
-        render_mode: str | None = None,
+        **options,
     ):
-        self._setup(
-            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
-        )  # fmt: skip
+        self._setup(**options)
         self.rejection = check_choice("rejection", rejection, REJECTION)
         self.backend = check_choice("backend", backend, BACKENDS)
         if self.extended and self.backend == "cpp":
