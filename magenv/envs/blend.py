@@ -259,12 +259,9 @@ class BlendRunner(TrialRunner):
             self.memory = blend_memory.Memory.start(self.q0)
             rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
             self.feat = np.zeros(len(EXTENDED))
-            self._more: tuple = (self.q0, self.memory, rows, np.zeros(1, np.int64), self.feat)
-            self._advance = self.compiled(advance_extended, *self._args, 0.0, 0, 0, *self._more)
+            self._start(advance_extended, 0.0, self.q0, self.memory, rows, np.zeros(1, np.int64), self.feat)
         else:
-            self._more = ()
-            self._advance = self.compiled(advance, *self._args, 0.0, 0, 0)
-        self._fuse(0, 0, 0.0)  # the observation of sample 0, nothing fused
+            self._start(advance, 0.0)
 
     def _fuse(self, start: int, stop: int, lam: float) -> None:
         if stop - start > len(self.out.dip):  # a call of more samples than ever (run_all): wider per-call rows

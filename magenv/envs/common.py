@@ -462,6 +462,13 @@ class TrialRunner:
             entry = _ENTRY_POINTS[key] = kernel.compile(tuple(numba.typeof(a) for a in args))
         return entry
 
+    def _start(self, kernel, action, *more) -> None:
+        """``_advance``: ``kernel`` compiled for ``(*self._args, action, start, stop, *more)`` (``_more`` keeps
+        ``more``); then the observation of sample ``pos``, nothing fused, with the action value ``action``."""
+        self._more = more
+        self._advance = self.compiled(kernel, *self._args, action, self.pos, self.pos, *more)
+        self._fuse(self.pos, self.pos, action)
+
     def _fuse(self, start: int, stop: int, action) -> None:
         raise NotImplementedError
 
@@ -507,16 +514,18 @@ class EnvOptions:
     render_mode: str | None = None
 
 
-def options_signature(init: Callable, defaults: EnvOptions) -> inspect.Signature:
-    """``init``'s signature with its ``**options`` spelled out: the :class:`EnvOptions` fields, keyword-only,
-    at the env's ``defaults``."""
+def options_signature(init: Callable, defaults: EnvOptions, own_options: type | None = None) -> inspect.Signature:
+    """``init``'s signature with its ``**options`` spelled out, keyword-only: the fields of the env's
+    ``own_options`` dataclass (if any) at their defaults, then the :class:`EnvOptions` fields at the env's
+    ``defaults``."""
     sig = inspect.signature(init)
-    own = [p for p in sig.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
-    shared = [
-        inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=getattr(defaults, f.name), annotation=f.type)
-        for f in dataclasses.fields(EnvOptions)
-    ]
-    return sig.replace(parameters=own + shared)
+    given = [p for p in sig.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
+    keyword = [(f, f.default) for f in dataclasses.fields(own_options)] if own_options else []
+    keyword += [(f, getattr(defaults, f.name)) for f in dataclasses.fields(EnvOptions)]
+    return sig.replace(
+        parameters=given
+        + [inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=d, annotation=f.type) for f, d in keyword]
+    )
 
 
 class TrustEnv(RenderMixin, gym.Env):
@@ -540,14 +549,16 @@ class TrustEnv(RenderMixin, gym.Env):
     observation: tuple[FeatureTable, FeatureTable]  # the env's FEATURES and EXTENDED tables (``features`` option)
     extended = False  # the observation is EXTENDED's (memory features)
     defaults = EnvOptions()  # this env's defaults of the shared options (its scenario, decision_every)
+    own_options: type | None = None  # a dataclass of the env's own options that ``**options`` also takes
 
     def __init_subclass__(cls, **kwargs):
-        """An env whose ``__init__`` ends in ``**options`` shows the shared options (:class:`EnvOptions`, with
-        the env's ``defaults``) in its signature, for ``help``, the docs and the argument tests."""
+        """An env whose ``__init__`` ends in ``**options`` shows the options it takes there (``own_options``, then
+        :class:`EnvOptions` with the env's ``defaults``) in its signature, for ``help``, the docs and the
+        argument tests."""
         super().__init_subclass__(**kwargs)
         init = cls.__dict__.get("__init__")
         if init is not None and "options" in inspect.signature(init).parameters:
-            init.__signature__ = options_signature(init, cls.defaults)
+            init.__signature__ = options_signature(init, cls.defaults, cls.own_options)
 
     def _setup(
         self,
@@ -560,8 +571,9 @@ class TrustEnv(RenderMixin, gym.Env):
         """Check the options every env shares (:class:`EnvOptions` by keyword, over the env's ``defaults``;
         ``features`` selects from the env's ``observation`` tables, ``magenv.envs.lagged.observation_table``);
         set ``k_steps``, ``trials`` (a :class:`TrialSource`), ``scenario``, ``features``, ``extended``, the
-        spaces."""
-        o = dataclasses.replace(self.defaults, **options)  # TypeError naming an unknown keyword
+        spaces; then, for an env with ``own_options``, ``options`` (that dataclass of the keywords it names)."""
+        own = {f.name for f in dataclasses.fields(self.own_options)} if self.own_options else set()
+        o = dataclasses.replace(self.defaults, **{k: v for k, v in options.items() if k not in own})  # TypeError
         self.k_steps = check_env_args(self.env_name, o.decision_every, o.episode_seconds, o.render_mode)
         self.trials = TrialSource(
             o.scenario,
@@ -585,6 +597,8 @@ class TrustEnv(RenderMixin, gym.Env):
         self._steps = 0  # steps since the last reset, for the divergence message
         self._means = np.zeros(N_STEP)  # the last step's reward and mean errors (magenv.metrics.step_means)
         self.trial: Trial | None = None
+        if self.own_options:  # checked now, not at reset (ValueError / TypeError naming the argument)
+            self.options = self.own_options(**{k: v for k, v in options.items() if k in own})
 
     def _make_runner(self, trial: Trial):
         raise NotImplementedError

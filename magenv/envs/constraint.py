@@ -122,14 +122,14 @@ class Options:
     """The env's eq. 18 gain rule, checked once (``constraint.check_rule_params``): th2 (a weight), th3 (‖Δq‖),
     gains k_min ≤ k_max (1/s)."""
 
-    th2: float
-    th3: float
-    k_min: float
-    k_max: float
+    th2: float = cf.TH2
+    th3: float = cf.TH3
+    k_min: float = cf.K_MIN
+    k_max: float = cf.K_MAX
 
     def __post_init__(self):
         _, *checked = cf.check_rule_params(th2=self.th2, th3=self.th3, k_min=self.k_min, k_max=self.k_max)
-        for name, value in zip(("th2", "th3", "k_min", "k_max"), checked):
+        for name, value in zip(cf.RULE_PARAMS[1:], checked):
             object.__setattr__(self, name, value)
 
 
@@ -288,22 +288,13 @@ class MagConstraintEnv(TrustEnv):
 
     defaults = EnvOptions(scenario="constraint_random", decision_every=4)
 
-    def __init__(
-        self,
-        control_gain: bool = False,
-        gain_max: float = 1.0,
-        th2: float = cf.TH2,
-        th3: float = cf.TH3,
-        k_min: float = cf.K_MIN,
-        k_max: float = cf.K_MAX,
-        **options,
-    ):
+    own_options = Options
+
+    def __init__(self, control_gain: bool = False, gain_max: float = 1.0, **options):
         # bad arguments fail here, not at reset (ValueError / TypeError naming the argument)
         control_gain, gain_max = check_bool("control_gain", control_gain), check_positive("gain_max", gain_max)
-        options = Options(th2, th3, k_min, k_max)
         self._setup(action_dim=2 if control_gain else 1, world="twolink", require=cf.require_two_link, **options)
         self.control_gain, self.gain_max = control_gain, gain_max
-        self.options = options
 
     def _make_runner(self, trial: Trial) -> ConstraintRunner:
         return ConstraintRunner(trial, self.extended, **asdict(self.options))  # checks link j's channels

@@ -125,13 +125,13 @@ class Options:
     accelerometer threshold, heading-only update) and the Gauss–Markov split of ``model_dist``
     (:func:`make_model_params`)."""
 
-    sigma_gyr: float
-    sigma_acc: float
-    sigma_mag: float
-    th_acc: float
-    heading_only: bool
-    model_c_a: float
-    model_c_b: float
+    sigma_gyr: float = SIGMA_GYR
+    sigma_acc: float = SIGMA_ACC
+    sigma_mag: float = SIGMA_MAG
+    th_acc: float = TH_ACC
+    heading_only: bool = True
+    model_c_a: float = C_A
+    model_c_b: float = C_B
 
     def __post_init__(self):
         probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, *astuple(self)[:5])  # ValueError / TypeError naming one
@@ -337,12 +337,9 @@ class KalmanRunner(TrialRunner):
             self.memory = kalman_memory.Memory.start(self.state.q)
             rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
             self.feat = np.zeros(len(EXTENDED))
-            self._more: tuple = (self.memory, rows, np.zeros(1, np.int64), self.feat)
-            self._advance = self.compiled(advance_extended, *self._args, 1.0, 1, 1, *self._more)
+            self._start(advance_extended, 1.0, self.memory, rows, np.zeros(1, np.int64), self.feat)
         else:
-            self._more = ()
-            self._advance = self.compiled(advance, *self._args, 1.0, 1, 1)
-        self._fuse(1, 1, 1.0)  # the observation of sample 1, nothing fused
+            self._start(advance, 1.0)
 
     def _fuse(self, start: int, stop: int, gamma: float) -> None:
         status, repairs = self._advance(*self._args, gamma, start, stop, *self._more)
@@ -486,20 +483,10 @@ class MagKalmanEnv(TrustEnv):
     observation = (FEATURES, EXTENDED)
     env_name = KALMAN_ID.split("/")[1]
 
-    def __init__(
-        self,
-        sigma_gyr: float = SIGMA_GYR,
-        sigma_acc: float = SIGMA_ACC,
-        sigma_mag: float = SIGMA_MAG,
-        th_acc: float = TH_ACC,
-        heading_only: bool = True,
-        model_c_a: float = C_A,
-        model_c_b: float = C_B,
-        **options,
-    ):
+    own_options = Options
+
+    def __init__(self, **options):
         self._setup(**options)
-        # the noise model checked now, not at reset (ValueError / TypeError naming the argument)
-        self.options = Options(sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only, model_c_a, model_c_b)
 
     def _make_runner(self, trial: Trial) -> KalmanRunner:
         o = self.options

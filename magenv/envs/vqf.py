@@ -452,12 +452,9 @@ class VQFRunner(TrialRunner):
             self.memory, self.extra = np.zeros(N_MEMORY), np.zeros(len(EXTRA))
             rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
             self.feat = np.zeros(len(EXTENDED))
-            self._more: tuple = (self.memory, self.extra, rows, np.zeros(1, np.int64), self.feat)
-            self._advance = self.compiled(advance_extended, *self._args, 1.0, 0, 0, *self._more)
+            self._start(advance_extended, 1.0, self.memory, self.extra, rows, np.zeros(1, np.int64), self.feat)
         else:
-            self._more = (False,)  # no memory sums
-            self._advance = self.compiled(advance, *self._args, 1.0, 0, 0, *self._more)
-        self._fuse(0, 0, 1.0)  # the observation of sample 0, nothing fused
+            self._start(advance, 1.0, False)  # no memory sums
 
     @property
     def mag_dist(self) -> bool:
