@@ -18,6 +18,7 @@ it: the extra causal features of ``magenv.envs.blend_memory`` and the memory
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import NamedTuple
 
 import numpy as np
@@ -228,28 +229,17 @@ class BlendRunner(TrialRunner):
 
     Args:
         trial: the Trial to filter.
-        beta: Madgwick gain β, rad/s.
-        hold: hold the estimate on stationary samples.
-        t0, th_acc_g, th_gyro_dps: stationary detection (s, g, °/s).
         q0: initial orientation; None = ``ecompass1`` of the first sample (never truth).
         extended: ``feat`` is the EXTENDED observation (base, extra causal features, their lagged copies).
+        options: ``magenv.filters.blend.Options`` by keyword (β rad/s, the hold, the stationary detection).
     """
 
-    def __init__(
-        self,
-        trial: Trial,
-        beta: float = BETA_DEFAULT,
-        hold: bool = True,
-        t0: float = stationary.T0_S,
-        th_acc_g: float = stationary.TH_ACC_G,
-        th_gyro_dps: float = stationary.TH_GYRO_DPS,
-        q0=None,
-        extended: bool = False,
-    ):
+    def __init__(self, trial: Trial, q0=None, extended: bool = False, **options):
         super().__init__(trial)
-        self.params = blend.make_params(trial.dt, beta, hold, th_acc_g, th_gyro_dps)
+        o = blend.Options(**options)
+        self.params = o.params(trial.dt)
         self.site = Site(trial.field_norm, trial.field_dip)
-        self.state = blend.make_state(trial, t0, q0)
+        self.state = blend.make_state(trial, o.t0, q0)
         self.q0 = self.state.q.copy()
         self.out = Outputs.empty(trial.n, WINDOW_ROWS)
         self.est, self.lam, self.err, self.feat = self.out.est, self.out.lam, self.out.err, self.out.feat
@@ -422,8 +412,7 @@ class MagBlendEnv(TrustEnv):
         self.stationary_hold = hold
 
     def _make_runner(self, trial: Trial) -> BlendRunner:
-        o = self.options
-        return BlendRunner(trial, o.beta, o.hold, o.t0, o.th_acc_g, o.th_gyro_dps, extended=self.extended)
+        return BlendRunner(trial, extended=self.extended, **asdict(self.options))
 
     # ------------------------------------------------------------ evaluation access
 
