@@ -198,25 +198,29 @@ def is_pd3(p):
 def inv4(a, out):
     """``out`` (4, 4) ← the inverse of the (4, 4) array ``a`` by its adjugate over the determinant (Laplace
     expansion in the 2×2 minors of the first two and the last two rows); NaN where ``a`` is singular."""
-    s0 = a[0, 0] * a[1, 1] - a[1, 0] * a[0, 1]
-    s1 = a[0, 0] * a[1, 2] - a[1, 0] * a[0, 2]
-    s2 = a[0, 0] * a[1, 3] - a[1, 0] * a[0, 3]
-    s3 = a[0, 1] * a[1, 2] - a[1, 1] * a[0, 2]
-    s4 = a[0, 1] * a[1, 3] - a[1, 1] * a[0, 3]
-    s5 = a[0, 2] * a[1, 3] - a[1, 2] * a[0, 3]
-    c5 = a[2, 2] * a[3, 3] - a[3, 2] * a[2, 3]
-    c4 = a[2, 1] * a[3, 3] - a[3, 1] * a[2, 3]
-    c3 = a[2, 1] * a[3, 2] - a[3, 1] * a[2, 2]
-    c2 = a[2, 0] * a[3, 3] - a[3, 0] * a[2, 3]
-    c1 = a[2, 0] * a[3, 2] - a[3, 0] * a[2, 2]
-    c0 = a[2, 0] * a[3, 1] - a[3, 0] * a[2, 1]
-    det = s0 * c5 - s1 * c4 + s2 * c3 + s3 * c2 - s4 * c1 + s5 * c0
+    s, c = _minors2(a, 0, 1), _minors2(a, 2, 3)  # of the first two rows, of the last two
+    det = s[0] * c[5] - s[1] * c[4] + s[2] * c[3] + s[3] * c[2] - s[4] * c[1] + s[5] * c[0]
     d = 1.0 / det if det != 0.0 else np.nan
-    c, s = (c0, c1, c2, c3, c4, c5), (s0, s1, s2, s3, s4, s5)
     _inv4_row(a, 0, c, s, d, out)
     _inv4_row(a, 1, c, s, d, out)
     _inv4_row(a, 2, c, s, d, out)
     _inv4_row(a, 3, c, s, d, out)
+
+
+@njit(cache=True, inline="always")
+def _minors2(a, r0, r1):
+    """The 2×2 minors of rows r0, r1 of the (4, 4) array ``a`` on the column pairs (0, 1), (0, 2), (0, 3),
+    (1, 2), (1, 3), (2, 3)."""
+    return (
+        _minor2(a, r0, r1, 0, 1), _minor2(a, r0, r1, 0, 2), _minor2(a, r0, r1, 0, 3),
+        _minor2(a, r0, r1, 1, 2), _minor2(a, r0, r1, 1, 3), _minor2(a, r0, r1, 2, 3),
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def _minor2(a, r0, r1, j0, j1):
+    """``a[r0, j0] a[r1, j1] − a[r1, j0] a[r0, j1]``."""
+    return a[r0, j0] * a[r1, j1] - a[r1, j0] * a[r0, j1]
 
 
 @njit(cache=True, inline="always")
