@@ -135,6 +135,31 @@ def dip_deg(q, m):
     return np.rad2deg(np.arcsin(s))
 
 
+def sample_features(table: FeatureTable):
+    """The numba function ``write(feat, q, gyr_j, acc_j, mag_j, m0, dip0) → (‖m_j‖ µT, norm_dev, dip_dev)`` of an
+    env whose ``table`` has MagBlend-v0's sensor features of sample j: it writes them, clipped, into ``feat``
+    (``norm_dev`` = (‖m_j‖ − m0)/m0, ``dip_dev`` = (dip of m_j with estimate q − dip0)/DIP_SCALE_DEG, ``gyro_norm``
+    = ‖ω_j‖/GYRO_SCALE, ``acc_dev`` = (‖a_j‖ − g)/g) and returns the first two unclipped."""
+    clip, ix = clipper(table), table.ix
+    i_nd, i_dd, i_gn, i_ad = ix.norm_dev, ix.dip_dev, ix.gyro_norm, ix.acc_dev
+
+    @njit(cache=True, inline="always")
+    def write(feat, q, gyr_j, acc_j, mag_j, m0, dip0):
+        mj = _norm3(mag_j)
+        nd = (mj - m0) / m0
+        dd = (dip_deg(q, mag_j) - dip0) / DIP_SCALE_DEG
+        feat[i_nd] = clip(nd, i_nd)
+        feat[i_dd] = clip(dd, i_dd)
+        feat[i_gn] = clip(_norm3(gyr_j) / GYRO_SCALE, i_gn)
+        feat[i_ad] = clip((_norm3(acc_j) - GRAVITY) / GRAVITY, i_ad)
+        return mj, nd, dd
+
+    return write
+
+
+_sample_features = sample_features(FEATURES)
+
+
 @njit(cache=True)
 def advance(p, site, state, sensors, truth, out, lam_const, start, stop):
     """Fuse samples ``start:stop`` with ``magenv.filters.blend.step1``, then the observation of sample ``stop``.
@@ -169,13 +194,7 @@ def _features(p, site, state, sensors, out, start, stop):
     j = stop if stop < n else n - 1
     m0, dip0 = site.m0, site.dip0
     q = state.q
-    mj = _norm3(mag[j])
-    nd = (mj - m0) / m0
-    dd = (dip_deg(q, mag[j]) - dip0) / DIP_SCALE_DEG
-    feat[F.norm_dev] = _clip(nd, F.norm_dev)
-    feat[F.dip_dev] = _clip(dd, F.dip_dev)
-    feat[F.gyro_norm] = _clip(_norm3(gyr[j]) / GYRO_SCALE, F.gyro_norm)
-    feat[F.acc_dev] = _clip((_norm3(acc[j]) - GRAVITY) / GRAVITY, F.acc_dev)
+    mj, nd, dd = _sample_features(feat, q, gyr[j], acc[j], mag[j], m0, dip0)
     still = stationary.peek1(state.detector, acc[j], gyr[j], p.th_acc, p.th_gyro)
     feat[F.stationary] = 1.0 if still else 0.0
     # window statistics over the fused samples start:stop plus sample j

@@ -39,14 +39,14 @@ from numba import njit
 from magenv.checks import check_bool, check_number
 from magenv.envs import VQF_ID, lagged
 from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
-from magenv.envs.blend import NORM_RATE_SCALE, dip_deg
+from magenv.envs.blend import NORM_RATE_SCALE, dip_deg, sample_features
 from magenv.envs.common import TrialRunner, TrustEnv, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, WINDOW, Feature, FeatureTable, clipper, deviations, document
 from magenv.filters import vqf
 from magenv.filters.rules import fan_lambda
 from magenv.filters.vqf import P, S, tau_of_trust
 from magenv.metrics import N_ERR, error_sums
-from magenv.quaternion import GRAVITY, rotate1
+from magenv.quaternion import rotate1
 from magenv.trial import Trial
 
 REJECTION = ("off", "on")  # the rejection option: the policy replaces VQF's rejection, or acts on top of it
@@ -203,6 +203,7 @@ class Outputs(NamedTuple):
 
 
 _clip = clipper(FEATURES)
+_sample_features = sample_features(FEATURES)
 
 
 @njit(cache=True, inline="always")
@@ -245,13 +246,7 @@ def window_features(m0, dip0, dt, gyr, acc, mag, est, flags, start, stop, q_now,
     feat[F.delta_rate] = _clip(np.rad2deg(dd) / (cnt * dt) / DELTA_RATE_SCALE_DPS, F.delta_rate) if cnt > 0 else 0.0
     feat[F.dis_angle] = _clip(vq[V_DIS] / np.pi, F.dis_angle)
     # sensor features of sample j and the window, against the trial's site (as MagBlend-v0's)
-    mj = _norm3(mag[j])
-    nd = (mj - m0) / m0
-    ddip = (dip_deg(q_now, mag[j]) - dip0) / DIP_SCALE_DEG
-    feat[F.norm_dev] = _clip(nd, F.norm_dev)
-    feat[F.dip_dev] = _clip(ddip, F.dip_dev)
-    feat[F.gyro_norm] = _clip(_norm3(gyr[j]) / GYRO_SCALE, F.gyro_norm)
-    feat[F.acc_dev] = _clip((_norm3(acc[j]) - GRAVITY) / GRAVITY, F.acc_dev)
+    mj, nd, ddip = _sample_features(feat, q_now, gyr[j], acc[j], mag[j], m0, dip0)
     nmax, nsum, dmax, dist = abs(nd), nd, abs(ddip), 0.0
     for i in range(start, stop):
         ndi = (_norm3(mag[i]) - m0) / m0
