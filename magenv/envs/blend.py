@@ -36,6 +36,15 @@ from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
 
 NORM_RATE_SCALE = 10.0  # 1/s: the relative field-norm rate in units of 10 /s
+NORM_RATE = Feature(
+    "norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s", f"rate of change of ‖m‖/m0 over {WINDOW}"
+)
+
+
+def mag_heading(of: str) -> Feature:
+    """The ``mag_heading`` feature: the heading of ``of`` (units of 180°, 0 = north, + = east)."""
+    return Feature("mag_heading", -1.0, 1.0, "units of 180°", f"heading of {of} (0 = north, + = east)")
+
 
 FEATURES = FeatureTable(
     Feature(
@@ -60,14 +69,8 @@ FEATURES = FeatureTable(
     ),
     Feature("lambda_prev", 0.0, 1.0, "–", "λ applied in the last step (0 after reset)"),
     *deviations("each with its own prior estimate"),
-    Feature("norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s", f"rate of change of ‖m‖/m0 over {WINDOW}"),
-    Feature(
-        "mag_heading",
-        -1.0,
-        1.0,
-        "units of 180°",
-        "heading of the measured horizontal field in the estimated earth frame (0 = north, + = east)",
-    ),
+    NORM_RATE,
+    mag_heading("the measured horizontal field in the estimated earth frame"),
     Feature("stationary_frac", 0.0, 1.0, "–", f"fraction of {WINDOW} detected stationary"),
 )
 F = FEATURES.ix  # named kernel indices

@@ -39,9 +39,9 @@ from numba import njit
 from magenv.checks import check_bool, check_number
 from magenv.envs import VQF_ID, lagged
 from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
-from magenv.envs.blend import NORM_RATE_SCALE, dip_deg, sample_features
+from magenv.envs.blend import NORM_RATE, NORM_RATE_SCALE, dip_deg, mag_heading, sample_features
 from magenv.envs.common import TrialRunner, TrustEnv, episode_view
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, WINDOW, Feature, FeatureTable, clipper, deviations, document
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, deviations, document
 from magenv.filters import vqf
 from magenv.filters.rules import fan_lambda
 from magenv.filters.vqf import P, S, tau_of_trust
@@ -92,14 +92,8 @@ FEATURES = FeatureTable(
     Feature("gyro_norm", 0.0, 10.0, "units of 2π rad/s", "‖ω_j‖"),
     Feature("acc_dev", -1.0, 10.0, "fraction of g", "accelerometer-norm deviation (‖a_j‖ − g)/g"),
     *deviations("each with the estimate after the sample before it"),
-    Feature("norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s", f"rate of change of ‖m‖/m0 over {WINDOW}"),
-    Feature(
-        "mag_heading",
-        -1.0,
-        1.0,
-        "units of 180°",
-        "heading of m_j in the 9D earth frame (0 = north, + = east)",
-    ),
+    NORM_RATE,
+    mag_heading("m_j in the 9D earth frame"),
     Feature("trust_prev", 0.0, 1.0, "–", "u applied in the last step (1 after reset)"),
 )
 F = FEATURES.ix
