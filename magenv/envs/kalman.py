@@ -22,7 +22,7 @@ samples 0…j only (causal).
 
 from __future__ import annotations
 
-from dataclasses import astuple, dataclass, fields
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
@@ -34,7 +34,7 @@ from magenv.envs.common import TrialRunner, TrustEnv, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, WINDOW, Feature, FeatureTable, clipper, deviations, document
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
-from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
+from magenv.filters.kalman_threshold import OK
 from magenv.filters.kalman_trust import SIG
 from magenv.filters.sensors import Sensors
 from magenv.metrics import N_ERR, error_sums
@@ -120,21 +120,15 @@ _clip = clipper(FEATURES, neutral_nan=True)
 
 
 @dataclass(frozen=True)
-class Options:
-    """The env's filter options, checked once: the trust KF's noise model (``kalman_trust.make_params``: σ's,
-    accelerometer threshold, heading-only update) and the Gauss–Markov split of ``model_dist``
-    (:func:`make_model_params`)."""
+class Options(kt.Options):
+    """The env's filter options, checked once: the trust KF's (``kalman_trust.Options``: σ's, accelerometer
+    threshold, heading-only update) and the Gauss–Markov split of ``model_dist`` (:func:`make_model_params`)."""
 
-    sigma_gyr: float = SIGMA_GYR
-    sigma_acc: float = SIGMA_ACC
-    sigma_mag: float = SIGMA_MAG
-    th_acc: float = TH_ACC
-    heading_only: bool = True
     model_c_a: float = C_A
     model_c_b: float = C_B
 
     def __post_init__(self):
-        probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, *astuple(self)[:5])  # ValueError / TypeError naming one
+        probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, self)  # ValueError / TypeError naming one
         make_model_params(probe, self.model_c_a, self.model_c_b)
         for f in fields(self):  # held as Python numbers (the checks take ints and numpy scalars too)
             value = getattr(self, f.name)
@@ -144,7 +138,7 @@ class Options:
         """The trust KF's parameters on ``trial``'s field and rate (None: a 46 µT, 49.6° field at 1 Hz, for the
         constants alone)."""
         field = (46.0, 49.6, 1.0) if trial is None else (trial.field_norm, trial.field_dip, trial.dt)
-        return kt.make_params(*field, self.sigma_gyr, self.sigma_acc, self.sigma_mag, self.th_acc, self.heading_only)
+        return kt.make_params(*field, self)
 
 
 def make_model_params(params: kt.Params, model_c_a=C_A, model_c_b=C_B, model_p0=1.0) -> VecParams:
