@@ -121,6 +121,8 @@ class FanLambda(DeviationRule):
 
     name = "fan_lambda"
     PARAM_BOUNDS = rules.FAN_BOUNDS
+    norm_tol: float
+    th_dip_deg: float
 
     def __init__(self, norm_tol: float = rules.FAN_NORM_TOL, th_dip_deg: float = rules.FAN_TH_DIP_DEG, **common):
         super().__init__(norm_tol, th_dip_deg, **common)
@@ -134,6 +136,8 @@ class Threshold(DeviationRule):
 
     name = "threshold"
     PARAM_BOUNDS = rules.GATE_BOUNDS
+    norm_th: float
+    dip_th_deg: float
 
     def __init__(self, norm_th: float = rules.GATE_NORM_TH, dip_th_deg: float = rules.GATE_DIP_TH_DEG, **common):
         super().__init__(norm_th, dip_th_deg, **common)

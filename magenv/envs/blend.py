@@ -19,7 +19,7 @@ it: the extra causal features of ``magenv.envs.blend_memory`` and the memory
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -143,7 +143,8 @@ def sample_features(table: FeatureTable):
     env whose ``table`` has MagBlend-v0's sensor features of sample j: it writes them, clipped, into ``feat``
     (``norm_dev`` = (‖m_j‖ − m0)/m0, ``dip_dev`` = (dip of m_j with estimate q − dip0)/DIP_SCALE_DEG, ``gyro_norm``
     = ‖ω_j‖/GYRO_SCALE, ``acc_dev`` = (‖a_j‖ − g)/g) and returns the first two unclipped."""
-    clip, ix = clipper(table), table.ix
+    clip = clipper(table)
+    ix: Any = table.ix
     i_nd, i_dd, i_gn, i_ad = ix.norm_dev, ix.dip_dev, ix.gyro_norm, ix.acc_dev
 
     @njit(cache=True, inline="always")

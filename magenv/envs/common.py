@@ -429,6 +429,7 @@ class TrialRunner:
     err: np.ndarray
     feat: np.ndarray
     est: np.ndarray
+    _args: tuple  # the kernel's leading arguments (the filter's state and the trial's arrays)
 
     def __init__(self, trial: Trial, first: int = 0):
         self.trial = trial
