@@ -110,6 +110,12 @@ class DeviationRule(RulePolicy):
         for name, value in zip(names, (norm, dip)):
             setattr(self, name, float(value))
 
+    @property
+    def thresholds(self) -> tuple[float, float]:
+        """The two thresholds, in ``PARAM_BOUNDS``' order."""
+        norm, dip = (getattr(self, name) for name in self.PARAM_BOUNDS)
+        return norm, dip
+
     def deviations(self, obs: np.ndarray) -> tuple[float, float]:
         """(field-norm deviation (‖m‖ − m0)/m0, dip deviation θ_dip − θ0 in °) of one observation."""
         return float(obs[self._ix["norm_dev"]]), DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])
@@ -121,14 +127,12 @@ class FanLambda(DeviationRule):
 
     name = "fan_lambda"
     PARAM_BOUNDS = rules.FAN_BOUNDS
-    norm_tol: float
-    th_dip_deg: float
 
     def __init__(self, norm_tol: float = rules.FAN_NORM_TOL, th_dip_deg: float = rules.FAN_TH_DIP_DEG, **common):
         super().__init__(norm_tol, th_dip_deg, **common)
 
     def weight(self, obs: np.ndarray) -> float:
-        return float(rules.fan_lambda(*self.deviations(obs), self.norm_tol, self.th_dip_deg))
+        return float(rules.fan_lambda(*self.deviations(obs), *self.thresholds))
 
 
 class Threshold(DeviationRule):
@@ -136,14 +140,12 @@ class Threshold(DeviationRule):
 
     name = "threshold"
     PARAM_BOUNDS = rules.GATE_BOUNDS
-    norm_th: float
-    dip_th_deg: float
 
     def __init__(self, norm_th: float = rules.GATE_NORM_TH, dip_th_deg: float = rules.GATE_DIP_TH_DEG, **common):
         super().__init__(norm_th, dip_th_deg, **common)
 
     def weight(self, obs: np.ndarray) -> float:
-        return 1.0 if rules.gate(*self.deviations(obs), self.norm_th, self.dip_th_deg) else 0.0
+        return 1.0 if rules.gate(*self.deviations(obs), *self.thresholds) else 0.0
 
 
 RULES: dict[str, type[RulePolicy]] = {"constant": ConstantLambda, "fan_lambda": FanLambda, "threshold": Threshold}
