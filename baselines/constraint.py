@@ -95,7 +95,8 @@ class ConventionalCF(Tunable, _Base):
 
 
 class ConstraintCF(Tunable, _Base):
-    """The constraint-combined adaptive CF (eqs. 4–18); defaults are the published parameters."""
+    """The constraint-combined adaptive CF (eqs. 4–18); ``rule``: th1 … k_max by keyword
+    (``magenv.filters.constraint.check_rule_params``, whose defaults are the published parameters)."""
 
     name = "cf_constraint"
     PARAM_BOUNDS = {
@@ -106,22 +107,10 @@ class ConstraintCF(Tunable, _Base):
         "k_max": (0.02, 1.0),
     }
 
-    def __init__(
-        self,
-        th1: float = cf.TH1,
-        th2: float = cf.TH2,
-        th3: float = cf.TH3,
-        k_min: float = cf.K_MIN,
-        k_max: float = cf.K_MAX,
-        lever_i=None,
-        lever_j=None,
-        q0=None,
-        use_constraint: bool = True,
-    ):
+    def __init__(self, lever_i=None, lever_j=None, q0=None, use_constraint: bool = True, **rule):
         super().__init__(lever_i, lever_j, q0)
         self.use_constraint = bool(use_constraint)
-        rule = cf.check_rule_params(th1, th2, th3, k_min, k_max, sort_gains=True)
-        self.th1, self.th2, self.th3, self.k_min, self.k_max = rule
+        self.th1, self.th2, self.th3, self.k_min, self.k_max = cf.check_rule_params(**rule, sort_gains=True)
 
     def run(self, trial: Trial) -> Estimate:
         trace = self._filter(trial, use_constraint=self.use_constraint, **self.params).run()  # eqs. 16 and 18
@@ -145,7 +134,8 @@ class ConstraintWeightRule(Tunable):
     With the env's ``control_gain`` option the action also carries k by eq. 18,
     using ‖Δq‖ interpolated between the observed steps at w = 0 and w = 1
     (``step_mag``, ``step_con``), an approximation: the filter's own step at w
-    is only known once w is chosen. ``gain_max`` must match the env's.
+    is only known once w is chosen. ``gain_max`` must match the env's. ``rule``: th1 … k_max by keyword
+    (``magenv.filters.constraint.check_rule_params``, published defaults).
     """
 
     env_id = ENV_ID
@@ -153,17 +143,9 @@ class ConstraintWeightRule(Tunable):
     PARAM_BOUNDS = {"th1": (0.02, 1.0)}
 
     def __init__(
-        self,
-        th1: float = cf.TH1,
-        control_gain: bool = False,
-        gain_max: float = 1.0,
-        features: Sequence[str] | None = None,
-        th2: float = cf.TH2,
-        th3: float = cf.TH3,
-        k_min: float = cf.K_MIN,
-        k_max: float = cf.K_MAX,
+        self, control_gain: bool = False, gain_max: float = 1.0, features: Sequence[str] | None = None, **rule
     ):
-        self.th1, *gain_params = cf.check_rule_params(th1, th2, th3, k_min, k_max)
+        self.th1, *gain_params = cf.check_rule_params(**rule)
         self.gain_params = tuple(gain_params)  # eq. 18's th2, th3, k_min, k_max
         self.control_gain = bool(control_gain)
         self.gain_max = float(gain_max)
@@ -194,7 +176,8 @@ class ConstraintWeightRule(Tunable):
 
 class ErrorStepRule(Tunable):
     """eq. 16's w, overruled where eq. 14's steps at w = 0 and w = 1 differ in how far they correct the constraint
-    error estimate (see the module docstring); one decision per sample, k by eq. 18 with this rule's parameters."""
+    error estimate (see the module docstring); one decision per sample, k by eq. 18 with this rule's parameters
+    (``rule``: th1 … k_max by keyword, ``magenv.filters.constraint.check_rule_params``)."""
 
     env_id = ENV_ID
     name = "cf_cerr"
@@ -206,19 +189,8 @@ class ErrorStepRule(Tunable):
     }
     FEATURES = ("mag_dev", "step0_dot", "step1_dot")  # the observation it reads (extended table)
 
-    def __init__(
-        self,
-        th1: float = cf.TH1,
-        th2: float = cf.TH2,
-        th3: float = cf.TH3,
-        k_min: float = cf.K_MIN,
-        k_max: float = cf.K_MAX,
-        d_min: float = 1.0,
-        w_mag: float = 1.0,
-        w_con: float = 0.0,
-    ):
-        rule = cf.check_rule_params(th1, th2, th3, k_min, k_max, sort_gains=True)
-        self.th1, self.th2, self.th3, self.k_min, self.k_max = rule
+    def __init__(self, d_min: float = 1.0, w_mag: float = 1.0, w_con: float = 0.0, **rule):
+        self.th1, self.th2, self.th3, self.k_min, self.k_max = cf.check_rule_params(**rule, sort_gains=True)
         self.d_min = check_number("d_min (°²)", d_min, 0.0)
         self.w_mag = check_number("w_mag", w_mag, 0.0, 1.0)
         self.w_con = check_number("w_con", w_con, 0.0, 1.0)

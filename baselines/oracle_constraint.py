@@ -20,7 +20,7 @@ eqs. 4–18) forward over the next ``horizon_s`` seconds:
   with the tuned th2, th3, k_min, k_max.
 
 Cost of a candidate = Σ over the horizon of (total error of link i, degrees)²
-(``magenv.metrics.errors1``; samples without truth add 0). The cheapest
+(``magenv.metrics.squared_totals``; samples without truth add 0). The cheapest
 candidate is applied for k samples, then the search repeats from the new state.
 
 With ``rule_candidates`` (the teacher ``oracle_constraint_rules``) the rule's
@@ -40,7 +40,7 @@ from magenv.checks import check_bool, check_int, check_positive
 from magenv.envs import CONSTRAINT_ID
 from magenv.envs.constraint import ConstraintRunner
 from magenv.filters import constraint as cf
-from magenv.metrics import errors1
+from magenv.metrics import squared_totals
 from magenv.protocols import Estimate
 from magenv.trial import Trial
 
@@ -48,7 +48,6 @@ WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)  # w levels searched (k by eq. 18)
 GAIN_LEVELS = (0.0, 0.1, 0.4, 1.0)  # k/gain_max levels searched with control_gain
 HORIZON_S = 1.0  # s, look-ahead of each search
 DECISION_EVERY = 4  # samples per decision (the env's default)
-RULE_PARAMS = ("th1", "th2", "th3", "k_min", "k_max")  # the continuation rule's (cf_constraint's) parameters
 
 
 @njit(cache=True)
@@ -73,12 +72,7 @@ def candidate_costs(p, q, inputs, q_true, start, horizon, k, cands, gain_max, sc
             dev, _ = cf.mag_deviation(qs, inputs.mag[a], p)
             cf.fuse(p, qs, inputs, cf.Control(cf.weight_rule(dev, p.th1), 0.0, False, True), a, b, scratch)
             a = b
-        cost = 0.0
-        for i in range(start, stop):
-            total = errors1(scratch.est[i], q_true[i])[0]
-            if total == total:
-                cost += total * total
-        costs[c] = cost
+        costs[c] = squared_totals(scratch.est, q_true, start, stop)
 
 
 def default_candidates(control_gain: bool) -> np.ndarray:
@@ -93,14 +87,15 @@ class ConstraintOracle:
     an upper bound only.
 
     Args:
-        th1, th2, th3, k_min, k_max: the continuation rule's parameters (eq. 16: fraction of m0; eq. 18:
-            ‖Δq‖ units and 1/s), also the env's eq. 18 (``env_kwargs``).
         candidates: env actions searched at each decision, (C, 1) w or, with ``control_gain``,
             (C, 2) [w, k/gain_max]; None = :func:`default_candidates`.
         horizon_s: look-ahead, s. decision_every: samples per decision (k).
         control_gain, gain_max: the env's options (the action also sets k = a₁·gain_max).
         rule_candidates: also search the rule's w on the env's observation at each decision (not with
             ``control_gain``).
+        rule: th1, th2, th3, k_min, k_max by keyword, the continuation rule's parameters (eq. 16: fraction of
+            m0; eq. 18: ‖Δq‖ units and 1/s; ``magenv.filters.constraint.check_rule_params``), also the env's
+            eq. 18 (``env_kwargs``).
     """
 
     name = "oracle_constraint"
@@ -109,19 +104,15 @@ class ConstraintOracle:
 
     def __init__(
         self,
-        th1: float = cf.TH1,
-        th2: float = cf.TH2,
-        th3: float = cf.TH3,
-        k_min: float = cf.K_MIN,
-        k_max: float = cf.K_MAX,
         candidates=None,
         horizon_s: float = HORIZON_S,
         decision_every: int = DECISION_EVERY,
         control_gain: bool = False,
         gain_max: float = 1.0,
         rule_candidates: bool = False,
+        **rule,
     ):
-        self.rule = dict(zip(RULE_PARAMS, cf.check_rule_params(th1, th2, th3, k_min, k_max)))
+        self.rule = dict(zip(cf.RULE_PARAMS, cf.check_rule_params(**rule)))
         self.control_gain = check_bool("control_gain", control_gain)
         self.rule_candidates = check_bool("rule_candidates", rule_candidates)
         if self.rule_candidates and self.control_gain:
@@ -138,7 +129,7 @@ class ConstraintOracle:
         self.horizon_s = check_positive("horizon_s", horizon_s)
         self.decision_every = check_int("decision_every", decision_every, 1)
         # the options of the env whose runner the oracle searches from (and a student acts in)
-        self.env_kwargs = {k: self.rule[k] for k in RULE_PARAMS[1:]}
+        self.env_kwargs = {k: self.rule[k] for k in cf.RULE_PARAMS[1:]}
         self.env_kwargs["decision_every"] = self.decision_every
         if self.control_gain:
             self.env_kwargs.update(control_gain=True, gain_max=self.gain_max)
@@ -147,7 +138,7 @@ class ConstraintOracle:
     def from_constraint_params(cls, params: dict, **options) -> ConstraintOracle:
         """Privileged w search (reads truth: an upper bound) continuing with the cf_constraint rule of ``params``;
         ``options``: e.g. ``rule_candidates``."""
-        return cls(**{k: params[k] for k in RULE_PARAMS}, **options)
+        return cls(**{k: params[k] for k in cf.RULE_PARAMS}, **options)
 
     def make_runner(self, trial: Trial) -> ConstraintRunner:
         """The env's runner on ``trial`` with the rule's eq. 18 (the state the oracle searches from)."""

@@ -96,53 +96,56 @@ class ConstantLambda(RulePolicy):
         return self._action.copy()
 
 
-class FanLambda(RulePolicy):
+class DeviationRule(RulePolicy):
+    """A rule on the observation's ``norm_dev`` and ``dip_dev`` with two thresholds > 0, the parameters named by
+    ``PARAM_BOUNDS`` (the field-norm one, fraction of m0; the dip one, °); ``common``: :class:`RulePolicy`'s."""
+
+    NEEDS = ("norm_dev", "dip_dev")
+
+    def __init__(self, norm: float, dip: float, **common):
+        super().__init__(**common)
+        names = tuple(self.PARAM_BOUNDS)
+        if not (norm > 0 and dip > 0):
+            raise ValueError(f"{names[0]} and {names[1]} must be positive, got {norm}, {dip}")
+        for name, value in zip(names, (norm, dip)):
+            setattr(self, name, float(value))
+
+    @property
+    def thresholds(self) -> tuple[float, float]:
+        """The two thresholds, in ``PARAM_BOUNDS``' order."""
+        norm, dip = (getattr(self, name) for name in self.PARAM_BOUNDS)
+        return norm, dip
+
+    def deviations(self, obs: np.ndarray) -> tuple[float, float]:
+        """(field-norm deviation (‖m‖ − m0)/m0, dip deviation θ_dip − θ0 in °) of one observation."""
+        return float(obs[self._ix["norm_dev"]]), DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])
+
+
+class FanLambda(DeviationRule):
     """Fan et al. 2017 eqs. 15–17 (``magenv.filters.rules.fan_lambda``) on the observation's ``norm_dev`` and
     ``dip_dev`` (eq. 18 for θ_dip)."""
 
     name = "fan_lambda"
     PARAM_BOUNDS = rules.FAN_BOUNDS
-    NEEDS = ("norm_dev", "dip_dev")
 
-    def __init__(
-        self,
-        norm_tol: float = rules.FAN_NORM_TOL,
-        th_dip_deg: float = rules.FAN_TH_DIP_DEG,
-        features: Sequence[str] | None = None,
-        stationary_hold: bool | None = None,
-    ):
-        super().__init__(features, stationary_hold)
-        if not (norm_tol > 0 and th_dip_deg > 0):
-            raise ValueError(f"norm_tol and th_dip_deg must be positive, got {norm_tol}, {th_dip_deg}")
-        self.norm_tol, self.th_dip_deg = float(norm_tol), float(th_dip_deg)
+    def __init__(self, norm_tol: float = rules.FAN_NORM_TOL, th_dip_deg: float = rules.FAN_TH_DIP_DEG, **common):
+        super().__init__(norm_tol, th_dip_deg, **common)
 
     def weight(self, obs: np.ndarray) -> float:
-        norm_dev, dip_dev_deg = float(obs[self._ix["norm_dev"]]), DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])
-        return float(rules.fan_lambda(norm_dev, dip_dev_deg, self.norm_tol, self.th_dip_deg))
+        return float(rules.fan_lambda(*self.deviations(obs), *self.thresholds))
 
 
-class Threshold(RulePolicy):
+class Threshold(DeviationRule):
     """λ = 1 when |‖m‖ − m0|/m0 > norm_th or |θ_dip − θ0| > dip_th_deg, else λ = 0 (``magenv.filters.rules.gate``)."""
 
     name = "threshold"
     PARAM_BOUNDS = rules.GATE_BOUNDS
-    NEEDS = ("norm_dev", "dip_dev")
 
-    def __init__(
-        self,
-        norm_th: float = rules.GATE_NORM_TH,
-        dip_th_deg: float = rules.GATE_DIP_TH_DEG,
-        features: Sequence[str] | None = None,
-        stationary_hold: bool | None = None,
-    ):
-        super().__init__(features, stationary_hold)
-        if not (norm_th > 0 and dip_th_deg > 0):
-            raise ValueError(f"norm_th and dip_th_deg must be positive, got {norm_th}, {dip_th_deg}")
-        self.norm_th, self.dip_th_deg = float(norm_th), float(dip_th_deg)
+    def __init__(self, norm_th: float = rules.GATE_NORM_TH, dip_th_deg: float = rules.GATE_DIP_TH_DEG, **common):
+        super().__init__(norm_th, dip_th_deg, **common)
 
     def weight(self, obs: np.ndarray) -> float:
-        norm_dev, dip_dev_deg = float(obs[self._ix["norm_dev"]]), DIP_SCALE_DEG * float(obs[self._ix["dip_dev"]])
-        return 1.0 if rules.gate(norm_dev, dip_dev_deg, self.norm_th, self.dip_th_deg) else 0.0
+        return 1.0 if rules.gate(*self.deviations(obs), *self.thresholds) else 0.0
 
 
 RULES: dict[str, type[RulePolicy]] = {"constant": ConstantLambda, "fan_lambda": FanLambda, "threshold": Threshold}

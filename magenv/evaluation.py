@@ -287,16 +287,10 @@ def summarize(runs: Sequence[Run]) -> list[dict]:
     return rows
 
 
-def compare(
-    methods,
-    trials: Iterable[Trial],
-    env_kwargs: dict | None = None,
-    labels: Sequence[str] | None = None,
-    progress=None,
-    keep_going: bool = False,
-) -> list[dict]:
-    """``summarize(evaluate(...))``: the comparison table as a list of dicts (``CSV_COLUMNS``)."""
-    return summarize(evaluate(methods, trials, env_kwargs, labels, progress, keep_going))
+def compare(methods, trials: Iterable[Trial], **options) -> list[dict]:
+    """``summarize(evaluate(methods, trials, **options))``: the comparison table as a list of dicts
+    (``CSV_COLUMNS``); ``options``: :func:`evaluate`'s ``env_kwargs``, ``labels``, ``progress``, ``keep_going``."""
+    return summarize(evaluate(methods, trials, **options))
 
 
 def add_paired(rows: list[dict], runs: Sequence[Run], reference: str) -> list[dict]:

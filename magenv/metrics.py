@@ -93,6 +93,18 @@ def error_sums(est, q_true, dist, start, stop, err):
         add_errors(err, est[i], q_true[i], dist[i])
 
 
+@njit(cache=True)
+def squared_totals(est, q_true, start, stop) -> float:
+    """Σ of the squared total errors (°²) of ``est`` (N, 4) against ``q_true`` (N, 4) over samples
+    ``start … stop−1``, samples without truth skipped (:func:`errors1`): the oracles' look-ahead cost."""
+    cost = 0.0
+    for i in range(start, stop):
+        total = errors1(est[i], q_true[i])[0]
+        if total == total:
+            cost += total * total
+    return cost
+
+
 # Layout of a step's means (``step_means``): the reward and the errors ``info`` reports.
 S_REWARD, S_TOTAL, S_HEADING, S_INCL, S_DIST = range(5)
 N_STEP = 5

@@ -123,9 +123,7 @@ def rotate_inv3(q, v):
 @njit(cache=True, inline="always")
 def rotate_inv1(q, v):
     """Rotate a 3-vector from the earth to the sensor frame: ``q* ⊗ v ⊗ q``."""
-    out = np.empty(3)
-    out[0], out[1], out[2] = rotate_inv3(q, v)
-    return out
+    return rotate1((q[0], -q[1], -q[2], -q[3]), v)
 
 
 @njit(cache=True, inline="always")

@@ -399,19 +399,25 @@ def test_a_kalman_student_with_the_rules_gamma_as_candidates(tmp_path):
     assert student.action(obs)[0] == pytest.approx(p @ student.candidates_at(obs)[:, 0], rel=1e-12)
 
 
-def test_regret_scale_best_rule_scales_by_the_best_rules_mse(tmp_path):
-    """``regret_scale: best_rule``: the same labels, in % of the lowest MSE of the teacher's rules (each alone)
-    instead of the continuation rule's: one factor ≥ 1 per trial; teachers without rules are refused."""
-    cfg = {**TINY, "iterations": 1, "label_every": 64, "first": "rule", "scenarios": ["stationary_magnet"]}
-    teacher = registry.make("oracle_kalman_rules")
+def _regret_factor(tmp_path, teacher, cfg: dict, scale: str) -> np.ndarray:
+    """The first iteration's labels with ``regret_scale: scale`` over those with ``rule``, where positive: one
+    factor for the whole trial (checked)."""
     regrets = []
-    for scale in ("rule", "best_rule"):
-        out = dagger.train(tmp_path / scale, teacher, {**cfg, "regret_scale": scale}, log=lambda line: None)
+    for name in ("rule", scale):
+        out = dagger.train(tmp_path / name, teacher, {**cfg, "regret_scale": name}, log=lambda line: None)
         with np.load(out / "data" / "it_0.npz") as z:
             regrets.append(z["regret"])
     positive = regrets[0] > 0
     factor = regrets[1][positive] / regrets[0][positive]
     np.testing.assert_allclose(factor, factor[0], rtol=1e-5)
+    return factor
+
+
+def test_regret_scale_best_rule_scales_by_the_best_rules_mse(tmp_path):
+    """``regret_scale: best_rule``: the same labels, in % of the lowest MSE of the teacher's rules (each alone)
+    instead of the continuation rule's: one factor ≥ 1 per trial; teachers without rules are refused."""
+    cfg = {**TINY, "iterations": 1, "label_every": 64, "first": "rule", "scenarios": ["stationary_magnet"]}
+    factor = _regret_factor(tmp_path, registry.make("oracle_kalman_rules"), cfg, "best_rule")
     assert factor[0] > 1.01  # kf_adaptive_tuned beats the continuation kf_model_tuned on stationary_magnet
     with pytest.raises(ValueError, match="rule_actions"):
         dagger.train(tmp_path / "b", registry.make("oracle"), {**TINY, "regret_scale": "best_rule"})
@@ -423,15 +429,7 @@ def test_regret_scale_teacher_scales_by_the_teachers_own_mse(tmp_path):
     """``regret_scale: teacher``: the same labels, in % of the MSE of the teacher's own closed-loop run on the
     trial — one factor per trial, the rule's MSE over the teacher's, > 1 where the teacher does better."""
     cfg = {**TINY, "iterations": 1, "label_every": 16}
-    teacher = registry.make("oracle")
-    regrets = []
-    for scale in ("rule", "teacher"):
-        out = dagger.train(tmp_path / scale, teacher, {**cfg, "regret_scale": scale}, log=lambda line: None)
-        with np.load(out / "data" / "it_0.npz") as z:
-            regrets.append(z["regret"])
-    positive = regrets[0] > 0
-    factor = regrets[1][positive] / regrets[0][positive]
-    np.testing.assert_allclose(factor, factor[0], rtol=1e-5)
+    factor = _regret_factor(tmp_path, registry.make("oracle"), cfg, "teacher")
     assert factor[0] > 1.0  # the oracle does better than its continuation rule on the trial
 
 

@@ -350,7 +350,7 @@ def test_trust_kf_heading_only_keeps_magnetometer_out_of_tilt():
     tr = trial(seed=8, kind="strong")
     incl = {}
     for heading_only in (True, False):
-        params = kt.make_params(tr.field_norm, tr.field_dip, tr.dt, heading_only=heading_only)
+        params = kt.make_params(tr.field_norm, tr.field_dip, tr.dt, kt.Options(heading_only=heading_only))
         incl[heading_only] = metrics.score(kt.run_trial(tr, 1.0, params)[0], tr.q_true).inclination
     assert incl[True] < 0.1 < 0.5 < incl[False], incl
 

@@ -72,9 +72,7 @@ def test_costs_leave_the_runner_alone_and_runs_repeat(trials):
 
 def test_continuation_action_is_the_env_rule_on_the_observation(trials):
     oracle = ConstraintOracle(**TUNED, control_gain=True)
-    rule = ConstraintWeightRule(
-        TUNED["th1"], control_gain=True, **{k: TUNED[k] for k in ("th2", "th3", "k_min", "k_max")}
-    )
+    rule = ConstraintWeightRule(control_gain=True, **TUNED)
     runner = oracle.make_runner(trials[1])
     for _ in range(80):
         assert oracle.continuation_action(runner)[0] == pytest.approx(rule(runner.feat)[0], abs=1e-5)

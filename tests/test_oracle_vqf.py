@@ -16,6 +16,7 @@ from magenv.envs import VQF_ID
 from magenv.envs.vqf import EXTENDED, VQFRunner
 from magenv.train.cli import main
 from tests.conftest import kinematic_trial
+from tests.test_agents_dagger import TINY as DAGGER_TINY
 
 
 @pytest.fixture(scope="module")
@@ -90,15 +91,7 @@ def _broad_file(path, trial):
     return path
 
 
-TINY = {
-    "iterations": 1,
-    "trials_per_scenario": 1,
-    "scenarios": ["dynamic_magnet"],
-    "val_seeds": [5000, 5001],
-    "decision_every": 32,
-    "fit_steps": 20,
-    "hidden": [8],
-}
+TINY = {**DAGGER_TINY, "iterations": 1, "scenarios": ["dynamic_magnet"], "decision_every": 32}
 
 
 def test_a_student_learns_from_recordings_and_cross_validates_leaving_them_out(tmp_path):

@@ -175,8 +175,13 @@ def method_label(row: dict) -> str:
     return f"{row['method']} ({HEADROOM_NOTE})" if row.get("headroom") else row["method"]
 
 
-def _fmt(x: float) -> str:
-    return "–" if math.isnan(x) else f"{x:.2f}"
+def score_cells(row: dict) -> list[str]:
+    """A table row's total RMSE, ± std, heading and inclination cells (°, 2 decimals; "–" for NaN), "n/a" in
+    each where the method failed."""
+    if "error" in row:
+        return ["n/a"] * 4
+    cols = ("total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")
+    return ["–" if math.isnan(row[c]) else f"{row[c]:.2f}" for c in cols]
 
 
 def table_order(rows: list[dict]) -> list[dict]:
@@ -295,13 +300,7 @@ def print_table(rows: list[dict], console=None, title: str = "orientation RMSE (
         table.add_column("worst", justify="right", no_wrap=True)
         table.add_column("IQM ÷ ref", justify="right", no_wrap=True)
     for r in table_order(rows):
-        cells = (
-            ["n/a"] * 4
-            if "error" in r
-            else [
-                _fmt(r[c]) for c in ("total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")
-            ]
-        )
+        cells = score_cells(r)
         if paired:
             cells += paired_cells(r)
         table.add_row(method_label(r), r["scenario"], str(r["n"]), *cells)

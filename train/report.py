@@ -11,7 +11,6 @@ against the true magnetic disturbance, and RMSE bars across scenarios.
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import numpy as np
@@ -87,9 +86,15 @@ def _plot_bars(rows: list[dict], path: Path) -> Path:
 def markdown_table(rows: list[dict]) -> str:
     """The comparison rows as a Markdown table, best total RMSE first within each scenario; an n/a cell's
     reason follows the table."""
-    from magenv.train.compare import divergence_notes, failure_notes, method_label, paired_cells, table_order
+    from magenv.train.compare import (
+        divergence_notes,
+        failure_notes,
+        method_label,
+        paired_cells,
+        score_cells,
+        table_order,
+    )
 
-    fmt = lambda x: "–" if isinstance(x, float) and math.isnan(x) else f"{x:.2f}"
     paired = any("paired" in r for r in rows)
     lines = [
         "| scenario | method | n | total RMSE (°) | ± std | heading | inclination |"
@@ -97,14 +102,7 @@ def markdown_table(rows: list[dict]) -> str:
         "|---|---|---|---|---|---|---|" + ("---|---|---|---|" if paired else ""),
     ]
     for r in table_order(rows):
-        cells = (
-            ["n/a"] * 4
-            if "error" in r
-            else [
-                fmt(r[c]) for c in ("total_rmse_mean", "total_rmse_std", "heading_rmse_mean", "inclination_rmse_mean")
-            ]
-        )
-        cells += paired_cells(r) if paired else []
+        cells = score_cells(r) + (paired_cells(r) if paired else [])
         lines.append(f"| {r['scenario']} | {method_label(r)} | {r['n']} | " + " | ".join(cells) + " |")
     notes = failure_notes(rows) + divergence_notes(rows)
     return "\n".join(lines + ([""] + [f"* {n}" for n in notes] if notes else []))

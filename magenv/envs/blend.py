@@ -18,8 +18,8 @@ it: the extra causal features of ``magenv.envs.blend_memory`` and the memory
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import NamedTuple
+from dataclasses import asdict
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -28,7 +28,7 @@ from magenv.checks import check_bool
 from magenv.envs import BLEND_ID, blend_memory, lagged
 from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
 from magenv.envs.common import TrialRunner, TrustEnv, episode_view
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, WINDOW, Feature, FeatureTable, clipper, deviations, document
 from magenv.filters import blend, stationary
 from magenv.filters.madgwick import BETA_DEFAULT
 from magenv.metrics import N_ERR, error_sums
@@ -36,7 +36,15 @@ from magenv.quaternion import GRAVITY, rotate1
 from magenv.trial import Trial
 
 NORM_RATE_SCALE = 10.0  # 1/s: the relative field-norm rate in units of 10 /s
-WINDOW = "the window"  # samples fused in the last step plus sample j
+NORM_RATE = Feature(
+    "norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s", f"rate of change of ‖m‖/m0 over {WINDOW}"
+)
+
+
+def mag_heading(of: str) -> Feature:
+    """The ``mag_heading`` feature: the heading of ``of`` (units of 180°, 0 = north, + = east)."""
+    return Feature("mag_heading", -1.0, 1.0, "units of 180°", f"heading of {of} (0 = north, + = east)")
+
 
 FEATURES = FeatureTable(
     Feature(
@@ -60,23 +68,9 @@ FEATURES = FeatureTable(
         "mean angle between the IMU and MIMU candidate updates over the samples fused in the last step",
     ),
     Feature("lambda_prev", 0.0, 1.0, "–", "λ applied in the last step (0 after reset)"),
-    Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
-    Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
-    Feature(
-        "dip_dev_max",
-        0.0,
-        2.0,
-        f"units of {DIP_SCALE_DEG:g}°",
-        f"max of the absolute dip_dev over {WINDOW} (each with its own prior estimate)",
-    ),
-    Feature("norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s", f"rate of change of ‖m‖/m0 over {WINDOW}"),
-    Feature(
-        "mag_heading",
-        -1.0,
-        1.0,
-        "units of 180°",
-        "heading of the measured horizontal field in the estimated earth frame (0 = north, + = east)",
-    ),
+    *deviations("each with its own prior estimate"),
+    NORM_RATE,
+    mag_heading("the measured horizontal field in the estimated earth frame"),
     Feature("stationary_frac", 0.0, 1.0, "–", f"fraction of {WINDOW} detected stationary"),
 )
 F = FEATURES.ix  # named kernel indices
@@ -144,6 +138,32 @@ def dip_deg(q, m):
     return np.rad2deg(np.arcsin(s))
 
 
+def sample_features(table: FeatureTable):
+    """The numba function ``write(feat, q, gyr_j, acc_j, mag_j, m0, dip0) → (‖m_j‖ µT, norm_dev, dip_dev)`` of an
+    env whose ``table`` has MagBlend-v0's sensor features of sample j: it writes them, clipped, into ``feat``
+    (``norm_dev`` = (‖m_j‖ − m0)/m0, ``dip_dev`` = (dip of m_j with estimate q − dip0)/DIP_SCALE_DEG, ``gyro_norm``
+    = ‖ω_j‖/GYRO_SCALE, ``acc_dev`` = (‖a_j‖ − g)/g) and returns the first two unclipped."""
+    clip = clipper(table)
+    ix: Any = table.ix
+    i_nd, i_dd, i_gn, i_ad = ix.norm_dev, ix.dip_dev, ix.gyro_norm, ix.acc_dev
+
+    @njit(cache=True, inline="always")
+    def write(feat, q, gyr_j, acc_j, mag_j, m0, dip0):
+        mj = _norm3(mag_j)
+        nd = (mj - m0) / m0
+        dd = (dip_deg(q, mag_j) - dip0) / DIP_SCALE_DEG
+        feat[i_nd] = clip(nd, i_nd)
+        feat[i_dd] = clip(dd, i_dd)
+        feat[i_gn] = clip(_norm3(gyr_j) / GYRO_SCALE, i_gn)
+        feat[i_ad] = clip((_norm3(acc_j) - GRAVITY) / GRAVITY, i_ad)
+        return mj, nd, dd
+
+    return write
+
+
+_sample_features = sample_features(FEATURES)
+
+
 @njit(cache=True)
 def advance(p, site, state, sensors, truth, out, lam_const, start, stop):
     """Fuse samples ``start:stop`` with ``magenv.filters.blend.step1``, then the observation of sample ``stop``.
@@ -178,13 +198,7 @@ def _features(p, site, state, sensors, out, start, stop):
     j = stop if stop < n else n - 1
     m0, dip0 = site.m0, site.dip0
     q = state.q
-    mj = _norm3(mag[j])
-    nd = (mj - m0) / m0
-    dd = (dip_deg(q, mag[j]) - dip0) / DIP_SCALE_DEG
-    feat[F.norm_dev] = _clip(nd, F.norm_dev)
-    feat[F.dip_dev] = _clip(dd, F.dip_dev)
-    feat[F.gyro_norm] = _clip(_norm3(gyr[j]) / GYRO_SCALE, F.gyro_norm)
-    feat[F.acc_dev] = _clip((_norm3(acc[j]) - GRAVITY) / GRAVITY, F.acc_dev)
+    mj, nd, dd = _sample_features(feat, q, gyr[j], acc[j], mag[j], m0, dip0)
     still = stationary.peek1(state.detector, acc[j], gyr[j], p.th_acc, p.th_gyro)
     feat[F.stationary] = 1.0 if still else 0.0
     # window statistics over the fused samples start:stop plus sample j
@@ -238,28 +252,17 @@ class BlendRunner(TrialRunner):
 
     Args:
         trial: the Trial to filter.
-        beta: Madgwick gain β, rad/s.
-        hold: hold the estimate on stationary samples.
-        t0, th_acc_g, th_gyro_dps: stationary detection (s, g, °/s).
         q0: initial orientation; None = ``ecompass1`` of the first sample (never truth).
         extended: ``feat`` is the EXTENDED observation (base, extra causal features, their lagged copies).
+        options: ``magenv.filters.blend.Options`` by keyword (β rad/s, the hold, the stationary detection).
     """
 
-    def __init__(
-        self,
-        trial: Trial,
-        beta: float = BETA_DEFAULT,
-        hold: bool = True,
-        t0: float = stationary.T0_S,
-        th_acc_g: float = stationary.TH_ACC_G,
-        th_gyro_dps: float = stationary.TH_GYRO_DPS,
-        q0=None,
-        extended: bool = False,
-    ):
+    def __init__(self, trial: Trial, q0=None, extended: bool = False, **options):
         super().__init__(trial)
-        self.params = blend.make_params(trial.dt, beta, hold, th_acc_g, th_gyro_dps)
+        o = blend.Options(**options)
+        self.params = o.params(trial.dt)
         self.site = Site(trial.field_norm, trial.field_dip)
-        self.state = blend.make_state(trial, t0, q0)
+        self.state = blend.make_state(trial, o.t0, q0)
         self.q0 = self.state.q.copy()
         self.out = Outputs.empty(trial.n, WINDOW_ROWS)
         self.est, self.lam, self.err, self.feat = self.out.est, self.out.lam, self.out.err, self.out.feat
@@ -269,12 +272,9 @@ class BlendRunner(TrialRunner):
             self.memory = blend_memory.Memory.start(self.q0)
             rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
             self.feat = np.zeros(len(EXTENDED))
-            self._more: tuple = (self.q0, self.memory, rows, np.zeros(1, np.int64), self.feat)
-            self._advance = self.compiled(advance_extended, *self._args, 0.0, 0, 0, *self._more)
+            self._start(advance_extended, 0.0, self.q0, self.memory, rows, np.zeros(1, np.int64), self.feat)
         else:
-            self._more = ()
-            self._advance = self.compiled(advance, *self._args, 0.0, 0, 0)
-        self._fuse(0, 0, 0.0)  # the observation of sample 0, nothing fused
+            self._start(advance, 0.0)
 
     def _fuse(self, start: int, stop: int, lam: float) -> None:
         if stop - start > len(self.out.dip):  # a call of more samples than ever (run_all): wider per-call rows
@@ -421,32 +421,21 @@ class MagBlendEnv(TrustEnv):
 
     def __init__(
         self,
-        scenario="random",
-        decision_every: int = 8,
-        episode_seconds: float | None = None,
         stationary_hold: bool = True,
-        features: Sequence[str] | None = None,
         beta: float = BETA_DEFAULT,
         t0: float = stationary.T0_S,
         th_acc_g: float = stationary.TH_ACC_G,
         th_gyro_dps: float = stationary.TH_GYRO_DPS,
-        scenario_kwargs: dict | None = None,
-        prefetch: bool = False,
-        trial_pool=None,
-        render_mode: str | None = None,
+        **options,
     ):
-        self._setup(
-            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
-        )  # fmt: skip
+        self._setup(**options)
         # bad filter arguments fail here, not at reset (ValueError / TypeError naming the argument)
         hold = check_bool("stationary_hold", stationary_hold)
         self.options = blend.Options(beta, hold, t0, th_acc_g, th_gyro_dps)
         self.stationary_hold = hold
 
     def _make_runner(self, trial: Trial) -> BlendRunner:
-        o = self.options
-        return BlendRunner(trial, o.beta, o.hold, o.t0, o.th_acc_g, o.th_gyro_dps, extended=self.extended)
+        return BlendRunner(trial, extended=self.extended, **asdict(self.options))
 
     # ------------------------------------------------------------ evaluation access
 

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from magenv.envs import lagged
 from magenv.envs.features import DEG, HEADING, SHARED, Feature, FeatureTable
 from magenv.filters.madgwick import MODE_IMU, MODE_MIMU, NO_REF, step
 from magenv.quaternion import GRAVITY
@@ -120,9 +121,7 @@ class Memory(NamedTuple):
     @classmethod
     def start(cls, q0: np.ndarray) -> Memory:
         """Memory at the start of a trial: every parallel filter at the e-compass orientation ``q0``."""
-        state = np.zeros(N_STATE)
-        for o in QUATERNIONS:
-            state[o : o + 4] = q0
+        state = lagged.anchored(N_STATE, q0, QUATERNIONS)
         return cls(state, np.zeros(D_IMU_HISTORY), np.zeros(1, np.int64), np.zeros(len(EXTRA)))
 
 

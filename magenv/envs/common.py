@@ -13,6 +13,7 @@
   ValueError, finite out-of-range → clipped.
 * :class:`Truth`, :class:`TrialRunner` — the truth-only arrays of a trial
   and the base of each env's runner (one trial stepped k samples at a time).
+* :class:`EnvOptions` — the options every env takes by keyword (its defaults per env: ``TrustEnv.defaults``).
 * :class:`TrustEnv` — base single env: arguments, reset (trial draw and
   cut), step checks, reward and info from the runner's error sums, and the
   divergence policy: a non-finite estimate or observation raises
@@ -24,6 +25,8 @@ The batched vector env every env module builds its ``vector_entry_point`` on is 
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import math
 import operator
 from collections.abc import Callable, Sequence
@@ -426,6 +429,7 @@ class TrialRunner:
     err: np.ndarray
     feat: np.ndarray
     est: np.ndarray
+    _args: tuple  # the kernel's leading arguments (the filter's state and the trial's arrays)
 
     def __init__(self, trial: Trial, first: int = 0):
         self.trial = trial
@@ -459,6 +463,13 @@ class TrialRunner:
             entry = _ENTRY_POINTS[key] = kernel.compile(tuple(numba.typeof(a) for a in args))
         return entry
 
+    def _start(self, kernel, action, *more) -> None:
+        """``_advance``: ``kernel`` compiled for ``(*self._args, action, start, stop, *more)`` (``_more`` keeps
+        ``more``); then the observation of sample ``pos``, nothing fused, with the action value ``action``."""
+        self._more = more
+        self._advance = self.compiled(kernel, *self._args, action, self.pos, self.pos, *more)
+        self._fuse(self.pos, self.pos, action)
+
     def _fuse(self, start: int, stop: int, action) -> None:
         raise NotImplementedError
 
@@ -477,6 +488,45 @@ def episode_view(path: str, doc: str) -> Any:
     before the first ``reset()``."""
     get = operator.attrgetter(path)
     return property(lambda env: get(env._need_reset()), doc=doc)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EnvOptions:
+    """The options every trust env takes, by keyword (``gymnasium.make(env_id, **options)``).
+
+    Attributes:
+        scenario: where the trials come from (:func:`trial_source`).
+        decision_every: samples fused per step (k ≥ 1).
+        episode_seconds: each trial cut to this long, s (:func:`cut_trial`; None: the whole trial).
+        features: the observation (names, ``"extended"`` for the memory features; None: the env's FEATURES).
+        scenario_kwargs: overrides passed to ``magenv.scenarios.make_trial``.
+        prefetch: make the next reset's trial ahead in a worker process (:class:`TrialSource`).
+        trial_pool: reset trials from a seeded pool (:class:`TrialPool`; None: a new trial every reset).
+        render_mode: ``"rgb_array"`` or None (``magenv.envs.render``).
+    """
+
+    scenario: Any = "random"
+    decision_every: int = 8
+    episode_seconds: float | None = None
+    features: Sequence[str] | None = None
+    scenario_kwargs: dict | None = None
+    prefetch: bool = False
+    trial_pool: Any = None
+    render_mode: str | None = None
+
+
+def options_signature(init: Callable, defaults: EnvOptions, own_options: type | None = None) -> inspect.Signature:
+    """``init``'s signature with its ``**options`` spelled out, keyword-only: the fields of the env's
+    ``own_options`` dataclass (if any) at their defaults, then the :class:`EnvOptions` fields at the env's
+    ``defaults``."""
+    sig = inspect.signature(init)
+    given = [p for p in sig.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
+    keyword = [(f, f.default) for f in dataclasses.fields(own_options)] if own_options else []
+    keyword += [(f, getattr(defaults, f.name)) for f in dataclasses.fields(EnvOptions)]
+    return sig.replace(
+        parameters=given
+        + [inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=d, annotation=f.type) for f, d in keyword]
+    )
 
 
 class TrustEnv(RenderMixin, gym.Env):
@@ -499,45 +549,57 @@ class TrustEnv(RenderMixin, gym.Env):
     action_key = "lambda"  # and its ``info`` key
     observation: tuple[FeatureTable, FeatureTable]  # the env's FEATURES and EXTENDED tables (``features`` option)
     extended = False  # the observation is EXTENDED's (memory features)
+    defaults = EnvOptions()  # this env's defaults of the shared options (its scenario, decision_every)
+    own_options: type | None = None  # a dataclass of the env's own options that ``**options`` also takes
+
+    def __init_subclass__(cls, **kwargs):
+        """An env whose ``__init__`` ends in ``**options`` shows the options it takes there (``own_options``, then
+        :class:`EnvOptions` with the env's ``defaults``) in its signature, for ``help``, the docs and the
+        argument tests."""
+        super().__init_subclass__(**kwargs)
+        init = cls.__dict__.get("__init__")
+        if init is not None and "options" in inspect.signature(init).parameters:
+            init.__signature__ = options_signature(init, cls.defaults, cls.own_options)
 
     def _setup(
         self,
         *,
-        scenario,
-        decision_every,
-        episode_seconds,
-        render_mode,
-        scenario_kwargs,
-        features,
         action_dim: int = 1,
-        prefetch: bool = False,
         world: str | None = None,
         require: Callable[[Trial], None] | None = None,
-        trial_pool=None,
+        **options,
     ) -> None:
-        """Check the options every env shares (keywords only; ``features`` selects from the env's ``observation``
-        tables, ``magenv.envs.lagged.observation_table``); set ``k_steps``, ``trials`` (a :class:`TrialSource`),
-        ``scenario``, ``features``, ``extended``, the spaces."""
-        self.k_steps = check_env_args(self.env_name, decision_every, episode_seconds, render_mode)
-        scenario_kwargs = check_mapping("scenario_kwargs", scenario_kwargs)
-        prefetch = check_bool("prefetch", prefetch)
+        """Check the options every env shares (:class:`EnvOptions` by keyword, over the env's ``defaults``;
+        ``features`` selects from the env's ``observation`` tables, ``magenv.envs.lagged.observation_table``);
+        set ``k_steps``, ``trials`` (a :class:`TrialSource`), ``scenario``, ``features``, ``extended``, the
+        spaces; then, for an env with ``own_options``, ``options`` (that dataclass of the keywords it names)."""
+        own = {f.name for f in dataclasses.fields(self.own_options)} if self.own_options else set()
+        o = dataclasses.replace(self.defaults, **{k: v for k, v in options.items() if k not in own})  # TypeError
+        self.k_steps = check_env_args(self.env_name, o.decision_every, o.episode_seconds, o.render_mode)
         self.trials = TrialSource(
-            scenario, scenario_kwargs, prefetch=prefetch, world=world, require=require, trial_pool=trial_pool
+            o.scenario,
+            check_mapping("scenario_kwargs", o.scenario_kwargs),
+            prefetch=check_bool("prefetch", o.prefetch),
+            world=world,
+            require=require,
+            trial_pool=o.trial_pool,
         )
         self.episode = 0  # episodes since the last seeded reset (a trial pool's generation counts them)
         self.scenario = self.trials.label
-        self.episode_seconds = episode_seconds
-        features, table = lagged.observation_table(features, *self.observation)
+        self.episode_seconds = o.episode_seconds
+        features, table = lagged.observation_table(o.features, *self.observation)
         self.extended = table is self.observation[1]
         self.features, self._idx, self._all, self.observation_space = select_features(
             features, table.names, table.low, table.high
         )
         self.action_space = gym.spaces.Box(0.0, 1.0, (action_dim,), dtype=np.float32)
-        self.render_mode = render_mode
+        self.render_mode = o.render_mode
         self._runner: Any = None  # the env's TrialRunner subclass after reset
         self._steps = 0  # steps since the last reset, for the divergence message
         self._means = np.zeros(N_STEP)  # the last step's reward and mean errors (magenv.metrics.step_means)
         self.trial: Trial | None = None
+        if self.own_options:  # checked now, not at reset (ValueError / TypeError naming the argument)
+            self.options = self.own_options(**{k: v for k, v in options.items() if k in own})
 
     def _make_runner(self, trial: Trial):
         raise NotImplementedError

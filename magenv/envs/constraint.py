@@ -11,7 +11,6 @@ decision per sample reproduces the paper's filter.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import NamedTuple
 
@@ -21,7 +20,7 @@ from numba import njit
 from magenv.checks import check_bool, check_positive
 from magenv.envs import CONSTRAINT_ID, constraint_memory, lagged
 from magenv.envs.batch import ROWS, BatchVectorEnv, check_box_actions
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array, episode_view
+from magenv.envs.common import EnvOptions, TrialRunner, TrustEnv, Truth, action_array, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
 from magenv.filters import constraint as cf
 from magenv.metrics import N_ERR, error_sums
@@ -123,14 +122,14 @@ class Options:
     """The env's eq. 18 gain rule, checked once (``constraint.check_rule_params``): th2 (a weight), th3 (‖Δq‖),
     gains k_min ≤ k_max (1/s)."""
 
-    th2: float
-    th3: float
-    k_min: float
-    k_max: float
+    th2: float = cf.TH2
+    th3: float = cf.TH3
+    k_min: float = cf.K_MIN
+    k_max: float = cf.K_MAX
 
     def __post_init__(self):
         _, *checked = cf.check_rule_params(th2=self.th2, th3=self.th3, k_min=self.k_min, k_max=self.k_max)
-        for name, value in zip(("th2", "th3", "k_min", "k_max"), checked):
+        for name, value in zip(cf.RULE_PARAMS[1:], checked):
             object.__setattr__(self, name, value)
 
 
@@ -287,32 +286,15 @@ class MagConstraintEnv(TrustEnv):
     observation = (FEATURES, EXTENDED)
     env_name = CONSTRAINT_ID.split("/")[1]
 
-    def __init__(
-        self,
-        scenario="constraint_random",
-        decision_every: int = 4,
-        episode_seconds: float | None = None,
-        control_gain: bool = False,
-        gain_max: float = 1.0,
-        th2: float = cf.TH2,
-        th3: float = cf.TH3,
-        k_min: float = cf.K_MIN,
-        k_max: float = cf.K_MAX,
-        features: Sequence[str] | None = None,
-        scenario_kwargs: dict | None = None,
-        trial_pool=None,
-        render_mode: str | None = None,
-    ):
+    defaults = EnvOptions(scenario="constraint_random", decision_every=4)
+
+    own_options = Options
+
+    def __init__(self, control_gain: bool = False, gain_max: float = 1.0, **options):
         # bad arguments fail here, not at reset (ValueError / TypeError naming the argument)
         control_gain, gain_max = check_bool("control_gain", control_gain), check_positive("gain_max", gain_max)
-        options = Options(th2, th3, k_min, k_max)
-        self._setup(
-            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool,
-            action_dim=2 if control_gain else 1, world="twolink", require=cf.require_two_link,
-        )  # fmt: skip
+        self._setup(action_dim=2 if control_gain else 1, world="twolink", require=cf.require_two_link, **options)
         self.control_gain, self.gain_max = control_gain, gain_max
-        self.options = options
 
     def _make_runner(self, trial: Trial) -> ConstraintRunner:
         return ConstraintRunner(trial, self.extended, **asdict(self.options))  # checks link j's channels

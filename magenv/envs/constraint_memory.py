@@ -58,6 +58,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from magenv.envs import lagged
 from magenv.envs.blend_memory import _ema, _heading
 from magenv.envs.features import DEG, HEADING, SHARED, Feature, FeatureTable
 from magenv.envs.headings import dip_deg, norm3, planar_heading, wrap_deg
@@ -141,9 +142,7 @@ class Memory(NamedTuple):
     @classmethod
     def start(cls, q0: np.ndarray, n: int, rate: float) -> Memory:
         """Memory at the start of an ``n``-sample trial at ``rate`` Hz: every parallel filter at the start ``q0``."""
-        state = np.zeros(N_STATE)
-        for o in (Q_MAG, Q_CON, Q_ANC, Q_BTWIN, Q_BCON, Q_GYRO):
-            state[o : o + 4] = q0
+        state = lagged.anchored(N_STATE, q0, (Q_MAG, Q_CON, Q_ANC, Q_BTWIN, Q_BCON, Q_GYRO))
         return cls(state, cf.Trace.empty(n), np.zeros((n, 3)), stationary.make_state(rate), np.zeros(len(EXTRA)))
 
 

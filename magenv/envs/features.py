@@ -36,6 +36,25 @@ HEADING = -180.0, 180.0  # degrees: the range of a heading feature
 
 #: memory features (``features="extended"``) that several envs' EXTRA tables hold alike, by name: one name, one
 #: meaning across the envs
+WINDOW = "the window"  # samples fused in the last step plus sample j
+
+
+def deviations(dip_estimate: str) -> tuple[Feature, Feature, Feature]:
+    """``norm_dev_max``, ``norm_dev_mean`` (fractions of m0) and ``dip_dev_max`` (units of DIP_SCALE_DEG) over
+    :data:`WINDOW`; ``dip_estimate`` says which estimate each sample's dip is taken with."""
+    return (
+        Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
+        Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
+        Feature(
+            "dip_dev_max",
+            0.0,
+            2.0,
+            f"units of {DIP_SCALE_DEG:g}°",
+            f"max of the absolute dip_dev over {WINDOW} ({dip_estimate})",
+        ),
+    )
+
+
 SHARED = {
     f.name: f
     for f in (

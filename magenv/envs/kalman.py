@@ -22,8 +22,7 @@ samples 0…j only (causal).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import astuple, dataclass, fields
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
@@ -32,10 +31,10 @@ from numba import njit
 from magenv.envs import KALMAN_ID, kalman_memory, lagged
 from magenv.envs.batch import ROWS, BatchVectorEnv, trial_rows, window_rows
 from magenv.envs.common import TrialRunner, TrustEnv, episode_view
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, WINDOW, Feature, FeatureTable, clipper, deviations, document
 from magenv.filters import kalman_trust as kt
 from magenv.filters.kalman_model import C_A, C_B, VecParams, make_vec_params, vec_init, vec_step1
-from magenv.filters.kalman_threshold import OK, SIGMA_ACC, SIGMA_GYR, SIGMA_MAG, TH_ACC
+from magenv.filters.kalman_threshold import OK
 from magenv.filters.kalman_trust import SIG
 from magenv.filters.sensors import Sensors
 from magenv.metrics import N_ERR, error_sums
@@ -43,7 +42,6 @@ from magenv.quaternion import GRAVITY
 from magenv.trial import Trial
 
 FIELD_SCALE_UT = 50.0  # µT: the unit of field_ref
-WINDOW = "the window"  # samples fused in the last step plus sample j
 
 FEATURES = FeatureTable(
     Feature("norm_dev", -1.0, 10.0, "fraction of m0", "field-norm deviation (‖m_j‖ − m0)/m0"),
@@ -67,15 +65,7 @@ FEATURES = FeatureTable(
     Feature("log_nis", 0.0, 10.0, "decades", "log10(1 + ν_mᵀ S⁻¹ ν_m), NIS χ²₃-distributed if consistent"),
     Feature("heading_std", -4.0, 2.0, "decades of 1°", "log10 of the a-priori heading std sqrt(P_zz) at sample j"),
     Feature("trust_prev", 0.0, 1.0, "–", "γ applied in the last step (1 after reset: the TRIAD start uses m fully)"),
-    Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
-    Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
-    Feature(
-        "dip_dev_max",
-        0.0,
-        2.0,
-        f"units of {DIP_SCALE_DEG:g}°",
-        f"max of the absolute dip_dev over {WINDOW} (each with its own a-priori estimate)",
-    ),
+    *deviations("each with its own a-priori estimate"),
     Feature("acc_dev_max", 0.0, 10.0, "fraction of g", f"max of the absolute acc_dev over {WINDOW}"),
     Feature("gyro_norm_mean", 0.0, 10.0, "units of 2π rad/s", f"mean gyro_norm over {WINDOW}"),
     Feature("innov_norm_mean", 0.0, 10.0, "fraction of m0", f"mean innov_norm over {WINDOW}"),
@@ -130,21 +120,15 @@ _clip = clipper(FEATURES, neutral_nan=True)
 
 
 @dataclass(frozen=True)
-class Options:
-    """The env's filter options, checked once: the trust KF's noise model (``kalman_trust.make_params``: σ's,
-    accelerometer threshold, heading-only update) and the Gauss–Markov split of ``model_dist``
-    (:func:`make_model_params`)."""
+class Options(kt.Options):
+    """The env's filter options, checked once: the trust KF's (``kalman_trust.Options``: σ's, accelerometer
+    threshold, heading-only update) and the Gauss–Markov split of ``model_dist`` (:func:`make_model_params`)."""
 
-    sigma_gyr: float
-    sigma_acc: float
-    sigma_mag: float
-    th_acc: float
-    heading_only: bool
-    model_c_a: float
-    model_c_b: float
+    model_c_a: float = C_A
+    model_c_b: float = C_B
 
     def __post_init__(self):
-        probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, *astuple(self)[:5])  # ValueError / TypeError naming one
+        probe = kt.make_params(46.0, 49.6, 1.0 / 256.0, self)  # ValueError / TypeError naming one
         make_model_params(probe, self.model_c_a, self.model_c_b)
         for f in fields(self):  # held as Python numbers (the checks take ints and numpy scalars too)
             value = getattr(self, f.name)
@@ -154,7 +138,7 @@ class Options:
         """The trust KF's parameters on ``trial``'s field and rate (None: a 46 µT, 49.6° field at 1 Hz, for the
         constants alone)."""
         field = (46.0, 49.6, 1.0) if trial is None else (trial.field_norm, trial.field_dip, trial.dt)
-        return kt.make_params(*field, self.sigma_gyr, self.sigma_acc, self.sigma_mag, self.th_acc, self.heading_only)
+        return kt.make_params(*field, self)
 
 
 def make_model_params(params: kt.Params, model_c_a=C_A, model_c_b=C_B, model_p0=1.0) -> VecParams:
@@ -347,12 +331,9 @@ class KalmanRunner(TrialRunner):
             self.memory = kalman_memory.Memory.start(self.state.q)
             rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
             self.feat = np.zeros(len(EXTENDED))
-            self._more: tuple = (self.memory, rows, np.zeros(1, np.int64), self.feat)
-            self._advance = self.compiled(advance_extended, *self._args, 1.0, 1, 1, *self._more)
+            self._start(advance_extended, 1.0, self.memory, rows, np.zeros(1, np.int64), self.feat)
         else:
-            self._more = ()
-            self._advance = self.compiled(advance, *self._args, 1.0, 1, 1)
-        self._fuse(1, 1, 1.0)  # the observation of sample 1, nothing fused
+            self._start(advance, 1.0)
 
     def _fuse(self, start: int, stop: int, gamma: float) -> None:
         status, repairs = self._advance(*self._args, gamma, start, stop, *self._more)
@@ -496,30 +477,10 @@ class MagKalmanEnv(TrustEnv):
     observation = (FEATURES, EXTENDED)
     env_name = KALMAN_ID.split("/")[1]
 
-    def __init__(
-        self,
-        scenario="random",
-        decision_every: int = 8,
-        episode_seconds: float | None = None,
-        features: Sequence[str] | None = None,
-        sigma_gyr: float = SIGMA_GYR,
-        sigma_acc: float = SIGMA_ACC,
-        sigma_mag: float = SIGMA_MAG,
-        th_acc: float = TH_ACC,
-        heading_only: bool = True,
-        model_c_a: float = C_A,
-        model_c_b: float = C_B,
-        scenario_kwargs: dict | None = None,
-        prefetch: bool = False,
-        trial_pool=None,
-        render_mode: str | None = None,
-    ):
-        self._setup(
-            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
-        )  # fmt: skip
-        # the noise model checked now, not at reset (ValueError / TypeError naming the argument)
-        self.options = Options(sigma_gyr, sigma_acc, sigma_mag, th_acc, heading_only, model_c_a, model_c_b)
+    own_options = Options
+
+    def __init__(self, **options):
+        self._setup(**options)
 
     def _make_runner(self, trial: Trial) -> KalmanRunner:
         o = self.options

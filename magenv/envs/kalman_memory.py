@@ -50,11 +50,10 @@ Conventions (ENU earth frame, angles in degrees, signed, wrapped to ±180):
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 from numba import njit
 
+from magenv.envs import lagged
 from magenv.envs.blend_memory import _heading
 from magenv.envs.features import DEG, HEADING, SHARED, Feature, FeatureTable, clipper
 from magenv.filters.kalman_trust import SIG
@@ -115,19 +114,13 @@ S_PN, S_PD = 40, 41  # EMAs of (P_u g)·(P_u r) and ‖P_u g‖²
 N_STATE = 42
 
 
-class Memory(NamedTuple):
-    """The streaming state of the extra features of one trial (arrays updated in place)."""
-
-    state: np.ndarray  # (N_STATE,) see the layout constants
-    value: np.ndarray  # (len(EXTRA),) the features of the next decision (zeros before any sample is fused)
+class Memory(lagged.Memory):
+    """The streaming state of the extra features of one trial (``lagged.Memory``: state and value)."""
 
     @classmethod
     def start(cls, q0: np.ndarray) -> Memory:
-        """Memory at the start of a trial: both gyro-only references at the initial estimate ``q0``."""
-        state = np.zeros(N_STATE)
-        state[Q_ANC : Q_ANC + 4] = q0
-        state[Q_GYR : Q_GYR + 4] = q0
-        state[Q_STILL : Q_STILL + 4] = q0
+        """Memory at the start of a trial: the gyro-only references at the initial estimate ``q0``."""
+        state = lagged.anchored(N_STATE, q0, (Q_ANC, Q_GYR, Q_STILL))
         state[U_DIR : U_DIR + 3] = 1.0 / np.sqrt(3.0)  # any start off the axes: the power iteration turns it
         state[S_TR1] = 1.0
         return cls(state, np.zeros(len(EXTRA)))

@@ -11,6 +11,7 @@ documents the columns; :func:`compose` fills them from a ring of past rows;
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -57,6 +58,22 @@ def compose(base, extra, rows, count, lags, stepped, feat):
     feat[:width] = row
     for li in range(lags.shape[0]):
         feat[(li + 1) * width : (li + 2) * width] = rows[max(d - lags[li], 0) % length]
+
+
+class Memory(NamedTuple):
+    """The streaming state of an env's extra features on one trial (arrays updated in place); an env's memory
+    module subclasses it with its ``start``, or writes a NamedTuple of its own where it keeps more."""
+
+    state: np.ndarray  # (N_STATE,) the memory module's layout constants
+    value: np.ndarray  # (len(EXTRA),) the features of the next decision (zeros before any sample is fused)
+
+
+def anchored(n_state: int, q0: np.ndarray, offsets) -> np.ndarray:
+    """A memory's state (n_state,): zeros, the quaternion ``q0`` (4,) at each of ``offsets``."""
+    state = np.zeros(n_state)
+    for o in offsets:
+        state[o : o + 4] = q0
+    return state
 
 
 def observation_table(

@@ -31,7 +31,6 @@ against; base features only.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -40,21 +39,20 @@ from numba import njit
 from magenv.checks import check_bool, check_number
 from magenv.envs import VQF_ID, lagged
 from magenv.envs.batch import BatchVectorEnv, trial_rows, window_rows
-from magenv.envs.blend import NORM_RATE_SCALE, dip_deg
+from magenv.envs.blend import NORM_RATE, NORM_RATE_SCALE, dip_deg, mag_heading, sample_features
 from magenv.envs.common import TrialRunner, TrustEnv, episode_view
-from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, document
+from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, clipper, deviations, document
 from magenv.filters import vqf
 from magenv.filters.rules import fan_lambda
 from magenv.filters.vqf import P, S, tau_of_trust
 from magenv.metrics import N_ERR, error_sums
-from magenv.quaternion import GRAVITY, rotate1
+from magenv.quaternion import rotate1
 from magenv.trial import Trial
 
 REJECTION = ("off", "on")  # the rejection option: the policy replaces VQF's rejection, or acts on top of it
 BACKENDS = ("numba", "cpp")  # the filter: magenv.filters.vqf, or the vqf package's C++ class
 BIAS_SCALE_DPS = 1.0  # °/s: bias norms and uncertainties in °/s
 DELTA_RATE_SCALE_DPS = 10.0  # °/s: the rate of δ in units of 10 °/s
-WINDOW = "the window"  # samples fused in the last step plus sample j
 
 FEATURES = FeatureTable(
     Feature("mag_dist", 0.0, 1.0, "0/1", "VQF's magnetic disturbance flag after the last fused sample"),
@@ -93,23 +91,9 @@ FEATURES = FeatureTable(
     ),
     Feature("gyro_norm", 0.0, 10.0, "units of 2π rad/s", "‖ω_j‖"),
     Feature("acc_dev", -1.0, 10.0, "fraction of g", "accelerometer-norm deviation (‖a_j‖ − g)/g"),
-    Feature("norm_dev_max", 0.0, 10.0, "fraction of m0", f"max of the absolute norm_dev over {WINDOW}"),
-    Feature("norm_dev_mean", -1.0, 10.0, "fraction of m0", f"mean norm_dev over {WINDOW}"),
-    Feature(
-        "dip_dev_max",
-        0.0,
-        2.0,
-        f"units of {DIP_SCALE_DEG:g}°",
-        f"max of the absolute dip_dev over {WINDOW} (each with the estimate after the sample before it)",
-    ),
-    Feature("norm_rate", -10.0, 10.0, f"units of {NORM_RATE_SCALE:g} /s", f"rate of change of ‖m‖/m0 over {WINDOW}"),
-    Feature(
-        "mag_heading",
-        -1.0,
-        1.0,
-        "units of 180°",
-        "heading of m_j in the 9D earth frame (0 = north, + = east)",
-    ),
+    *deviations("each with the estimate after the sample before it"),
+    NORM_RATE,
+    mag_heading("m_j in the 9D earth frame"),
     Feature("trust_prev", 0.0, 1.0, "–", "u applied in the last step (1 after reset)"),
 )
 F = FEATURES.ix
@@ -213,6 +197,7 @@ class Outputs(NamedTuple):
 
 
 _clip = clipper(FEATURES)
+_sample_features = sample_features(FEATURES)
 
 
 @njit(cache=True, inline="always")
@@ -255,13 +240,7 @@ def window_features(m0, dip0, dt, gyr, acc, mag, est, flags, start, stop, q_now,
     feat[F.delta_rate] = _clip(np.rad2deg(dd) / (cnt * dt) / DELTA_RATE_SCALE_DPS, F.delta_rate) if cnt > 0 else 0.0
     feat[F.dis_angle] = _clip(vq[V_DIS] / np.pi, F.dis_angle)
     # sensor features of sample j and the window, against the trial's site (as MagBlend-v0's)
-    mj = _norm3(mag[j])
-    nd = (mj - m0) / m0
-    ddip = (dip_deg(q_now, mag[j]) - dip0) / DIP_SCALE_DEG
-    feat[F.norm_dev] = _clip(nd, F.norm_dev)
-    feat[F.dip_dev] = _clip(ddip, F.dip_dev)
-    feat[F.gyro_norm] = _clip(_norm3(gyr[j]) / GYRO_SCALE, F.gyro_norm)
-    feat[F.acc_dev] = _clip((_norm3(acc[j]) - GRAVITY) / GRAVITY, F.acc_dev)
+    mj, nd, ddip = _sample_features(feat, q_now, gyr[j], acc[j], mag[j], m0, dip0)
     nmax, nsum, dmax, dist = abs(nd), nd, abs(ddip), 0.0
     for i in range(start, stop):
         ndi = (_norm3(mag[i]) - m0) / m0
@@ -462,12 +441,9 @@ class VQFRunner(TrialRunner):
             self.memory, self.extra = np.zeros(N_MEMORY), np.zeros(len(EXTRA))
             rows = np.zeros((max(LAGS) + 1, len(_CURRENT)))
             self.feat = np.zeros(len(EXTENDED))
-            self._more: tuple = (self.memory, self.extra, rows, np.zeros(1, np.int64), self.feat)
-            self._advance = self.compiled(advance_extended, *self._args, 1.0, 0, 0, *self._more)
+            self._start(advance_extended, 1.0, self.memory, self.extra, rows, np.zeros(1, np.int64), self.feat)
         else:
-            self._more = (False,)  # no memory sums
-            self._advance = self.compiled(advance, *self._args, 1.0, 0, 0, *self._more)
-        self._fuse(0, 0, 1.0)  # the observation of sample 0, nothing fused
+            self._start(advance, 1.0, False)  # no memory sums
 
     @property
     def mag_dist(self) -> bool:
@@ -651,25 +627,15 @@ class MagVQFEnv(TrustEnv):
 
     def __init__(
         self,
-        scenario="random",
-        decision_every: int = 8,
-        episode_seconds: float | None = None,
         rejection: str = "off",
         tau_acc: float = vqf.Options.tau_acc,
         tau_mag: float = vqf.Options.tau_mag,
         rest_bias: bool = True,
         motion_bias: bool = True,
-        features: Sequence[str] | None = None,
         backend: str = "numba",
-        scenario_kwargs: dict | None = None,
-        prefetch: bool = False,
-        trial_pool=None,
-        render_mode: str | None = None,
+        **options,
     ):
-        self._setup(
-            scenario=scenario, decision_every=decision_every, episode_seconds=episode_seconds, render_mode=render_mode,
-            scenario_kwargs=scenario_kwargs, features=features, trial_pool=trial_pool, prefetch=prefetch,
-        )  # fmt: skip
+        self._setup(**options)
         self.rejection = check_choice("rejection", rejection, REJECTION)
         self.backend = check_choice("backend", backend, BACKENDS)
         if self.extended and self.backend == "cpp":

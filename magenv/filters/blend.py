@@ -63,11 +63,11 @@ class Options:
     """The blend's options for every trial (an env's arguments, checked once): gain β rad/s, the stationary hold,
     the detector's interval t0 s and thresholds (g, °/s). :meth:`params` gives a trial's :class:`Params`."""
 
-    beta: float
-    hold: bool
-    t0: float
-    th_acc_g: float
-    th_gyro_dps: float
+    beta: float = BETA_DEFAULT
+    hold: bool = True
+    t0: float = stationary.T0_S
+    th_acc_g: float = stationary.TH_ACC_G
+    th_gyro_dps: float = stationary.TH_GYRO_DPS
 
     def __post_init__(self):
         p = self.params(1.0)  # ValueError / TypeError naming a bad option
@@ -149,32 +149,18 @@ class BlendEstimator:
 
     Args:
         lam: λ ∈ [0, 1], the weight of the IMU filter.
-        hold: hold the estimate on stationary samples.
-        beta: Madgwick gain β, rad/s.
-        t0, th_acc_g, th_gyro_dps: stationary detection (s, g, °/s).
         q0: initial orientation; None = ``ecompass1`` of the first sample.
+        options: :class:`Options` by keyword (β rad/s, the hold, the stationary detection s, g, °/s).
     """
 
-    def __init__(
-        self,
-        lam: float = 0.0,
-        hold: bool = True,
-        beta: float = BETA_DEFAULT,
-        t0: float = stationary.T0_S,
-        th_acc_g: float = stationary.TH_ACC_G,
-        th_gyro_dps: float = stationary.TH_GYRO_DPS,
-        q0=None,
-    ):
+    def __init__(self, lam: float = 0.0, q0=None, **options):
         self.lam = check_number("lam", lam, 0.0, 1.0)
-        make_params(1.0, beta, hold, th_acc_g, th_gyro_dps)  # bad values fail here, not in run()
-        stationary.make_state(1.0, t0)
-        self.hold, self.beta, self.t0 = bool(hold), float(beta), float(t0)
+        self.options = Options(**options)  # bad values fail here, not in run()
         self.q0 = None if q0 is None else check_vector("q0", q0, 4, nonzero=True)
-        self.th_acc_g, self.th_gyro_dps = float(th_acc_g), float(th_gyro_dps)
 
     def run(self, trial: Trial) -> Estimate:
-        params = make_params(trial.dt, self.beta, self.hold, self.th_acc_g, self.th_gyro_dps)
+        params = self.options.params(trial.dt)
         lam = np.full(trial.n, self.lam)
         est = np.empty((trial.n, 4))
-        run_kernel(params, make_state(trial, self.t0, self.q0), Sensors.of(trial), lam, est)
+        run_kernel(params, make_state(trial, self.options.t0, self.q0), Sensors.of(trial), lam, est)
         return Estimate(q=est, trust=1.0 - lam)

@@ -347,18 +347,10 @@ def fuse(p, q, inputs, control, start, stop, trace):
 # ------------------------------------------------------------------ offline use
 
 
-def make_params(
-    trial: Trial,
-    th1: float = TH1,
-    th2: float = TH2,
-    th3: float = TH3,
-    k_min: float = K_MIN,
-    k_max: float = K_MAX,
-    use_constraint: bool = True,
-) -> Params:
-    """:class:`Params` for ``trial`` (its Δt and Earth field) and the rules' parameters
-    (:func:`check_rule_params`); ValueError / TypeError naming a bad one."""
-    th1, th2, th3, k_min, k_max = check_rule_params(th1, th2, th3, k_min, k_max)
+def make_params(trial: Trial, use_constraint: bool = True, **rule) -> Params:
+    """:class:`Params` for ``trial`` (its Δt and Earth field) and the rules' parameters ``rule`` (th1 … k_max by
+    keyword, :func:`check_rule_params`); ValueError / TypeError naming a bad one."""
+    th1, th2, th3, k_min, k_max = check_rule_params(**rule)
     n = earth_field(trial.field_norm, trial.field_dip) / trial.field_norm
     return Params(
         float(trial.dt),
@@ -373,13 +365,17 @@ def make_params(
     )
 
 
+RULE_PARAMS = ("th1", "th2", "th3", "k_min", "k_max")  # eqs. 16 and 18's parameters, in check_rule_params' order
+
+
 def check_rule_params(
     th1=TH1, th2=TH2, th3=TH3, k_min=K_MIN, k_max=K_MAX, sort_gains: bool = False
 ) -> tuple[float, float, float, float, float]:
-    """The parameters of eqs. 16 and 18 as floats: ``th1`` (field deviation, fraction of m0) and ``th3`` (‖Δq‖)
-    finite > 0, ``th2`` (a weight) in [0, 1], gains ``k_min`` finite ≥ 0 and ``k_max`` finite ≥ k_min (1/s);
-    ValueError / TypeError naming a bad one. With ``sort_gains`` the larger gain is k_max whichever was given as
-    which (CMA-ES may propose k_min > k_max; eq. 18 needs k_max ≥ k_min)."""
+    """The parameters of eqs. 16 and 18 (:data:`RULE_PARAMS`, defaults the published ones) as floats: ``th1``
+    (field deviation, fraction of m0) and ``th3`` (‖Δq‖) finite > 0, ``th2`` (a weight) in [0, 1], gains
+    ``k_min`` finite ≥ 0 and ``k_max`` finite ≥ k_min (1/s); ValueError / TypeError naming a bad one. With
+    ``sort_gains`` the larger gain is k_max whichever was given as which (CMA-ES may propose k_min > k_max;
+    eq. 18 needs k_max ≥ k_min)."""
     th1, th3 = check_positive("th1", th1), check_positive("th3", th3)
     th2, k_min = check_number("th2", th2, 0.0, 1.0), check_number("k_min", k_min, 0.0)
     if sort_gains:
@@ -416,9 +412,9 @@ class ConstraintFilter:
     Args:
         trial: a two-link Trial (``extra`` gyr_j, acc_j, q_j; see ``magenv.scenarios.twolink``).
         lever_i, lever_j: r_i, r_j (m, sensor frames); None = ``trial.meta['lever_i_m'/'lever_j_m']``.
-        th1, th2, th3, k_min, k_max: eqs. 16 and 18.
         q0: initial orientation; None = e-compass of the first sample (never truth).
         use_constraint: False drops the constraint block from W (ablation: eqs. 16–18 gating only).
+        rule: th1, th2, th3, k_min, k_max of eqs. 16 and 18 by keyword (:func:`check_rule_params`).
 
     Attributes ``params`` (:class:`Params`), ``inputs`` (:class:`Inputs`), ``q0`` (4,).
     Raises MissingChannelsError if the trial lacks link j's channels or the lever arms.
@@ -429,17 +425,13 @@ class ConstraintFilter:
         trial: Trial,
         lever_i=None,
         lever_j=None,
-        th1: float = TH1,
-        th2: float = TH2,
-        th3: float = TH3,
-        k_min: float = K_MIN,
-        k_max: float = K_MAX,
         q0=None,
         use_constraint: bool = True,
+        **rule,
     ):
         require_two_link(trial)
         self.lever_i, self.lever_j = _lever(trial, lever_i, "lever_i_m"), _lever(trial, lever_j, "lever_j_m")
-        self.params = make_params(trial, th1, th2, th3, k_min, k_max, use_constraint)
+        self.params = make_params(trial, use_constraint, **rule)
         self.trial = trial
         self.inputs = make_inputs(trial, self.lever_i, self.lever_j)
         self.q0 = ecompass1(trial.acc[0], trial.mag[0]) if q0 is None else normalize1(check_vector("q0", q0, 4, True))

@@ -61,6 +61,7 @@ arrays, updated in place); :func:`run_trial` runs a whole trial offline.
 from __future__ import annotations
 
 from collections import namedtuple
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -142,34 +143,42 @@ class State(NamedTuple):
     p: np.ndarray  # (3, 3) covariance of the earth-frame error angle δθ, rad²
 
 
+@dataclass(frozen=True)
+class Options:
+    """The trust KF's noise model and gates, checked by :func:`make_params`.
+
+    Attributes:
+        sigma_gyr: rad/s. sigma_acc: m/s². sigma_mag: µT (survey noise by default); each finite > 0.
+        th_acc: accelerometer gate, m/s² > 0 (Table A1); ``np.inf`` disables it.
+        heading_only: the magnetometer corrects the heading only (Schmidt gain); a bool.
+    """
+
+    sigma_gyr: float = SIGMA_GYR
+    sigma_acc: float = SIGMA_ACC
+    sigma_mag: float = SIGMA_MAG
+    th_acc: float = TH_ACC
+    heading_only: bool = True
+
+
 def make_params(
-    field_norm: float,
-    field_dip: float,
-    dt: float,
-    sigma_gyr: float = SIGMA_GYR,
-    sigma_acc: float = SIGMA_ACC,
-    sigma_mag: float = SIGMA_MAG,
-    th_acc: float = TH_ACC,
-    heading_only: bool = True,
-    p0: float = P0,
+    field_norm: float, field_dip: float, dt: float, options: Options | None = None, p0: float = P0
 ) -> Params:
     """Parameters for a site and sample interval; ValueError / TypeError naming a bad one (``magenv.checks``).
 
     Args:
         field_norm: m0, µT (``magenv.checks.check_site``). field_dip: θ0, degrees down. dt: s > 0.
-        sigma_gyr: rad/s. sigma_acc: m/s². sigma_mag: µT (survey noise by default); each finite > 0.
-        th_acc: accelerometer gate, m/s² > 0 (Table A1); ``np.inf`` disables it.
-        heading_only: the magnetometer corrects the heading only (Schmidt gain); a bool.
+        options: the noise model and gates (:class:`Options`; None: its defaults).
         p0: initial variance of each error angle, rad², finite > 0.
     """
     field_norm, field_dip = check_site(field_norm, field_dip)
+    o = Options() if options is None else options
     return Params(
         check_positive("dt", dt),
-        check_noise("sigma_gyr", sigma_gyr, "gyr"),
-        check_noise("sigma_acc", sigma_acc, "acc"),
-        check_noise("sigma_mag", sigma_mag, "mag"),
-        check_positive("th_acc", th_acc, inf_ok=True),
-        check_bool("heading_only", heading_only),
+        check_noise("sigma_gyr", o.sigma_gyr, "gyr"),
+        check_noise("sigma_acc", o.sigma_acc, "acc"),
+        check_noise("sigma_mag", o.sigma_mag, "mag"),
+        check_positive("th_acc", o.th_acc, inf_ok=True),
+        check_bool("heading_only", o.heading_only),
         quat.gravity_up(),
         quat.earth_field(field_norm, field_dip),
         field_norm,

@@ -58,55 +58,49 @@ def skew3(v):
 
 
 @njit(cache=True, inline="always")
-def mul33(a, b):
-    """``a @ b`` of two 9-tuples."""
-    return (
-        a[0] * b[0] + a[1] * b[3] + a[2] * b[6],
-        a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
-        a[0] * b[2] + a[1] * b[5] + a[2] * b[8],
-        a[3] * b[0] + a[4] * b[3] + a[5] * b[6],
-        a[3] * b[1] + a[4] * b[4] + a[5] * b[7],
-        a[3] * b[2] + a[4] * b[5] + a[5] * b[8],
-        a[6] * b[0] + a[7] * b[3] + a[8] * b[6],
-        a[6] * b[1] + a[7] * b[4] + a[8] * b[7],
-        a[6] * b[2] + a[7] * b[5] + a[8] * b[8],
-    )
+def dot3(u, v):
+    """``u · v`` of two 3-vectors, summed left to right (the order of every product below)."""
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+@njit(cache=True, inline="always")
+def rows3(a):
+    """The rows of a 9-tuple: three 3-tuples."""
+    return (a[0], a[1], a[2]), (a[3], a[4], a[5]), (a[6], a[7], a[8])
+
+
+@njit(cache=True, inline="always")
+def t33(a):
+    """``aᵀ`` of a 9-tuple."""
+    return (a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8])
 
 
 @njit(cache=True, inline="always")
 def mul33t(a, b):
-    """``a @ bᵀ`` of two 9-tuples."""
+    """``a @ bᵀ`` of two 9-tuples: entry (i, j) is row i of a · row j of b."""
+    a0, a1, a2 = rows3(a)
+    b0, b1, b2 = rows3(b)
     return (
-        a[0] * b[0] + a[1] * b[1] + a[2] * b[2],
-        a[0] * b[3] + a[1] * b[4] + a[2] * b[5],
-        a[0] * b[6] + a[1] * b[7] + a[2] * b[8],
-        a[3] * b[0] + a[4] * b[1] + a[5] * b[2],
-        a[3] * b[3] + a[4] * b[4] + a[5] * b[5],
-        a[3] * b[6] + a[4] * b[7] + a[5] * b[8],
-        a[6] * b[0] + a[7] * b[1] + a[8] * b[2],
-        a[6] * b[3] + a[7] * b[4] + a[8] * b[5],
-        a[6] * b[6] + a[7] * b[7] + a[8] * b[8],
-    )
+        dot3(a0, b0), dot3(a0, b1), dot3(a0, b2),
+        dot3(a1, b0), dot3(a1, b1), dot3(a1, b2),
+        dot3(a2, b0), dot3(a2, b1), dot3(a2, b2),
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def mul33(a, b):
+    """``a @ b`` of two 9-tuples, as ``a @ (bᵀ)ᵀ``."""
+    return mul33t(a, t33(b))
 
 
 @njit(cache=True, inline="always")
 def mulsym33t(a, b):
     """``a @ bᵀ`` of two 9-tuples whose product is symmetric (e.g. ``(A P) Aᵀ``, ``K Kᵀ``): the upper
     triangle computed, the lower mirrored."""
-    m01 = a[0] * b[3] + a[1] * b[4] + a[2] * b[5]
-    m02 = a[0] * b[6] + a[1] * b[7] + a[2] * b[8]
-    m12 = a[3] * b[6] + a[4] * b[7] + a[5] * b[8]
-    return (
-        a[0] * b[0] + a[1] * b[1] + a[2] * b[2],
-        m01,
-        m02,
-        m01,
-        a[3] * b[3] + a[4] * b[4] + a[5] * b[5],
-        m12,
-        m02,
-        m12,
-        a[6] * b[6] + a[7] * b[7] + a[8] * b[8],
-    )
+    a0, a1, a2 = rows3(a)
+    b0, b1, b2 = rows3(b)
+    m01, m02, m12 = dot3(a0, b1), dot3(a0, b2), dot3(a1, b2)
+    return (dot3(a0, b0), m01, m02, m01, dot3(a1, b1), m12, m02, m12, dot3(a2, b2))
 
 
 @njit(cache=True, inline="always")
@@ -139,20 +133,14 @@ def sub33(a, b):
 @njit(cache=True, inline="always")
 def mv3(a, v):
     """``a @ v`` of a 9-tuple and a 3-vector, as a 3-tuple."""
-    return (
-        a[0] * v[0] + a[1] * v[1] + a[2] * v[2],
-        a[3] * v[0] + a[4] * v[1] + a[5] * v[2],
-        a[6] * v[0] + a[7] * v[1] + a[8] * v[2],
-    )
+    a0, a1, a2 = rows3(a)
+    return (dot3(a0, v), dot3(a1, v), dot3(a2, v))
 
 
 @njit(cache=True, inline="always")
 def quad3(v, a):
     """``(v @ a) @ v`` of a 3-vector and a 9-tuple."""
-    t0 = v[0] * a[0] + v[1] * a[3] + v[2] * a[6]
-    t1 = v[0] * a[1] + v[1] * a[4] + v[2] * a[7]
-    t2 = v[0] * a[2] + v[1] * a[5] + v[2] * a[8]
-    return t0 * v[0] + t1 * v[1] + t2 * v[2]
+    return dot3(mv3(t33(a), v), v)
 
 
 @njit(cache=True, inline="always")
@@ -210,36 +198,53 @@ def is_pd3(p):
 def inv4(a, out):
     """``out`` (4, 4) ← the inverse of the (4, 4) array ``a`` by its adjugate over the determinant (Laplace
     expansion in the 2×2 minors of the first two and the last two rows); NaN where ``a`` is singular."""
-    s0 = a[0, 0] * a[1, 1] - a[1, 0] * a[0, 1]
-    s1 = a[0, 0] * a[1, 2] - a[1, 0] * a[0, 2]
-    s2 = a[0, 0] * a[1, 3] - a[1, 0] * a[0, 3]
-    s3 = a[0, 1] * a[1, 2] - a[1, 1] * a[0, 2]
-    s4 = a[0, 1] * a[1, 3] - a[1, 1] * a[0, 3]
-    s5 = a[0, 2] * a[1, 3] - a[1, 2] * a[0, 3]
-    c5 = a[2, 2] * a[3, 3] - a[3, 2] * a[2, 3]
-    c4 = a[2, 1] * a[3, 3] - a[3, 1] * a[2, 3]
-    c3 = a[2, 1] * a[3, 2] - a[3, 1] * a[2, 2]
-    c2 = a[2, 0] * a[3, 3] - a[3, 0] * a[2, 3]
-    c1 = a[2, 0] * a[3, 2] - a[3, 0] * a[2, 2]
-    c0 = a[2, 0] * a[3, 1] - a[3, 0] * a[2, 1]
-    det = s0 * c5 - s1 * c4 + s2 * c3 + s3 * c2 - s4 * c1 + s5 * c0
+    s, c = _minors2(a, 0, 1), _minors2(a, 2, 3)  # of the first two rows, of the last two
+    det = s[0] * c[5] - s[1] * c[4] + s[2] * c[3] + s[3] * c[2] - s[4] * c[1] + s[5] * c[0]
     d = 1.0 / det if det != 0.0 else np.nan
-    out[0, 0] = (a[1, 1] * c5 - a[1, 2] * c4 + a[1, 3] * c3) * d
-    out[0, 1] = (-a[0, 1] * c5 + a[0, 2] * c4 - a[0, 3] * c3) * d
-    out[0, 2] = (a[3, 1] * s5 - a[3, 2] * s4 + a[3, 3] * s3) * d
-    out[0, 3] = (-a[2, 1] * s5 + a[2, 2] * s4 - a[2, 3] * s3) * d
-    out[1, 0] = (-a[1, 0] * c5 + a[1, 2] * c2 - a[1, 3] * c1) * d
-    out[1, 1] = (a[0, 0] * c5 - a[0, 2] * c2 + a[0, 3] * c1) * d
-    out[1, 2] = (-a[3, 0] * s5 + a[3, 2] * s2 - a[3, 3] * s1) * d
-    out[1, 3] = (a[2, 0] * s5 - a[2, 2] * s2 + a[2, 3] * s1) * d
-    out[2, 0] = (a[1, 0] * c4 - a[1, 1] * c2 + a[1, 3] * c0) * d
-    out[2, 1] = (-a[0, 0] * c4 + a[0, 1] * c2 - a[0, 3] * c0) * d
-    out[2, 2] = (a[3, 0] * s4 - a[3, 1] * s2 + a[3, 3] * s0) * d
-    out[2, 3] = (-a[2, 0] * s4 + a[2, 1] * s2 - a[2, 3] * s0) * d
-    out[3, 0] = (-a[1, 0] * c3 + a[1, 1] * c1 - a[1, 2] * c0) * d
-    out[3, 1] = (a[0, 0] * c3 - a[0, 1] * c1 + a[0, 2] * c0) * d
-    out[3, 2] = (-a[3, 0] * s3 + a[3, 1] * s1 - a[3, 2] * s0) * d
-    out[3, 3] = (a[2, 0] * s3 - a[2, 1] * s1 + a[2, 2] * s0) * d
+    _inv4_row(a, 0, c, s, d, out)
+    _inv4_row(a, 1, c, s, d, out)
+    _inv4_row(a, 2, c, s, d, out)
+    _inv4_row(a, 3, c, s, d, out)
+
+
+@njit(cache=True, inline="always")
+def _minors2(a, r0, r1):
+    """The 2×2 minors of rows r0, r1 of the (4, 4) array ``a`` on the column pairs (0, 1), (0, 2), (0, 3),
+    (1, 2), (1, 3), (2, 3)."""
+    return (
+        _minor2(a, r0, r1, 0, 1), _minor2(a, r0, r1, 0, 2), _minor2(a, r0, r1, 0, 3),
+        _minor2(a, r0, r1, 1, 2), _minor2(a, r0, r1, 1, 3), _minor2(a, r0, r1, 2, 3),
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def _minor2(a, r0, r1, j0, j1):
+    """``a[r0, j0] a[r1, j1] − a[r1, j0] a[r0, j1]``."""
+    return a[r0, j0] * a[r1, j1] - a[r1, j0] * a[r0, j1]
+
+
+@njit(cache=True, inline="always")
+def _inv4_row(a, r, c, s, d, out):
+    """Row r of :func:`inv4`'s inverse: entry k is (−1)^(r+k) (row i of a without column r) · its complementary
+    minors (``c`` of a's last two rows for k < 2, ``s`` of its first two for k ≥ 2), over the determinant."""
+    j0, j1, j2 = _INV4_COLUMNS[r]
+    m0, m1, m2 = _INV4_MINORS[r]
+    for k in range(4):
+        i = _INV4_ROWS[k]
+        x0, x1, x2 = a[i, j0], a[i, j1], a[i, j2]
+        if (r + k) % 2:
+            x0, x1, x2 = -x0, -x1, -x2
+        if k < 2:
+            out[r, k] = (x0 * c[m0] - x1 * c[m1] + x2 * c[m2]) * d
+        else:
+            out[r, k] = (x0 * s[m0] - x1 * s[m1] + x2 * s[m2]) * d
+
+
+# inv4's tables: for inverse row r, the columns of a other than r and the indices of their 2×2 minors (c, of the
+# last two rows, for k < 2; s, of the first two, for k ≥ 2); for inverse column k, the row i of a it expands.
+_INV4_COLUMNS = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
+_INV4_MINORS = ((5, 4, 3), (5, 2, 1), (4, 2, 0), (3, 1, 0))
+_INV4_ROWS = (1, 0, 3, 2)
 
 
 # ------------------------------------------------------------ symmetric n×n in place

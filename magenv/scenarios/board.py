@@ -47,9 +47,8 @@ from typing import NamedTuple
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.checks import check_number, check_range
 from magenv.recordings import estimate_field
-from magenv.scenarios.world import World, trial_meta, trial_name
+from magenv.scenarios.world import World, check_limits, limited, trial_meta, trial_name
 from magenv.sim import board, earth
 from magenv.sim.indoor_field import IndoorField, random_indoor_field
 from magenv.sim.sensors import SensorConfig, apply_sensor_model
@@ -82,58 +81,36 @@ class BoardConfig:
         field_norm, field_dip: the BROAD site (µT, °).
     """
 
-    duration: float | tuple = (50.0, 130.0)
+    duration: float | tuple = limited((50.0, 130.0), 1.0, 7200.0)
     family: str = "random"
-    broad_rate_prob: float = 0.6
-    rate: tuple = (100.0, 400.0)
-    rest_s: tuple = (2.0, 10.0)
-    long_rest_prob: float = 0.5
-    long_rest_s: tuple = (25.0, 45.0)
-    break_prob: float = 0.5
-    n_breaks: tuple = (1, 4)
-    break_s: tuple = (5.0, 10.0)
-    attached_ut: tuple = (1.5, 120.0)
-    iron_prob: float = 0.3
-    attached_on_s: tuple = (-10.0, 40.0)
-    attached_for_s: tuple = (20.0, 90.0)
-    attached_ramp_s: tuple = (0.3, 3.0)
-    removed_prob: float = 0.75
-    magnets: tuple = (1, 3)
-    visits: tuple = (1, 6)
-    moment: tuple = (0.002, 0.08)
-    distance_m: tuple = (0.03, 0.3)
-    dwell_s: tuple = (0.0, 15.0)
-    travel_s: tuple = (1.0, 4.0)
-    berlin_prob: float = 0.5
-    field_norm: float = earth.BERLIN[0]
-    field_dip: float = earth.BERLIN[1]
+    broad_rate_prob: float = limited(0.6, 0.0, 1.0)
+    rate: tuple = limited((100.0, 400.0), 20.0, 2000.0)
+    rest_s: tuple = limited((2.0, 10.0), 0.5, 60.0)
+    long_rest_prob: float = limited(0.5, 0.0, 1.0)
+    long_rest_s: tuple = limited((25.0, 45.0), 0.5, 600.0)
+    break_prob: float = limited(0.5, 0.0, 1.0)
+    n_breaks: tuple = limited((1, 4), 0, 20)
+    break_s: tuple = limited((5.0, 10.0), 0.5, 60.0)
+    attached_ut: tuple = limited((1.5, 120.0), 0.01, 1000.0)
+    iron_prob: float = limited(0.3, 0.0, 1.0)
+    attached_on_s: tuple = limited((-10.0, 40.0), -600.0, 3600.0)
+    attached_for_s: tuple = limited((20.0, 90.0), 0.5, 3600.0)
+    attached_ramp_s: tuple = limited((0.3, 3.0), 0.01, 30.0)
+    removed_prob: float = limited(0.75, 0.0, 1.0)
+    magnets: tuple = limited((1, 3), 1, 10)
+    visits: tuple = limited((1, 6), 1, 50)
+    moment: tuple = limited((0.002, 0.08), 1e-5, 10.0)
+    distance_m: tuple = limited((0.03, 0.3), 0.005, 5.0)
+    dwell_s: tuple = limited((0.0, 15.0), 0.0, 600.0)
+    travel_s: tuple = limited((1.0, 4.0), 0.1, 60.0)
+    berlin_prob: float = limited(0.5, 0.0, 1.0)
+    field_norm: float = limited(earth.BERLIN[0], 1.0, 1000.0)
+    field_dip: float = limited(earth.BERLIN[1], -90.0, 90.0)
 
     def __post_init__(self) -> None:
-        if isinstance(self.duration, (int, float)):
-            check_number("duration", self.duration, 1.0, 7200.0)
-        else:
-            check_range("duration", self.duration, 1.0, 7200.0)
+        check_limits(self)
         if self.family not in (*FAMILIES, "random"):
             raise ValueError(f"family must be one of {(*FAMILIES, 'random')}, got {self.family!r}")
-        for name in ("broad_rate_prob", "break_prob", "iron_prob", "removed_prob", "berlin_prob", "long_rest_prob"):
-            check_number(name, getattr(self, name), 0.0, 1.0)
-        check_range("rate", self.rate, 20.0, 2000.0)
-        check_range("rest_s", self.rest_s, 0.5, 60.0)
-        check_range("long_rest_s", self.long_rest_s, 0.5, 600.0)
-        check_range("attached_on_s", self.attached_on_s, -600.0, 3600.0)
-        check_range("attached_for_s", self.attached_for_s, 0.5, 3600.0)
-        check_range("n_breaks", self.n_breaks, 0, 20)
-        check_range("break_s", self.break_s, 0.5, 60.0)
-        check_range("attached_ut", self.attached_ut, 0.01, 1000.0)
-        check_range("attached_ramp_s", self.attached_ramp_s, 0.01, 30.0)
-        check_range("magnets", self.magnets, 1, 10)
-        check_range("visits", self.visits, 1, 50)
-        check_range("moment", self.moment, 1e-5, 10.0)
-        check_range("distance_m", self.distance_m, 0.005, 5.0)
-        check_range("dwell_s", self.dwell_s, 0.0, 600.0)
-        check_range("travel_s", self.travel_s, 0.1, 60.0)
-        check_number("field_norm", self.field_norm, 1.0, 1000.0)
-        check_number("field_dip", self.field_dip, -90.0, 90.0)
 
 
 def _log_uniform(rng, lo_hi) -> float:

@@ -43,8 +43,8 @@ from typing import Any
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.checks import check_instance, check_intervals, check_number, check_numbers, check_range
-from magenv.scenarios.world import STATIONARY_RATE, World, check_shared_fields, trial_meta, trial_name
+from magenv.checks import check_instance, check_intervals, check_numbers
+from magenv.scenarios.world import STATIONARY_RATE, World, check_shared_fields, limited, simulated_trial
 from magenv.sim import base_paths, earth, indoor, profiles
 from magenv.sim.gimbal import PHYSICS_RATE, Tube, gimbal_blocks
 from magenv.sim.hand import Approach, hand_path
@@ -74,17 +74,14 @@ class ScenarioConfig:
         sensor: MIMU error model.
     """
 
-    duration: float = 60.0
-    rate: float = 256.0
-    physics_rate: float = PHYSICS_RATE
+    duration: float = limited(60.0, 0.0, 3600.0, lo_open=True)
+    rate: float = limited(256.0, 1.0, 10000.0)
+    physics_rate: float = limited(PHYSICS_RATE, 100.0, 20000.0)
     field_norm: float = earth.PAPER[0]
     field_dip: float = earth.PAPER[1]
     sensor: SensorConfig = SensorConfig()
 
     def __post_init__(self) -> None:
-        check_number("duration", self.duration, 0.0, 3600.0, lo_open=True)
-        check_number("rate", self.rate, 1.0, 10000.0)
-        check_number("physics_rate", self.physics_rate, 100.0, 20000.0)
         check_shared_fields(self)
 
 
@@ -103,20 +100,15 @@ class StationaryMagnetConfig(ScenarioConfig):
 
     duration: float = 110.0
     approaches: tuple = ((10.0, 4.0), (21.0, 4.0), (32.0, 4.0), (44.0, 60.0))
-    far: float = 0.70
-    near: float = 0.10
-    travel: float = 2.0
-    jitter_s: float = 1.0
+    far: float = limited(0.70, "near", 5.0)
+    near: float = limited(0.10, 0.01, 5.0)
+    travel: float = limited(2.0, 0.0, 60.0, lo_open=True)
+    jitter_s: float = limited(1.0, 0.0, 60.0)
     magnet: DiscMagnet = DiscMagnet()
-    max_tilt_deg: float = 5.0
+    max_tilt_deg: float = limited(5.0, 0.0, 80.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_number("near", self.near, 0.01, 5.0)
-        check_number("far", self.far, self.near, 5.0)
-        check_number("travel", self.travel, 0.0, 60.0, lo_open=True)
-        check_number("jitter_s", self.jitter_s, 0.0, 60.0)
-        check_number("max_tilt_deg", self.max_tilt_deg, 0.0, 80.0)
         check_intervals("approaches", self.approaches)
 
 
@@ -131,17 +123,10 @@ class DynamicCleanConfig(ScenarioConfig):
     """
 
     duration: float = 70.0
-    start_rest: float = 5.0
-    pause_s: tuple = (1.5, 5.0)
-    move_s: tuple = (1.5, 4.0)
-    amplitude_deg: tuple = (10.0, 60.0)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_number("start_rest", self.start_rest, 0.0, 3600.0)
-        check_range("pause_s", self.pause_s, 0.0)
-        check_range("move_s", self.move_s, 0.05)
-        check_range("amplitude_deg", self.amplitude_deg, 0.0, 720.0)
+    start_rest: float = limited(5.0, 0.0, 3600.0)
+    pause_s: tuple = limited((1.5, 5.0), 0.0)
+    move_s: tuple = limited((1.5, 4.0), 0.05)
+    amplitude_deg: tuple = limited((10.0, 60.0), 0.0, 720.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,19 +143,15 @@ class DynamicMagnetConfig(ScenarioConfig):
     """
 
     rates_dps: tuple = (40.0, 70.0, 360.0)
-    rate_jitter: float = 0.1
-    start_rest: float = 3.0
-    ramp: float = 0.5
-    end_rest: float = 1.0
+    rate_jitter: float = limited(0.1, 0.0, 0.9)
+    start_rest: float = limited(3.0, 0.0, 3600.0)
+    ramp: float = limited(0.5, 0.01, 60.0)
+    end_rest: float = limited(1.0, 0.0, 3600.0)
     tube: Tube = Tube()
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_numbers("rates_dps", self.rates_dps, 3, -2000.0, 2000.0, "rates (Z, Y, X) in °/s")
-        check_number("rate_jitter", self.rate_jitter, 0.0, 0.9)
-        check_number("start_rest", self.start_rest, 0.0, 3600.0)
-        check_number("ramp", self.ramp, 0.01, 60.0)
-        check_number("end_rest", self.end_rest, 0.0, 3600.0)
         check_instance("tube", self.tube, Tube)
 
 
@@ -197,44 +178,28 @@ class RandomConfig(ScenarioConfig):
     """
 
     magnet_probs: tuple = (0.3, 0.5, 0.2)
-    remanence_t: tuple = (1.0, 1.4)
-    diameter_m: tuple = (0.008, 0.02)
-    tube_x_m: tuple = (0.035, 0.08)
-    tube_yz_m: tuple = (-0.03, 0.03)
-    tube_length_m: tuple = (0.05, 0.12)
-    near_m: tuple = (0.06, 0.2)
-    field_norm_ut: tuple = earth.NORM_RANGE_UT
-    field_dip_deg: tuple = earth.DIP_RANGE_DEG
-    noise_scale: tuple = (0.5, 2.0)
-    pause_s: tuple = (0.5, 6.0)
-    move_s: tuple = (0.5, 4.0)
-    amplitude_deg: tuple = (10.0, 180.0)
-    spin_prob: float = 0.3
-    spin_dps: tuple = (20.0, 400.0)
-    spin_s: tuple = (3.0, 15.0)
-    start_rest: float = 3.0
+    remanence_t: tuple = limited((1.0, 1.4), 0.0, 2.0)
+    diameter_m: tuple = limited((0.008, 0.02), 0.001, 0.1)
+    tube_x_m: tuple = limited((0.035, 0.08), 0.015, 0.5)
+    tube_yz_m: tuple = limited((-0.03, 0.03), -0.5, 0.5)
+    tube_length_m: tuple = limited((0.05, 0.12), 0.005, 0.5)
+    near_m: tuple = limited((0.06, 0.2), 0.02, 0.7)
+    field_norm_ut: tuple = limited(earth.NORM_RANGE_UT, 1.0, 1000.0)
+    field_dip_deg: tuple = limited(earth.DIP_RANGE_DEG, -90.0, 90.0)
+    noise_scale: tuple = limited((0.5, 2.0), 0.0, 100.0)
+    pause_s: tuple = limited((0.5, 6.0), 0.0)
+    move_s: tuple = limited((0.5, 4.0), 0.05)
+    amplitude_deg: tuple = limited((10.0, 180.0), 0.0, 720.0)
+    spin_prob: float = limited(0.3, 0.0, 1.0)
+    spin_dps: tuple = limited((20.0, 400.0), 0.0, 2000.0)
+    spin_s: tuple = limited((3.0, 15.0), 1.5)
+    start_rest: float = limited(3.0, 0.0, 3600.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         p = self.magnet_probs
         if len(p) != 3 or min(p) < 0 or not math.isclose(sum(p), 1.0, abs_tol=1e-9):
             raise ValueError(f"magnet_probs must be 3 probabilities (none, tube, hand) summing to 1, got {p!r}")
-        check_range("remanence_t", self.remanence_t, 0.0, 2.0)
-        check_range("diameter_m", self.diameter_m, 0.001, 0.1)
-        check_range("tube_x_m", self.tube_x_m, 0.015, 0.5)
-        check_range("tube_yz_m", self.tube_yz_m, -0.5, 0.5)
-        check_range("tube_length_m", self.tube_length_m, 0.005, 0.5)
-        check_range("near_m", self.near_m, 0.02, 0.7)
-        check_range("field_norm_ut", self.field_norm_ut, 1.0, 1000.0)
-        check_range("field_dip_deg", self.field_dip_deg, -90.0, 90.0)
-        check_range("noise_scale", self.noise_scale, 0.0, 100.0)
-        check_range("pause_s", self.pause_s, 0.0)
-        check_range("move_s", self.move_s, 0.05)
-        check_range("amplitude_deg", self.amplitude_deg, 0.0, 720.0)
-        check_number("spin_prob", self.spin_prob, 0.0, 1.0)
-        check_range("spin_dps", self.spin_dps, 0.0, 2000.0)
-        check_range("spin_s", self.spin_s, 1.5)
-        check_number("start_rest", self.start_rest, 0.0, 3600.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -256,28 +221,16 @@ class ManualRoutinesConfig(ScenarioConfig):
     """
 
     duration: float = 60.0
-    start_rest: float = 3.0
-    pause: float = 2.0
-    task_s: tuple = (1.0, 3.0)
-    amplitude_deg: tuple = (15.0, 90.0)
-    reach_at: tuple = (0.3, 0.55)
-    reach_travel: float = 1.5
-    reach_hold: float = 10.0
-    reach_distance_m: float = 0.35
-    near_m: tuple = (0.03, 0.05)
+    start_rest: float = limited(3.0, 0.0, 3600.0)
+    pause: float = limited(2.0, 0.0, 3600.0)
+    task_s: tuple = limited((1.0, 3.0), 0.1)
+    amplitude_deg: tuple = limited((15.0, 90.0), 0.0, 720.0)
+    reach_at: tuple = limited((0.3, 0.55), 0.0, 1.0)
+    reach_travel: float = limited(1.5, 0.1, 60.0)
+    reach_hold: float = limited(10.0, 0.0, 3600.0)
+    reach_distance_m: float = limited(0.35, 0.05, 5.0)
+    near_m: tuple = limited((0.03, 0.05), 0.015, "reach_distance_m")
     magnet: DiscMagnet = DiscMagnet(diameter=0.006, thickness=0.003, remanence=1.3)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_number("start_rest", self.start_rest, 0.0, 3600.0)
-        check_number("pause", self.pause, 0.0, 3600.0)
-        check_range("task_s", self.task_s, 0.1)
-        check_range("amplitude_deg", self.amplitude_deg, 0.0, 720.0)
-        check_range("reach_at", self.reach_at, 0.0, 1.0)
-        check_number("reach_travel", self.reach_travel, 0.1, 60.0)
-        check_number("reach_hold", self.reach_hold, 0.0, 3600.0)
-        check_number("reach_distance_m", self.reach_distance_m, 0.05, 5.0)
-        check_range("near_m", self.near_m, 0.015, self.reach_distance_m)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -297,31 +250,17 @@ class GaitFieldConfig(ScenarioConfig):
     """
 
     duration: float = 180.0
-    half_length: float = 1.5
-    half_width: float = 1.0
-    period_s: tuple = (14.0, 20.0)
-    step_hz: tuple = (1.6, 2.0)
-    bounce_m: float = 0.02
-    sway_m: float = 0.02
-    n_sources: tuple = (3, 6)
-    source_distance_m: tuple = (4.0, 6.0)
-    source_field_ut: tuple = (1.0, 5.0)
-    pitch_deg: tuple = (5.0, 20.0)
-    roll_deg: tuple = (5.0, 25.0)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_number("half_length", self.half_length, 0.0, 50.0)
-        check_number("half_width", self.half_width, 0.0, 50.0)
-        check_range("period_s", self.period_s, 1.0)
-        check_range("step_hz", self.step_hz, 0.0, 5.0)
-        check_number("bounce_m", self.bounce_m, 0.0, 0.2)
-        check_number("sway_m", self.sway_m, 0.0, 0.5)
-        check_range("n_sources", self.n_sources, 0, 50)
-        check_range("source_distance_m", self.source_distance_m, 0.5, 100.0)
-        check_range("source_field_ut", self.source_field_ut, 0.0, 100.0)
-        check_range("pitch_deg", self.pitch_deg, 0.0, 80.0)
-        check_range("roll_deg", self.roll_deg, 0.0, 180.0)
+    half_length: float = limited(1.5, 0.0, 50.0)
+    half_width: float = limited(1.0, 0.0, 50.0)
+    period_s: tuple = limited((14.0, 20.0), 1.0)
+    step_hz: tuple = limited((1.6, 2.0), 0.0, 5.0)
+    bounce_m: float = limited(0.02, 0.0, 0.2)
+    sway_m: float = limited(0.02, 0.0, 0.5)
+    n_sources: tuple = limited((3, 6), 0, 50)
+    source_distance_m: tuple = limited((4.0, 6.0), 0.5, 100.0)
+    source_field_ut: tuple = limited((1.0, 5.0), 0.0, 100.0)
+    pitch_deg: tuple = limited((5.0, 20.0), 0.0, 80.0)
+    roll_deg: tuple = limited((5.0, 25.0), 0.0, 180.0)
 
 
 # ------------------------------------------------------------------ plans
@@ -414,6 +353,17 @@ def _pitch_at(prof: profiles.DriveProfile, t: float) -> float:
     return float(prof.angle0[1] + np.sum(prof.omega[: int(t * prof.rate), 1]) / prof.rate)
 
 
+def _turn_frames(prof, rng: np.random.Generator, t: float, length: float, amplitude_deg: tuple) -> None:
+    """Turn 1–3 distinct random frames over [t, t + length] s, each by a random ±``amplitude_deg`` range °
+    (pitch clipped to ±70°, :func:`_bounded_pitch_move`)."""
+    for axis in rng.choice(3, size=int(rng.integers(1, 4)), replace=False):
+        amp = np.deg2rad(rng.uniform(*amplitude_deg)) * rng.choice((-1.0, 1.0))
+        if axis == 1:
+            _bounded_pitch_move(prof, t, length, float(np.clip(amp, -np.deg2rad(70), np.deg2rad(70))))
+        else:
+            profiles.add_move(prof, int(axis), t, length, amp)
+
+
 def _bounded_pitch_move(prof, t: float, length: float, amp: float, limit: float = np.deg2rad(80.0)) -> float:
     """A frame-Y move that keeps the pitch within ±limit (flips or shrinks ``amp``)."""
     p = _pitch_at(prof, t)
@@ -450,12 +400,7 @@ def _random_profile(cfg: RandomConfig, rng: np.random.Generator) -> profiles.Dri
         else:
             length = min(rng.uniform(*cfg.move_s), end - t)
             if length >= cfg.move_s[0]:
-                for axis in rng.choice(3, size=int(rng.integers(1, 4)), replace=False):
-                    amp = np.deg2rad(rng.uniform(*cfg.amplitude_deg)) * rng.choice((-1.0, 1.0))
-                    if axis == 1:
-                        _bounded_pitch_move(prof, t, length, float(np.clip(amp, -np.deg2rad(70), np.deg2rad(70))))
-                    else:
-                        profiles.add_move(prof, int(axis), t, length, amp)
+                _turn_frames(prof, rng, t, length, cfg.amplitude_deg)
         t += length + rng.uniform(*cfg.pause_s)
     return prof
 
@@ -526,12 +471,7 @@ def _plan_manual_routines(cfg: ManualRoutinesConfig, rngs) -> Plan:
         length = float(r_motion.uniform(*cfg.task_s))
         if t + length > cfg.duration - 0.5:
             break
-        for axis in r_motion.choice(3, size=int(r_motion.integers(1, 4)), replace=False):
-            amp = np.deg2rad(r_motion.uniform(*cfg.amplitude_deg)) * r_motion.choice((-1.0, 1.0))
-            if axis == 1:
-                _bounded_pitch_move(prof, t, length, float(np.clip(amp, -np.deg2rad(70), np.deg2rad(70))))
-            else:
-                profiles.add_move(prof, int(axis), t, length, amp)
+        _turn_frames(prof, r_motion, t, length, cfg.amplitude_deg)
         t += length + cfg.pause
     if not reached:  # the tasks ended before reach_at: reach at the end instead
         reach_start = max(cfg.start_rest, cfg.duration - reach_len - 1.0)
@@ -645,30 +585,15 @@ def _simulate(scenario: str, cfg: ScenarioConfig, seed: int, rngs: list[np.rando
         stationary[rows] = (norms(run.gyr) < STATIONARY_RATE) & (norms(step) * cfg.rate < STATIONARY_SPEED)
         q[rows], joints[rows], slide[rows] = run.q, run.joints, run.slide
         last_p, steps = run.p_imu[-1:], run.physics_steps
-    meta = trial_meta(
-        scenario,
-        seed,
-        cfg,
-        {"magnet": plan.magnet, "moment_am2": float(plan.moment), "physics_steps": steps, **plan.meta},
-    )
-    return Trial(
-        name=trial_name(scenario, seed),
-        rate=cfg.rate,
-        gyr=gyr,
-        acc=acc,
-        mag=mag,
-        q_true=q,
-        field_norm=plan.field[0],
-        field_dip=plan.field[1],
-        truth={
-            "mag_disturbance": b_mag,
-            "stationary": stationary,
-            "magnet_distance": dist,
-            "joint_angles": joints,
-            "magnet_slide": slide,
-        },
-        meta=meta,
-    )
+    truth = {
+        "mag_disturbance": b_mag,
+        "stationary": stationary,
+        "magnet_distance": dist,
+        "joint_angles": joints,
+        "magnet_slide": slide,
+    }
+    drawn = {"magnet": plan.magnet, "moment_am2": float(plan.moment), "physics_steps": steps, **plan.meta}
+    return simulated_trial(scenario, seed, cfg, (gyr, acc, mag), q, plan.field, truth, drawn)
 
 
 # ------------------------------------------------------------------ the world

@@ -46,8 +46,8 @@ import dataclasses
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.checks import check_number, check_range
-from magenv.scenarios.world import World, check_shared_fields, trial_meta, trial_name
+from magenv.checks import check_number
+from magenv.scenarios.world import World, check_shared_fields, limited, simulated_trial
 from magenv.sim import earth
 from magenv.sim.handheld import MODES, Motion, ideal_readings
 from magenv.sim.indoor_field import random_indoor_field
@@ -95,43 +95,30 @@ class HandheldConfig:
         sensor: the MIMU error model.
     """
 
-    duration: float = 120.0
-    rate: float = 100.0
+    duration: float = limited(120.0, 0.0, 7200.0, lo_open=True)
+    rate: float = limited(100.0, 1.0, 10000.0)
     modes: tuple = ("texting",)
-    segment_s: tuple = (20.0, 60.0)
+    segment_s: tuple = limited((20.0, 60.0), 1.0)
     transition_s: float = 1.5
-    speed_mps: tuple = (1.39, 1.39)
-    step_hz: tuple = (1.7, 2.0)
-    path_m: tuple = (6.0, 6.0)
-    treadmill_prob: float = 1.0
-    n_dipoles: tuple = (3, 6)
-    dipole_ut: tuple = (1.0, 6.0)
-    dipole_distance_m: tuple = (1.5, 4.0)
-    n_wires: tuple = (0, 2)
-    wire_current_a: tuple = (1.0, 15.0)
+    speed_mps: tuple = limited((1.39, 1.39), 0.0, 3.0)
+    step_hz: tuple = limited((1.7, 2.0), 0.5, 4.0)
+    path_m: tuple = limited((6.0, 6.0), 0.5, 100.0)
+    treadmill_prob: float = limited(1.0, 0.0, 1.0)
+    n_dipoles: tuple = limited((3, 6), 0, 50)
+    dipole_ut: tuple = limited((1.0, 6.0), 0.0, 500.0)
+    dipole_distance_m: tuple = limited((1.5, 4.0), 0.3, 50.0)
+    n_wires: tuple = limited((0, 2), 0, 20)
+    wire_current_a: tuple = limited((1.0, 15.0), 0.0, 1000.0)
     field_norm: float = NANTES[0]
     field_dip: float = NANTES[1]
     random_location: bool = False
-    noise_scale: tuple = (1.0, 1.0)
+    noise_scale: tuple = limited((1.0, 1.0), 0.0, 100.0)
     sensor: SensorConfig = HANDHELD_SENSOR
 
     def __post_init__(self) -> None:
-        check_number("duration", self.duration, 0.0, 7200.0, lo_open=True)
-        check_number("rate", self.rate, 1.0, 10000.0)
         check_shared_fields(self)
         if not self.modes or any(m not in MODES for m in self.modes):
             raise ValueError(f"modes must be a non-empty tuple of {MODES}, got {self.modes!r}")
-        check_range("segment_s", self.segment_s, 1.0)
-        check_range("speed_mps", self.speed_mps, 0.0, 3.0)
-        check_range("step_hz", self.step_hz, 0.5, 4.0)
-        check_range("path_m", self.path_m, 0.5, 100.0)
-        check_range("n_dipoles", self.n_dipoles, 0, 50)
-        check_range("dipole_ut", self.dipole_ut, 0.0, 500.0)
-        check_range("dipole_distance_m", self.dipole_distance_m, 0.3, 50.0)
-        check_range("n_wires", self.n_wires, 0, 20)
-        check_range("wire_current_a", self.wire_current_a, 0.0, 1000.0)
-        check_range("noise_scale", self.noise_scale, 0.0, 100.0)
-        check_number("treadmill_prob", self.treadmill_prob, 0.0, 1.0)
         check_number("transition_s", self.transition_s, 0.0, self.segment_s[0])
 
 
@@ -165,40 +152,25 @@ def _simulate(scenario: str, cfg: HandheldConfig, seed: int, rngs: list[np.rando
     p, q, gyr, acc, mag, b_e = ideal_readings(motion, t, field)
     scale = float(r_sensor.uniform(*cfg.noise_scale))
     gyr_m, acc_m, mag_m = apply_sensor_model(gyr, acc, mag, cfg.rate, cfg.sensor.scaled(scale), r_sensor)
-    meta = trial_meta(
-        scenario,
-        seed,
-        cfg,
-        {
-            "modes": motion.mode_names,
-            START_FROM_TRUTH: True,
-            "mode_bounds_s": motion.bounds,
-            "speed_mps": motion.speed,
-            "step_hz": motion.f_step,
-            "treadmill": not motion.travel,
-            "noise_scale": scale,
-            "n_dipoles": len(field.dipole_pos),
-            "n_wires": len(field.wire_point),
-            "min_source_distance_m": field.min_source_distance(p_visit),
-        },
-    )
-    return Trial(
-        name=trial_name(scenario, seed),
-        rate=cfg.rate,
-        gyr=gyr_m,
-        acc=acc_m,
-        mag=mag_m,
-        q_true=q,
-        field_norm=norm,
-        field_dip=dip,
-        truth={
-            "mag_disturbance": quat.rotate_inv(q, b_e - b_earth),
-            "position": p,
-            "mode": motion.mode_index(t),
-            "stationary": np.zeros(n, bool),
-        },
-        meta=meta,
-    )
+    truth = {
+        "mag_disturbance": quat.rotate_inv(q, b_e - b_earth),
+        "position": p,
+        "mode": motion.mode_index(t),
+        "stationary": np.zeros(n, bool),
+    }
+    drawn = {
+        "modes": motion.mode_names,
+        START_FROM_TRUTH: True,
+        "mode_bounds_s": motion.bounds,
+        "speed_mps": motion.speed,
+        "step_hz": motion.f_step,
+        "treadmill": not motion.travel,
+        "noise_scale": scale,
+        "n_dipoles": len(field.dipole_pos),
+        "n_wires": len(field.wire_point),
+        "min_source_distance_m": field.min_source_distance(p_visit),
+    }
+    return simulated_trial(scenario, seed, cfg, (gyr_m, acc_m, mag_m), q, (norm, dip), truth, drawn)
 
 
 #: The hand-held scenarios: name → default config.

@@ -53,8 +53,8 @@ from typing import Any
 import numpy as np
 
 from magenv import quaternion as quat
-from magenv.checks import check_intervals, check_number, check_numbers, check_range
-from magenv.scenarios.world import STATIONARY_RATE, World, check_shared_fields, trial_meta, trial_name
+from magenv.checks import check_intervals, check_number, check_numbers
+from magenv.scenarios.world import STATIONARY_RATE, World, check_shared_fields, limited, simulated_trial
 from magenv.sim import earth, indoor
 from magenv.sim import twolink as tl
 from magenv.sim.hand import Approach, tool_path
@@ -113,44 +113,32 @@ class ConstraintConfig:
         jitter_s: random shift of each approach start, s.
     """
 
-    duration: float = 75.0
-    rate: float = 100.0
-    physics_rate: float = tl.PHYSICS_RATE
+    duration: float = limited(75.0, 1.0, 3600.0)
+    rate: float = limited(100.0, 10.0, 2000.0)
+    physics_rate: float = limited(tl.PHYSICS_RATE, "rate", 20000.0)
     field_norm: float = earth.PAPER[0]
     field_dip: float = earth.PAPER[1]
     sensor: SensorConfig = MTW
     gyro_bias: tuple = PAPER_GYRO_BIAS
     amplitude: tuple = BASE_AMPLITUDE
-    motion_scale: float = 1.0
+    motion_scale: float = limited(1.0, 0.0, 3.0)
     target_ext_acc: float | None = 2.0
-    freq_hz: tuple = (0.15, 0.6)
-    start_rest: float = 3.0
-    lab_inhomogeneity: float = 0.07
-    tool_moment: float = 0.08
-    tool_far: float = 0.6
-    tool_near: float = 0.08
-    tool_travel: float = 1.0
+    freq_hz: tuple = limited((0.15, 0.6), 0.01, 5.0)
+    start_rest: float = limited(3.0, 0.0, "duration")
+    lab_inhomogeneity: float = limited(0.07, 0.0, 1.0)
+    tool_moment: float = limited(0.08, 0.0, 10.0)
+    tool_far: float = limited(0.6, "tool_near", 5.0)
+    tool_near: float = limited(0.08, 0.02, 2.0)
+    tool_travel: float = limited(1.0, 0.05, 60.0)
     disturbances: tuple = ((9.0, 3.0), (21.0, 3.0), (33.0, 3.0), (45.0, 3.0), (57.0, 3.0))
-    jitter_s: float = 1.0
+    jitter_s: float = limited(1.0, 0.0, 60.0)
 
     def __post_init__(self) -> None:
-        check_number("duration", self.duration, 1.0, 3600.0)
-        check_number("rate", self.rate, 10.0, 2000.0)
-        check_number("physics_rate", self.physics_rate, self.rate, 20000.0)
         check_shared_fields(self)
         check_numbers("gyro_bias", self.gyro_bias, 3, -1.0, 1.0, "numbers (rad/s)")
         check_numbers("amplitude", self.amplitude, tl.N_JOINTS, 0.0, 1.5, f"amplitudes ({', '.join(tl.JOINTS)})")
-        check_number("motion_scale", self.motion_scale, 0.0, 3.0)
         if self.target_ext_acc is not None:
             check_number("target_ext_acc", self.target_ext_acc, 0.0, 20.0, lo_open=True)
-        check_range("freq_hz", self.freq_hz, 0.01, 5.0)
-        check_number("start_rest", self.start_rest, 0.0, self.duration)
-        check_number("lab_inhomogeneity", self.lab_inhomogeneity, 0.0, 1.0)
-        check_number("tool_moment", self.tool_moment, 0.0, 10.0)
-        check_number("tool_near", self.tool_near, 0.02, 2.0)
-        check_number("tool_far", self.tool_far, self.tool_near, 5.0)
-        check_number("tool_travel", self.tool_travel, 0.05, 60.0)
-        check_number("jitter_s", self.jitter_s, 0.0, 60.0)
         check_intervals("disturbances", self.disturbances)
 
 
@@ -172,37 +160,24 @@ class ConstraintRandomConfig(ConstraintConfig):
 
     duration: float = 60.0
     target_ext_acc: float | None = None
-    segment_s: tuple = (3.0, 12.0)
-    still_prob: float = 0.2
+    segment_s: tuple = limited((3.0, 12.0), 0.5)
+    still_prob: float = limited(0.2, 0.0, 1.0)
     slow_prob: float = 0.2
-    level: tuple = (0.4, 1.3)
-    motion_scale_range: tuple = (0.5, 1.2)
-    n_tool: tuple = (0, 5)
-    tool_hold_s: tuple = (1.0, 20.0)
-    tool_near_m: tuple = (0.05, 0.2)
-    tool_moment_am2: tuple = (0.03, 0.3)
-    lab_range: tuple = (0.0, 0.12)
-    field_norm_ut: tuple = earth.NORM_RANGE_UT
-    field_dip_deg: tuple = earth.DIP_RANGE_DEG
-    noise_scale: tuple = (0.5, 2.0)
-    gyro_bias_max: float = 3e-3
+    level: tuple = limited((0.4, 1.3), 0.0, 3.0)
+    motion_scale_range: tuple = limited((0.5, 1.2), 0.0, 3.0)
+    n_tool: tuple = limited((0, 5), 0, 50)
+    tool_hold_s: tuple = limited((1.0, 20.0), 0.0)
+    tool_near_m: tuple = limited((0.05, 0.2), 0.02, 2.0)
+    tool_moment_am2: tuple = limited((0.03, 0.3), 0.0, 10.0)
+    lab_range: tuple = limited((0.0, 0.12), 0.0, 1.0)
+    field_norm_ut: tuple = limited(earth.NORM_RANGE_UT, 1.0, 1000.0)
+    field_dip_deg: tuple = limited(earth.DIP_RANGE_DEG, -90.0, 90.0)
+    noise_scale: tuple = limited((0.5, 2.0), 0.0, 100.0)
+    gyro_bias_max: float = limited(3e-3, 0.0, 1.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_range("segment_s", self.segment_s, 0.5)
-        check_number("still_prob", self.still_prob, 0.0, 1.0)
         check_number("slow_prob", self.slow_prob, 0.0, 1.0 - self.still_prob)
-        check_range("level", self.level, 0.0, 3.0)
-        check_range("motion_scale_range", self.motion_scale_range, 0.0, 3.0)
-        check_range("n_tool", self.n_tool, 0, 50)
-        check_range("tool_hold_s", self.tool_hold_s, 0.0)
-        check_range("tool_near_m", self.tool_near_m, 0.02, 2.0)
-        check_range("tool_moment_am2", self.tool_moment_am2, 0.0, 10.0)
-        check_range("lab_range", self.lab_range, 0.0, 1.0)
-        check_range("field_norm_ut", self.field_norm_ut, 1.0, 1000.0)
-        check_range("field_dip_deg", self.field_dip_deg, -90.0, 90.0)
-        check_range("noise_scale", self.noise_scale, 0.0, 100.0)
-        check_number("gyro_bias_max", self.gyro_bias_max, 0.0, 1.0)
 
 
 # ------------------------------------------------------------------ planning
@@ -345,41 +320,27 @@ def _simulate(scenario: str, cfg: ConstraintConfig, seed: int, rngs: list[np.ran
         np.linalg.norm(run.gyr_j, axis=1) < STATIONARY_RATE
     )
     r_i, r_j = tl.lever_arms()
-    meta = trial_meta(
-        scenario,
-        seed,
-        cfg,
-        {
-            "lever_i_m": r_i,
-            "lever_j_m": r_j,
-            "gyro_bias_rad_s": plan.gyro_bias,
-            "mean_ext_acc": ext.mean(),
-            "approach_starts_s": [a.start for a in plan.approaches],
-            "approach_holds_s": [a.hold for a in plan.approaches],
-            "tool_azimuth_rad": az,
-            "physics_steps": run.physics_steps,
-            **plan.meta,
-        },
-    )
-    return Trial(
-        name=trial_name(scenario, seed),
-        rate=cfg.rate,
-        gyr=gyr_i,
-        acc=acc_i,
-        mag=mag_i,
-        q_true=run.q_i,
-        field_norm=plan.field[0],
-        field_dip=plan.field[1],
-        truth={
-            "mag_disturbance": fields["i"][1],
-            "tool_field": fields["i"][2],
-            "tool_distance": np.linalg.norm(p_tool - run.p_i, axis=1),
-            "ext_acc": ext,
-            "stationary": still,
-        },
-        extra={"gyr_j": gyr_j, "acc_j": acc_j, "mag_j": mag_j, "q_j": run.q_j},
-        meta=meta,
-    )
+    truth = {
+        "mag_disturbance": fields["i"][1],
+        "tool_field": fields["i"][2],
+        "tool_distance": np.linalg.norm(p_tool - run.p_i, axis=1),
+        "ext_acc": ext,
+        "stationary": still,
+    }
+    drawn = {
+        "lever_i_m": r_i,
+        "lever_j_m": r_j,
+        "gyro_bias_rad_s": plan.gyro_bias,
+        "mean_ext_acc": ext.mean(),
+        "approach_starts_s": [a.start for a in plan.approaches],
+        "approach_holds_s": [a.hold for a in plan.approaches],
+        "tool_azimuth_rad": az,
+        "physics_steps": run.physics_steps,
+        **plan.meta,
+    }
+    extra = {"gyr_j": gyr_j, "acc_j": acc_j, "mag_j": mag_j, "q_j": run.q_j}
+    readings = (gyr_i, acc_i, mag_i)
+    return simulated_trial(scenario, seed, cfg, readings, run.q_i, plan.field, truth, drawn, extra=extra)
 
 
 #: The two-link scenarios: name → default config.

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
-from magenv.checks import check_instance, check_site
+from magenv.checks import check_instance, check_number, check_range, check_site
 from magenv.sim.sensors import SensorConfig
 from magenv.trial import META_SCENARIO, META_SEED, Trial
 
@@ -25,14 +26,44 @@ STATIONARY_RATE = 1e-3
 
 
 def check_shared_fields(cfg) -> None:
-    """The fields every world's config has, besides its own ``duration`` and ``rate`` bounds: the undisturbed
-    Earth field ``field_norm`` µT in (0, 1000] and ``field_dip`` ° in [-90, 90], ``sensor`` a SensorConfig,
-    and ``duration`` s × ``rate`` Hz at least 2 samples. Raises ValueError (TypeError for a non-number)
-    naming the field (``magenv.checks``)."""
+    """The config's :func:`limited` fields (:func:`check_limits`), then the fields every world's config has: the
+    undisturbed Earth field ``field_norm`` µT in (0, 1000] and ``field_dip`` ° in [-90, 90], ``sensor`` a
+    SensorConfig, and ``duration`` s × ``rate`` Hz at least 2 samples. Raises ValueError (TypeError for a
+    non-number) naming the field (``magenv.checks``)."""
+    check_limits(cfg)
     check_site(cfg.field_norm, cfg.field_dip)
     check_instance("sensor", cfg.sensor, SensorConfig)
     if cfg.duration * cfg.rate < 2:
         raise ValueError(f"duration × rate must give at least 2 samples, got {cfg.duration} s × {cfg.rate} Hz")
+
+
+def limited(default, lo: float | str = -math.inf, hi: float | str = math.inf, lo_open: bool = False) -> Any:
+    """A config field: its ``default`` and its bounds, checked by :func:`check_limits`. A number must lie in
+    [lo, hi] (``lo_open``: lo excluded), a (low, high) pair must have lo ≤ low ≤ high ≤ hi; a bound given as a
+    string is the value of that field. A subclass that only changes the default keeps the bounds."""
+    return dataclasses.field(default=default, metadata={"limits": (lo, hi, lo_open)})
+
+
+def check_limits(cfg) -> None:
+    """Every :func:`limited` field of config ``cfg`` within its bounds (``magenv.checks.check_number`` for a
+    number, ``check_range`` for a pair): ValueError (TypeError for a non-number) naming the field."""
+    for name in cfg.__dataclass_fields__:
+        limits = next(
+            (
+                f.metadata["limits"]
+                for f in (k.__dict__.get("__dataclass_fields__", {}).get(name) for k in type(cfg).__mro__)
+                if f is not None and "limits" in f.metadata
+            ),
+            None,
+        )
+        if limits is None:
+            continue
+        lo, hi, lo_open = (getattr(cfg, b) if isinstance(b, str) else b for b in limits)
+        value = getattr(cfg, name)
+        if isinstance(value, (tuple, list)):
+            check_range(name, value, lo, hi)
+        else:
+            check_number(name, value, lo, hi, lo_open=lo_open)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,6 +142,29 @@ def trial_meta(scenario: str, seed: int, cfg, drawn: dict) -> dict:
     """A simulated trial's ``meta``, in JSON types: the scenario and seed (under ``magenv.trial``'s keys),
     what the world drew or measured (``drawn``) and the whole config under ``"config"``."""
     return {META_SCENARIO: scenario, META_SEED: seed, **config_json(drawn), "config": _config_copy(cfg)}
+
+
+def simulated_trial(
+    scenario: str, seed: int, cfg, readings: tuple, q_true: np.ndarray, field, truth: dict, drawn: dict, **more
+) -> Trial:
+    """A simulated scenario's Trial at ``cfg.rate`` Hz: ``readings`` (gyr rad/s, acc m/s², mag µT; (N, 3) each,
+    sensor frame), ``q_true`` (N, 4) sensor → ENU, ``field`` (m0 µT, θ0 °), the truth-only channels, its name
+    (:func:`trial_name`) and ``meta`` (:func:`trial_meta` with what the world ``drawn``); ``more``: further
+    Trial fields (``extra``)."""
+    gyr, acc, mag = readings
+    return Trial(
+        name=trial_name(scenario, seed),
+        rate=cfg.rate,
+        gyr=gyr,
+        acc=acc,
+        mag=mag,
+        q_true=q_true,
+        field_norm=field[0],
+        field_dip=field[1],
+        truth=truth,
+        meta=trial_meta(scenario, seed, cfg, drawn),
+        **more,
+    )
 
 
 def _config_copy(cfg) -> dict:
