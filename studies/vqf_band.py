@@ -1,7 +1,7 @@
 """MagVQF-v0: does a departure band chosen on real recordings transfer to a recording it was not chosen on?
 
     python -m studies.vqf_band [--agent RUN|pretrained:ID ...] [--bands 0.1 0.25 0.5 1] [--shapes fixed,shrink]
-        [--recordings FILE ...] [--json FILE]
+        [--recordings FILE ...]
 
 A rule-guarded student (``guard.fallback: rule``) departs from its rule by at most its guard's ``band`` b. The
 candidates are the rule itself (``vqf_fan_rejection_tuned``: b = 0) and every student × b × band shape:
@@ -20,9 +20,7 @@ It prints what it measures; nothing here is a test.
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -85,7 +83,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bands", nargs="+", type=float, default=[0.1, 0.25, 0.5, 1.0], help="bands b > 0 to try")
     p.add_argument("--shapes", default="fixed,shrink", help="band shapes to try (default %(default)s)")
     p.add_argument("--recordings", nargs="+", default=None, help="recording files (default: the shared BROAD ones)")
-    p.add_argument("--json", type=Path, default=None, help="write the per-recording RMSEs")
     args = p.parse_args(argv)
     agents = args.agent or ["pretrained:magenv/MagVQF-v0"]
     if any(not b > 0 for b in args.bands):
@@ -128,8 +125,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"chosen on the other recordings / {name}: {paired_ratio(nested, rows[name]).ratio_text(2)}")
     chosen = min(log_ratio, key=lambda c: float(np.mean(log_ratio[c])))
     print(f"\nchosen on all {len(recs)} (in-sample): {chosen}, {np.exp(log_ratio[chosen].mean()):.3f}")
-    if args.json:
-        args.json.write_text(json.dumps(scores, indent=1))
     print(f"({time.time() - t0:.0f} s)")
     return 0
 
