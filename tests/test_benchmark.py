@@ -244,6 +244,31 @@ def test_the_baselines_table_shows_what_did_not_finish():
         assert f"| {t.name} | {', '.join(t.env.mixture)} | `{t.rule}` |" in page
 
 
+def test_runs_not_yet_scored_are_named_and_a_bad_kept_score_is_scored_again(tmp_path):
+    records = [{"name": n, "run": {"env_id": suite.BLEND.env_id, "algo": "ppo"}, "train_s": 60.0, "eval_s": 6.0}
+               for n in ("run-a", "run-b")]  # fmt: skip
+    page = benchmark.index_markdown([], records[:1], 100, {}, {}, unscored=records[1:])
+    assert "**2 of 100 runs finished, 1 of them scored** (not yet scored: run-b)" in page
+
+    class Refs:
+        key = "k"
+
+    assert benchmark.kept_rows(tmp_path, records[0], Refs()) is None  # none kept
+    keep, stamp = benchmark._kept(tmp_path, records[0])
+    keep.parent.mkdir()
+    keep.write_text('{"stamp": "')  # a half-written file from an older version
+    assert benchmark.kept_rows(tmp_path, records[0], Refs()) is None
+    keep.write_text(json.dumps({"stamp": stamp, "suite": suite.VERSION, "refs": "k", "rows": [{"x": 1}]}))
+    assert benchmark.kept_rows(tmp_path, records[0], Refs()) == [{"x": 1}]
+    Refs.key = "other"  # other references (another code version): scored again
+    assert benchmark.kept_rows(tmp_path, records[0], Refs()) is None
+
+
+def test_scored_only_goes_with_sweep(capsys):
+    assert cli(["benchmark", "--summary", "x.json", "--scored-only"]) == 2
+    assert "--scored-only goes with --sweep" in capsys.readouterr().err
+
+
 def test_the_baseline_configs_are_what_train_sh_runs():
     script = (ROOT / "agents" / "configs" / "bench" / "train.sh").read_text()
     algos = yaml.safe_load("[" + script.split("for algo in ")[1].split(";")[0].replace(" ", ", ") + "]")

@@ -1,7 +1,7 @@
 """``magenv benchmark``: score a policy on magenv-bench v1 (``magenv.benchmark.suite``) and write its score card.
 
     magenv benchmark --agent AGENT [--tasks LIST] [--out DIR] [--seeds S] [--duration S] [--no-cache]
-    magenv benchmark --sweep RUNS --out docs/benchmark      (the baselines' table)
+    magenv benchmark --sweep RUNS --out docs/benchmark [--scored-only]   (the baselines' table)
     magenv benchmark --summary CARD.json [CARD.json ...]    (one table of score cards: the README's results)
 
 AGENT is a run folder (``magenv train``), ``pretrained:ENV_ID`` (a shipped agent), one weights-only file of an SB3
@@ -26,7 +26,9 @@ hash of magenv's source and tuned files, so a change of code recomputes them (``
 ``agents/configs/bench/train.sh``'s RUNS) on
 its env's tasks and writes OUT/baselines.csv (env, task, method, training seed, RMSE, normalised score),
 OUT/baselines.png and OUT/index.md (the protocol, the table with the number of training seeds finished of each
-cell, the aggregates); a run's scores are kept beside it (``SWEEP/benchmark/NAME.json``) for the next call.
+cell, the aggregates); a run's scores are kept beside it (``SWEEP/benchmark/NAME.json``, written whole) for the
+next call. ``--scored-only`` scores nothing new: the table holds the runs scored before and names the finished
+runs that are not (scoring a recurrent agent takes long).
 
 ``--summary`` prints one Markdown table of the tasks of score cards (``card.json`` files, read as JSON only): per
 task the rule, the ratio agent / rule and the normalised score with their 95 % intervals, and the worst trial's
@@ -66,6 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seeds", type=seeds_arg, default=None, help="quick look: other held-out seeds (below 5000)")
     p.add_argument("--duration", type=float, default=None, help="quick look: trials cut to S seconds")
     p.add_argument("--no-cache", action="store_true", help="recompute the rules' and oracles' RMSEs")
+    p.add_argument("--scored-only", action="store_true", help="with --sweep: only runs scored before, no new scoring")
 
 
 # ----------------------------------------------------------------- the agent
@@ -400,18 +403,41 @@ def _finished_runs(sweeps: list[Path]) -> list[tuple[Path, dict]]:
     return found
 
 
+def _kept(sweep: Path, record: dict) -> tuple[Path, str]:
+    """Where a run's scores are kept (SWEEP/benchmark/NAME.json) and the stamp of its results record."""
+    stamp = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
+    return sweep / "benchmark" / f"{record['name']}.json", stamp
+
+
+def kept_rows(sweep: Path, record: dict, refs: References) -> list[dict] | None:
+    """A run's rows as kept by an earlier call with the same results, suite and references; None where there are
+    none (or the file is unreadable: it is scored again)."""
+    from magenv.benchmark import suite
+
+    keep, stamp = _kept(sweep, record)
+    try:
+        kept = json.loads(keep.read_text())
+    except (OSError, ValueError):
+        return None
+    if isinstance(kept, dict) and (kept.get("stamp"), kept.get("suite"), kept.get("refs")) == (
+        stamp,
+        suite.VERSION,
+        refs.key,
+    ):
+        return kept.get("rows")
+    return None
+
+
 def _run_scores(sweep: Path, record: dict, tasks, refs: References) -> list[dict]:
     """Rows of one finished run on its env's tasks (kept in SWEEP/benchmark/NAME.json for the next call)."""
     from magenv.agents.loading import load_agent
     from magenv.benchmark import suite
 
+    rows = kept_rows(sweep, record, refs)
+    if rows is not None:
+        return rows
     name = record["name"]
-    stamp = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
-    keep = sweep / "benchmark" / f"{name}.json"
-    if keep.is_file():
-        kept = json.loads(keep.read_text())
-        if kept.get("stamp") == stamp and kept.get("suite") == suite.VERSION and kept.get("refs") == refs.key:
-            return kept["rows"]
+    keep, stamp = _kept(sweep, record)
     policy = load_agent(record["run_dir"])
     spec = record["run"]
     scores, _ = score_policy(policy, [t for t in tasks if t.env_id == spec["env_id"]], list(suite.EVAL_SEEDS), None,
@@ -429,7 +455,9 @@ def _run_scores(sweep: Path, record: dict, tasks, refs: References) -> list[dict
         for s in scores
     ]
     keep.parent.mkdir(parents=True, exist_ok=True)
-    keep.write_text(json.dumps({"stamp": stamp, "suite": suite.VERSION, "refs": refs.key, "rows": rows}))
+    tmp = keep.with_name(keep.name + ".tmp")  # written whole, then renamed: a kill leaves no half file
+    tmp.write_text(json.dumps({"stamp": stamp, "suite": suite.VERSION, "refs": refs.key, "rows": rows}))
+    tmp.replace(keep)
     return rows
 
 
@@ -494,8 +522,11 @@ def cost_lines(records: list[dict]) -> list[str]:
     return lines
 
 
-def index_markdown(rows: list[dict], records: list[dict], n_planned: int, agg: dict, covered: dict) -> str:
-    """docs/benchmark/index.md: the protocol (from the suite) and the baselines' table."""
+def index_markdown(
+    rows: list[dict], records: list[dict], n_planned: int, agg: dict, covered: dict, unscored: list[dict] = ()
+) -> str:
+    """docs/benchmark/index.md: the protocol (from the suite) and the baselines' table of the scored runs
+    (``records``; ``unscored``: finished runs not scored yet)."""
     from magenv.benchmark import suite
 
     methods = list(ALGO_LABELS.values())
@@ -558,7 +589,12 @@ def index_markdown(rows: list[dict], records: list[dict], n_planned: int, agg: d
         "that the 100 runs train within a day on two free cores: the cost table below says how far the runs "
         "measured so far bear that out) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark`.",
         "",
-        f"**{len(records)} of {n_planned} runs finished and scored**"
+        (
+            f"**{len(records)} of {n_planned} runs finished and scored**"
+            if not unscored
+            else f"**{len(records) + len(unscored)} of {n_planned} runs finished, {len(records)} of them scored** "
+            f"(not yet scored: {', '.join(sorted(r['name'] for r in unscored))})"
+        )
         + (
             "; the table is complete."
             if len(records) == n_planned
@@ -588,12 +624,12 @@ def index_markdown(rows: list[dict], records: list[dict], n_planned: int, agg: d
         lines += aggregate_lines(agg, "seeds × tasks")
         lines += ["", "| method | covered |", "|---|---|"] + [f"| {m} | {c} |" for m, c in covered.items()]
         lines += ["", f"![performance profiles of the baselines]({BASELINES}.png)"]
-    if records:
+    if records or unscored:
         lines += [
             "",
             "Minutes per run (training, validation and the sweep's own scoring), mean over the finished runs:",
         ]
-        lines += ["", *cost_lines(records)]
+        lines += ["", *cost_lines([*records, *unscored])]
     return "\n".join(lines) + "\n"
 
 
@@ -608,7 +644,14 @@ def run_sweeps(args: argparse.Namespace) -> int:
     finished = _finished_runs(sweeps)
     print(f"{len(finished)} finished run(s) in {len(sweeps)} sweep folder(s)", flush=True)
     refs = References(cache_folder(args.no_cache))
-    rows = [row for sweep, record in finished for row in _run_scores(sweep, record, list(suite.TASKS), refs)]
+    if args.scored_only:
+        kept = [(record, kept_rows(sweep, record, refs)) for sweep, record in finished]
+        scored = [(record, rows) for record, rows in kept if rows is not None]
+        unscored = [record for record, rows in kept if rows is None]
+    else:
+        scored = [(record, _run_scores(sweep, record, list(suite.TASKS), refs)) for sweep, record in finished]
+        unscored = []
+    rows = [row for _, run_rows in scored for row in run_rows]
     out.mkdir(parents=True, exist_ok=True)
     baselines_csv(rows, out / f"{BASELINES}.csv")
     names = [t.name for t in suite.TASKS if t.normalised]
@@ -616,8 +659,8 @@ def run_sweeps(args: argparse.Namespace) -> int:
     agg = score.aggregates(matrices) if matrices else {}
     if matrices:
         score.profile_png(matrices, out / f"{BASELINES}.png", f"{suite.VERSION} baselines")
-    records = [record for _, record in finished]
-    (out / "index.md").write_text(index_markdown(rows, records, planned, agg, covered))
+    records = [record for record, _ in scored]
+    (out / "index.md").write_text(index_markdown(rows, records, planned, agg, covered, unscored))
     print(f"wrote {out / (BASELINES + '.csv')}, {out / 'index.md'}" + (f", {out / BASELINES}.png" if agg else ""))
     return 0
 
@@ -667,6 +710,8 @@ def run_summary(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.scored_only and not args.sweep:
+        raise CommandError("--scored-only goes with --sweep")
     if args.summary:
         return run_summary(args)
     return run_sweeps(args) if args.sweep else run_agent(args)
