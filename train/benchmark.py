@@ -598,7 +598,7 @@ def index_markdown(
         + (
             "; the table is complete."
             if len(records) == n_planned
-            else ": the table is incomplete. A cell shows the mean over the training seeds that finished (n = how "
+            else ": the table is incomplete. A cell shows the mean over the training seeds scored (n = how "
             "many); – where none did."
         ),
         "",
@@ -620,7 +620,7 @@ def index_markdown(
             cells.append((f"{np.mean(norm):.2f} " if norm else "") + f"({rmse:.2f}°) n = {len(mine)}")
         lines.append(f"| {t.name} | " + " | ".join(cells) + " |")
     if agg:
-        lines += ["", "Over tasks (each method over the tasks and training seeds it has finished):", ""]
+        lines += ["", "Over tasks (each method over the tasks and training seeds scored):", ""]
         lines += aggregate_lines(agg, "seeds × tasks")
         lines += ["", "| method | covered |", "|---|---|"] + [f"| {m} | {c} |" for m, c in covered.items()]
         lines += ["", f"![performance profiles of the baselines]({BASELINES}.png)"]
