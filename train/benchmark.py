@@ -43,6 +43,7 @@ import importlib
 import json
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -523,7 +524,7 @@ def cost_lines(records: list[dict]) -> list[str]:
 
 
 def index_markdown(
-    rows: list[dict], records: list[dict], n_planned: int, agg: dict, covered: dict, unscored: list[dict] = ()
+    rows: list[dict], records: list[dict], n_planned: int, agg: dict, covered: dict, unscored: Sequence[dict] = ()
 ) -> str:
     """docs/benchmark/index.md: the protocol (from the suite) and the baselines' table of the scored runs
     (``records``; ``unscored``: finished runs not scored yet)."""
