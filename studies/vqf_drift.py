@@ -5,9 +5,9 @@
 VQF (MagVQF-v0, rejection on) trusts the magnetometer fully (u = 1) through each trial's initial rest and not at all
 (u = 0) from the first scored sample on, so its heading then follows the gyroscope alone. Per trial: the heading
 drift rate (°/s), the magnitude of the least-squares slope of the earth-frame heading error (q_est ⊗ q_true*, about
-earth z) over the scored samples with truth, and that heading error's RMS (°). Recordings (default: the shared BROAD
-ones) beside trials of the board world's scenarios (training seeds from 10 000: a check of the world, not of a
-policy); medians per group. It prints what it measures; nothing here is a test.
+earth z) over the scored samples with truth, and that heading error's RMS about its mean (°). Recordings
+(default: the shared BROAD ones) beside trials of the board world's scenarios (training seeds from 10 000: a check
+of the world, not of a policy); medians per group. It prints what it measures; nothing here is a test.
 """
 
 from __future__ import annotations
@@ -40,7 +40,8 @@ class TrustUntil:
 
 
 def drift(trial, runner) -> tuple[float, float]:
-    """(|slope| of the heading error °/s, its RMS °) over the scored samples with truth, gyro only after rest."""
+    """(|slope| of the heading error °/s, its RMS about its mean °) over the scored samples with truth, gyro only
+    after rest."""
     from magenv import metrics
 
     mask = np.asarray(trial.score_mask, bool)
