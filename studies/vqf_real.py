@@ -123,10 +123,11 @@ def main(argv: list[str] | None = None) -> int:
         from magenv.scenarios import make_trial
         from magenv.seeding import VALIDATION_START
 
-        seeds = range(VALIDATION_START, VALIDATION_START + args.twins)
-        trials = [make_trial(f"twin:{f}", s) for f in files for s in seeds]
-        for t, (f, s) in zip(trials, [(f, s) for f in files for s in seeds]):
-            t.name = f"{Path(f).stem}#twin{s}"
+        trials = []
+        for f in files:
+            for seed in range(VALIDATION_START, VALIDATION_START + args.twins):
+                trials.append(make_trial(f"twin:{f}", seed))
+                trials[-1].name = f"{Path(f).stem}#twin{seed}"  # grouped as its recording (``group_of``)
     else:
         trials = [load_recording(f) for f in files]
     methods = {n: registry.make(n) for n in RULES + (("oracle_vqf",) if args.oracle else ())}

@@ -52,6 +52,7 @@ import numpy as np
 from magenv.seeding import VALIDATION_START
 from magenv.train.cli import CommandError, output_folder
 from magenv.train.seeds import seeds_arg
+from magenv.train.sweep import write_atomic
 
 CARD = "card"
 PROFILE = "profile.png"
@@ -204,10 +205,7 @@ class References:
         if todo:
             stored.update(zip((t.name for t in todo), _rmse(method, registry.make(method), todo)))
             if path is not None:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_name(path.name + ".tmp")
-                tmp.write_text(json.dumps(stored))
-                tmp.replace(path)
+                write_atomic(path, json.dumps(stored))
         return [stored[t.name] for t in trials]
 
 
@@ -364,8 +362,8 @@ def run_agent(args: argparse.Namespace) -> int:
         "aggregates": score.aggregates(matrices) if matrices else {},
     }
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{CARD}.json").write_text(json.dumps(card, indent=1))
-    (out / f"{CARD}.md").write_text(card_markdown(card))
+    write_atomic(out / f"{CARD}.json", json.dumps(card, indent=1))
+    write_atomic(out / f"{CARD}.md", card_markdown(card))
     if matrices:
         score.profile_png(matrices, out / PROFILE, f"{args.agent} on {suite.VERSION}")
     print(card_markdown(card))
@@ -455,10 +453,7 @@ def _run_scores(sweep: Path, record: dict, tasks, refs: References) -> list[dict
         }
         for s in scores
     ]
-    keep.parent.mkdir(parents=True, exist_ok=True)
-    tmp = keep.with_name(keep.name + ".tmp")  # written whole, then renamed: a kill leaves no half file
-    tmp.write_text(json.dumps({"stamp": stamp, "suite": suite.VERSION, "refs": refs.key, "rows": rows}))
-    tmp.replace(keep)
+    write_atomic(keep, json.dumps({"stamp": stamp, "suite": suite.VERSION, "refs": refs.key, "rows": rows}))
     return rows
 
 
@@ -661,7 +656,7 @@ def run_sweeps(args: argparse.Namespace) -> int:
     if matrices:
         score.profile_png(matrices, out / f"{BASELINES}.png", f"{suite.VERSION} baselines")
     records = [record for record, _ in scored]
-    (out / "index.md").write_text(index_markdown(rows, records, planned, agg, covered, unscored))
+    write_atomic(out / "index.md", index_markdown(rows, records, planned, agg, covered, unscored))
     print(f"wrote {out / (BASELINES + '.csv')}, {out / 'index.md'}" + (f", {out / BASELINES}.png" if agg else ""))
     return 0
 

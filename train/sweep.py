@@ -83,7 +83,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------------- one run (on a Ray worker)
 
 
-def _write_atomic(path: Path, text: str) -> None:
+def write_atomic(path: Path, text: str) -> None:
+    """``text`` into ``path`` (its folder made), written whole beside it and then renamed: a kill leaves no half
+    file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
@@ -145,7 +147,7 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
     if done is not None:
         return done
     run_dir, config = out_dir / "runs" / name, out_dir / "configs" / f"{name}.yaml"
-    _write_atomic(config, yaml.safe_dump({spec["env_id"]: spec["section"]}, sort_keys=False))
+    write_atomic(config, yaml.safe_dump({spec["env_id"]: spec["section"]}, sort_keys=False))
     dagger_run = spec["algo"] == DAGGER
     before = _dagger_progress(run_dir) if dagger_run else progress(run_dir, spec["algo"])
     start = before["timesteps"] if before is not None else 0
@@ -193,7 +195,7 @@ def run_trial(name: str, out: str, runs: dict[str, dict]) -> dict:
         "train_cpu_s": c1 - c0,  # this process's CPU seconds: what a free core would take
         "eval_cpu_s": time.process_time() - c1,
     }
-    _write_atomic(out_dir / "results" / f"{name}.json", json.dumps(record, indent=1))
+    write_atomic(out_dir / "results" / f"{name}.json", json.dumps(record, indent=1))
     return record
 
 
@@ -301,7 +303,7 @@ def _stored_runs(out: Path, runs: dict[str, dict]) -> None:
                 "had other settings; use another --out for a new sweep"
             )
         runs = {**stored, **runs}
-    _write_atomic(path, json.dumps({"runs": runs}, indent=1))
+    write_atomic(path, json.dumps({"runs": runs}, indent=1))
 
 
 def run(args: argparse.Namespace) -> int:
