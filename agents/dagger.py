@@ -932,6 +932,64 @@ def refit(source: str | Path, out: str | Path, teacher, changes: dict, log: Call
     return out
 
 
+def combine(
+    sources: list, out: str | Path, teacher, changes: dict, disagree: float | None = None,
+    log: Callable[[str], None] = print,
+) -> Path:  # fmt: skip
+    """One student from several finished DAgger runs of ``teacher`` (different worlds, seeds or teacher
+    settings): the ensemble (:class:`Ensemble`) of each run's own student (its ensemble's members, else its best
+    iteration), written as the run folder ``out`` (members copied into ``checkpoints/``; run.yaml the first
+    run's with ``ensemble.combined_of`` naming the runs). ``disagree`` replaces the guard's ``disagree``; it is
+    scored on the validation trials of the first run's config with ``changes`` (``val_seeds``,
+    ``val_scenarios``, ``scenarios``) — choose seeds no member was selected on. ValueError before anything is
+    written if a source is not a run of ``teacher`` or the runs' envs or students (shape, candidates, input
+    constants, guard) differ."""
+    out = Path(out)
+    if len(sources) < 2:
+        raise ValueError(f"combining needs at least 2 runs, got {len(sources)}")
+    if (out / RUN_FILE).exists():
+        raise ValueError(f"{out} already holds a run; choose another --out")
+    bad = sorted(set(changes) - {"val_seeds", "val_scenarios", "scenarios"})
+    if bad:
+        raise ValueError(f"combining may change only the validation keys, not {bad}")
+    runs = [_resumed_run(Path(s), teacher, check_teacher(teacher), None, "combine") for s in sources]
+    for source, run in zip(sources[1:], runs[1:]):
+        for key in ("env_id", "env_kwargs", "student"):
+            if run[key] != runs[0][key]:
+                raise ValueError(f"{source}'s {key} differs from {sources[0]}'s: cannot combine their students")
+    run = dict(runs[0])
+    guard = run["student"].get("guard")
+    if disagree is not None:
+        if guard is None or not _is_number(disagree) or not 0 <= disagree:
+            raise ValueError(f"disagree must be a number ≥ 0 for a guarded student, got {disagree!r}")
+        guard = {**guard, "disagree": float(disagree)}
+        run["student"] = {**run["student"], "guard": guard}
+    cfg = check_config({**run["config"], **changes, "guard": guard, "ensemble": 1})
+    copies = {}  # name in the new run → file of a source run
+    for i, source in enumerate(map(Path, sources)):
+        members = (runs[i].get("ensemble") or {}).get("members") or [BEST]
+        for m in members:
+            copies[f"{CHECKPOINTS}/run{i}_{Path(m).name}"] = _member(source, m, source / RUN_FILE)
+    inputs = inputs_for(run["env_id"])
+    ensemble = Ensemble([Student.load(f, run["student"], inputs) for f in copies.values()])
+    validation = Validation(Episodes(run["env_id"], run["env_kwargs"], teacher), teacher, cfg)
+    _, ratio, score = validation.score(ensemble)
+    run["config"] = cfg
+    combined = [str(Path(s).resolve()) for s in sources]
+    run["ensemble"] = {"members": list(copies), "combined_of": combined, "val_ratio": score,
+                       **{f"{sc}_ratio": v for sc, v in ratio.items()}}  # fmt: skip
+    run.pop("refit_of", None)
+    folder = RunFolder(out)
+    with folder.locked():
+        folder.recover()
+        if (out / RUN_FILE).exists():
+            raise ValueError(f"{out} already holds a run; choose another --out")
+        writers = {name: (lambda p, f=f: p.write_bytes(f.read_bytes())) for name, f in copies.items()}
+        folder.commit({**writers, RUN_FILE: lambda p: _write_run(p, run)}, {"algo": ALGO, "iterations": 0})
+    log(f"ensemble of {len(copies)} students from {len(sources)} runs: val ratio {score:.3f} {_fmt(ratio)}")
+    return out
+
+
 class Validation:
     """Closed-loop scores on the validation trials (seeds ``val_seeds`` of every scenario): per scenario the
     ratio of the mean RMSE to the continuation rule's, and their mean over scenarios (the score; lower is better)."""

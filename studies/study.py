@@ -152,7 +152,23 @@ def table(study: Study, per_trial: dict[str, dict[str, list[float]]], agents: li
             r_, a_, o_ = (float(np.mean(res[m])) for m in (ref, labels[0], study.oracle))
             captured = f"{(r_ - a_) / (r_ - o_):.2f}"
         lines.append(f"| {group} | {ref} | " + " | ".join(cells) + f" | {captured} |")
-    return lines
+    return lines + pooled(study, per_trial, labels)
+
+
+def pooled(study: Study, per_trial: dict[str, dict[str, list[float]]], labels: list[str]) -> list[str]:
+    """Each agent's paired ratio to the reference over the trials of every simulated test together (one score
+    per agent, e.g. for a choice on validation seeds); nothing for fewer than two tests."""
+    from magenv.stats import paired_ratio
+
+    groups = [g for g in per_trial if g != RECORDINGS]
+    if len(groups) < 2:
+        return []
+    refs = np.concatenate([per_trial[g][study.reference_of(g)] for g in groups])
+    out = ["", f"over all {len(refs)} trials of {', '.join(groups)}, paired ratio to the reference:"]
+    for label in labels:
+        pr = paired_ratio(np.concatenate([per_trial[g][label] for g in groups]), refs)
+        out.append(f"- {label}: {pr.ratio_text()}")
+    return out
 
 
 def main(study: Study, argv: list[str] | None = None) -> int:

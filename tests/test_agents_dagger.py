@@ -591,3 +591,43 @@ def test_a_second_run_into_a_locked_folder_stops_at_once_and_a_killed_step_leave
     } == before
     dagger.train(out, teacher, {"iterations": 3}, log=lambda s: None, resume=True)
     assert json.loads((out / "state.json").read_text())["iterations"] == 3
+
+
+def test_combining_runs_makes_one_ensemble_of_their_students(run_dir, tmp_path, capsys):
+    """``magenv train --teacher T --combine RUN …``: every run's own student (an ensemble's members, else its best)
+    copied and averaged, scored on the given validation seeds; runs whose students differ, an unguarded
+    ``--disagree`` and an occupied ``--out`` are refused before anything is written."""
+    import shutil
+
+    other = tmp_path / "other"
+    shutil.copytree(run_dir, other)
+    dagger.add_ensemble(other, registry.make("oracle"), 2, log=lambda s: None)
+    out = tmp_path / "combined"
+    args = ["train", "--teacher", "oracle", "--combine", str(run_dir), str(other), "--eval-seeds", "5002:5003"]
+    assert main([*args, "--out", str(out)]) == 0
+    run = yaml.safe_load((out / "run.yaml").read_text())
+    entry = run["ensemble"]
+    assert entry["combined_of"] == [str(run_dir.resolve()), str(other.resolve())]
+    assert run["config"]["val_seeds"] == [5002, 5003] and entry["val_ratio"] > 0
+    sources = [run_dir / "best.safetensors"] + [other / m for m in yaml.safe_load((other / "run.yaml").read_text())
+                                                ["ensemble"]["members"]]  # fmt: skip
+    assert [(out / m).read_bytes() for m in entry["members"]] == [s.read_bytes() for s in sources]
+    policy = load_agent(out)
+    assert isinstance(policy.student, dagger.Ensemble) and len(policy.student.members) == 3
+    x = np.random.default_rng(1).normal(size=(3, run["student"]["n_inputs"])).astype(np.float32)
+    mean = np.mean([m.probabilities(x) for m in policy.student.members], axis=0)
+    np.testing.assert_allclose(policy.student.probabilities(x), mean, rtol=1e-6)
+    wider = tmp_path / "wider"
+    shutil.copytree(run_dir, wider)
+    changed = yaml.safe_load((wider / "run.yaml").read_text())
+    changed["student"]["hidden"] = [16]
+    (wider / "run.yaml").write_text(yaml.safe_dump(changed))
+    for extra, message in (
+        (["--combine", str(run_dir), str(wider), "--out", str(tmp_path / "a")], "student differs"),
+        (["--combine", str(run_dir), str(other), "--disagree", "0.5", "--out", str(tmp_path / "b")], "guarded"),
+        (["--combine", str(run_dir), str(other), "--out", str(out)], "already holds a run"),
+        (["--combine", str(run_dir), "--out", str(tmp_path / "c")], "at least 2 runs"),
+    ):
+        assert main(["train", "--teacher", "oracle", *extra]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists() and not (tmp_path / "c").exists()

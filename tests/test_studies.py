@@ -47,6 +47,18 @@ def test_table_pairs_each_agent_with_the_reference_of_its_test_and_the_same_info
     assert cells[8].startswith("0.500 [0.500, 0.500]") and cells[10].startswith("1.000")  # agent / rule, / still
 
 
+def test_pooled_ratio_pairs_every_simulated_trial_with_its_own_tests_reference():
+    per_trial = {
+        "dynamic_magnet": {"kf_model_tuned": [2.0, 4.0], "agent": [1.0, 4.0]},
+        "stationary_magnet": {"kf_adaptive_tuned": [1.0, 1.0], "kf_model_tuned": [9.0, 9.0], "agent": [2.0, 0.5]},
+        RECORDINGS: {"kf_model_tuned": [1.0], "agent": [100.0]},  # not pooled
+    }
+    lines = table(kalman.STUDY, per_trial, ["pretrained:magenv/MagKalman-v0"])
+    assert lines[-2].startswith("over all 4 trials of dynamic_magnet, stationary_magnet")
+    assert lines[-1].startswith("- agent: 0.841 [")  # (0.5 · 1 · 2 · 0.5)^(1/4), not against kf_model_tuned
+    assert table(kalman.STUDY, {"dynamic_magnet": per_trial["dynamic_magnet"]}, ["x"])[-1].startswith("| dynamic")
+
+
 def test_a_short_study_runs_end_to_end(capsys):
     assert main(blend.STUDY, ["--seeds", "0", "--duration", "2", "--no-oracle", "--scenarios", "dynamic_magnet"]) == 0
     out = capsys.readouterr().out

@@ -10,10 +10,11 @@ id, default ``agents/configs/dagger.yaml``; ``--iters`` overrides its iterations
 the DAgger run in ``--out`` with its own config up to ``--iters`` iterations in all; ``--refit SOURCE``
 fits one fresh student on all of the finished run SOURCE's labelled data into ``--out``, with the fit keys
 of ``--config``'s section — only ``dagger.REFIT_KEYS``, e.g. ``hidden``, ``fit_steps`` — replacing
-SOURCE's); ``--cv recordings [--folds K]`` runs leave-recordings-out cross-validation instead
-(``magenv.agents.dagger_cv``: K runs ``--out/foldF``, each without one group of the config's real
-recordings and their twins, scored on those; ``--out/cv.csv``); the run folder is loadable with
-``--agent RUN`` like any other.
+SOURCE's); ``--combine RUN …`` makes one ensemble of the students of finished runs of the teacher, scored on
+``--eval-seeds`` (``dagger.combine``); ``--cv recordings [--folds K]`` runs leave-recordings-out
+cross-validation instead (``magenv.agents.dagger_cv``: K runs ``--out/foldF``, each without one group of
+the config's real recordings and their twins, scored on those; ``--out/cv.csv``); the run folder is loadable
+with ``--agent RUN`` like any other.
 
 Progress bar, TensorBoard logs (``runs/NAME/tb``), periodic evaluation on
 held-out trials with the best model kept, checkpoints, and resume: running
@@ -131,6 +132,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--out/cv.csv)",
     )
     p.add_argument("--folds", type=rule_arg(POSITIVE_INT), default=3, help="with --cv: number of folds (default 3)")
+    p.add_argument(
+        "--combine",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="RUN",
+        help="with --teacher: one student from the finished DAgger runs RUN …, their students as one ensemble, "
+        "scored on --eval-seeds (choose seeds no run was selected on)",
+    )
+    p.add_argument(
+        "--disagree",
+        type=float,
+        default=None,
+        help="with --combine: the guard's disagreement limit (default: the runs' own)",
+    )
 
 
 def run_dagger(args: argparse.Namespace) -> int:
@@ -167,7 +183,16 @@ def run_dagger(args: argparse.Namespace) -> int:
 
     if args.cv is not None and (args.resume or args.refit is not None):
         raise CommandError("--cv runs (and resumes) its folds itself; drop --resume and --refit")
+    if args.combine is not None and (args.resume or args.refit is not None or args.cv is not None or args.config):
+        raise CommandError("--combine takes finished runs as they are; drop --resume, --refit, --cv and --config")
     try:
+        if args.combine is not None:
+            changes = {"val_seeds": config["val_seeds"]} if args.eval_seeds is not None else {}
+            if args.eval_scenarios is not None:
+                changes["val_scenarios"] = args.eval_scenarios.split(",")
+            out = dagger.combine(args.combine, args.out, teacher, changes, args.disagree, log)
+            print(f"DAgger run in {out}; its student: {dagger.load_policy(out).source}")
+            return 0
         if args.cv is not None:
             from magenv.agents.dagger_cv import cross_validate
 
@@ -199,8 +224,8 @@ def run(args: argparse.Namespace) -> int:
         return run_dagger(args)
     if args.resume:
         raise CommandError("--resume continues a DAgger run: give its --teacher too")
-    if args.refit is not None:
-        raise CommandError("--refit refits a DAgger run: give its --teacher too")
+    if args.refit is not None or args.combine is not None:
+        raise CommandError("--refit and --combine take DAgger runs: give their --teacher too")
     args.env = args.env or BLEND_ID
     if args.env not in gym.registry:
         known = ", ".join(k for k in gym.registry if k.startswith("magenv/"))
