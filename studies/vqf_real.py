@@ -101,6 +101,26 @@ def table(scores: dict[str, dict[str, float]], names: list[str]) -> list[str]:
     return lines
 
 
+def recordings_needed(scores: dict[str, dict[str, float]], a: str, b: str, effect: float = 0.9) -> tuple[float, int]:
+    """(σ, n): the spread σ of the per-recording log ratios of ``a`` to ``b`` (sample SD) and the recordings n
+    that a 95 % interval of their geometric mean needs to exclude a tie when the true ratio is ``effect``:
+    n = (1.96 σ / |ln effect|)² (the normal approximation)."""
+    recs = list(scores[a])
+    sigma = float(np.std(np.log([scores[a][r] / scores[b][r] for r in recs]), ddof=1))
+    return sigma, int(np.ceil((1.96 * sigma / abs(np.log(effect))) ** 2))
+
+
+def power_lines(scores: dict[str, dict[str, float]], agents: list[str], rule: str = "vqf_fan_rejection_tuned"):
+    """For each pair of the agents and ``rule``: how many recordings would tell a 10 % difference."""
+    names = [n for n in [*agents, rule] if n in scores]
+    lines = ["", "recordings a paired 95 % interval needs to show a 10 % difference (spread σ of the log ratios):"]
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            sigma, n = recordings_needed(scores, a, b)
+            lines.append(f"- {a} / {b}: σ {sigma:.2f}, {n} recordings")
+    return lines if len(scores[REFERENCE]) > 2 and len(names) > 1 else []
+
+
 def main(argv: list[str] | None = None) -> int:
     import magenv  # noqa: F401  (registers the envs)
     from magenv import registry
@@ -141,7 +161,11 @@ def main(argv: list[str] | None = None) -> int:
         scores[f"{run} (held out)"] = {t.name: held[t.name] for t in trials}
     names = list(scores)
     print(f"MagVQF-v0 on {len(trials)} recordings; total RMSE ° · per-recording ratio to vqf (geometric mean)")
-    print("\n".join(table(scores, names)))
+    print(
+        "\n".join(
+            table(scores, names) + power_lines(scores, [*agents, *(n for n in names if n.endswith("(held out)"))])
+        )
+    )
     for a in agents:
         student = getattr(methods[a], "student", None)
         if getattr(student, "decisions", 0):

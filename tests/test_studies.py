@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from studies import blend, constraint, kalman, qsf, vqf
@@ -83,3 +84,15 @@ def test_the_real_vqf_table_groups_the_recordings_and_names_the_worst():
     cells = row.split(" | ")
     assert cells[1].startswith("3.50 · 0.87 [") and cells[2] == "0.50 · 0.50"  # magnet: √(0.5·1.5); undisturbed
     assert any(line.startswith("agent / vqf_fan_lambda_tuned on the magnet recordings: 1.73") for line in lines)
+
+
+def test_recordings_needed_grows_with_the_spread_of_the_per_recording_ratios():
+    from studies import vqf_real
+
+    ratios = np.exp([0.2, -0.2, 0.2, -0.2])  # log ratios of SD 0.2309
+    scores = {"vqf": dict.fromkeys("abcd", 1.0), "x": dict(zip("abcd", ratios)), "y": dict.fromkeys("abcd", 1.0)}
+    sigma, n = vqf_real.recordings_needed(scores, "x", "y")
+    assert sigma == pytest.approx(0.2309, abs=1e-4) and n == 19  # (1.96 · 0.2309 / ln(1/0.9))² = 18.2
+    lines = vqf_real.power_lines(scores, ["x"], rule="y")
+    assert lines[-1] == "- x / y: σ 0.23, 19 recordings"
+    assert vqf_real.power_lines(scores, ["x"], rule="z") == []  # nothing to pair x with
