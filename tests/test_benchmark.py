@@ -264,6 +264,38 @@ def test_runs_not_yet_scored_are_named_and_a_bad_kept_score_is_scored_again(tmp_
     assert benchmark.kept_rows(tmp_path, records[0], Refs()) is None
 
 
+def test_a_run_is_scored_only_on_the_tasks_it_has_no_kept_rows_for(tmp_path, monkeypatch):
+    """A task skipped before (the recordings track without recordings) is scored once alone, then kept."""
+    from types import SimpleNamespace
+
+    import magenv.agents.loading
+
+    env_id = suite.VQF.env_id
+    tasks = [t for t in suite.TASKS if t.env_id == env_id]
+    record = {"name": "run-v", "run_dir": "nowhere", "run": {"env_id": env_id, "algo": "ppo", "seed": 3}}
+
+    class Refs:
+        key = "k"
+
+    keep, stamp = benchmark._kept(tmp_path, record)
+    keep.parent.mkdir()
+    first = [{"task": t.name, "rmse": 1.0} for t in tasks[:-1]]
+    keep.write_text(json.dumps({"stamp": stamp, "suite": suite.VERSION, "refs": "k", "rows": first}))
+    asked = []
+
+    def score_policy(policy, todo, seeds, duration, refs, log):
+        asked.append([t.name for t in todo])
+        return [SimpleNamespace(task=t.name, agent=[2.0], normalised=None) for t in todo], []
+
+    monkeypatch.setattr(benchmark, "score_policy", score_policy)
+    monkeypatch.setattr(magenv.agents.loading, "load_agent", lambda run_dir: "policy")
+    rows = benchmark._run_scores(tmp_path, record, list(suite.TASKS), Refs())
+    assert asked == [[tasks[-1].name]] and [r["task"] for r in rows] == [t.name for t in tasks]
+    assert rows[-1]["rmse"] == 2.0 and rows[-1]["seed"] == 3 and rows[0] == first[0]
+    assert benchmark.kept_rows(tmp_path, record, Refs()) == rows
+    assert benchmark._run_scores(tmp_path, record, list(suite.TASKS), Refs()) == rows and len(asked) == 1
+
+
 def test_scored_only_goes_with_sweep(capsys):
     assert cli(["benchmark", "--summary", "x.json", "--scored-only"]) == 2
     assert "--scored-only goes with --sweep" in capsys.readouterr().err

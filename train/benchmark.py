@@ -428,20 +428,24 @@ def kept_rows(sweep: Path, record: dict, refs: References) -> list[dict] | None:
 
 
 def _run_scores(sweep: Path, record: dict, tasks, refs: References) -> list[dict]:
-    """Rows of one finished run on its env's tasks (kept in SWEEP/benchmark/NAME.json for the next call)."""
+    """Rows of one finished run on its env's tasks, kept in SWEEP/benchmark/NAME.json for the next call: only the
+    tasks without kept rows are scored (a task skipped before — the recordings track where the recordings were
+    missing — is scored once they are there)."""
     from magenv.agents.loading import load_agent
     from magenv.benchmark import suite
 
-    rows = kept_rows(sweep, record, refs)
-    if rows is not None:
-        return rows
+    spec = record["run"]
+    kept = kept_rows(sweep, record, refs) or []
+    todo = [t for t in tasks if t.env_id == spec["env_id"] and t.name not in {r["task"] for r in kept}]
+    if not todo:
+        return kept
     name = record["name"]
     keep, stamp = _kept(sweep, record)
     policy = load_agent(record["run_dir"])
-    spec = record["run"]
-    scores, _ = score_policy(policy, [t for t in tasks if t.env_id == spec["env_id"]], list(suite.EVAL_SEEDS), None,
-                             refs, log=lambda line: print(f"  {name} {line}", flush=True))  # fmt: skip
-    rows = [
+    scores, _ = score_policy(policy, todo, list(suite.EVAL_SEEDS), None, refs,
+                             log=lambda line: print(f"  {name} {line}", flush=True))  # fmt: skip
+    order = [t.name for t in tasks]
+    rows = kept + [
         {
             "env": spec["env_id"],
             "task": s.task,
@@ -453,6 +457,7 @@ def _run_scores(sweep: Path, record: dict, tasks, refs: References) -> list[dict
         }
         for s in scores
     ]
+    rows.sort(key=lambda row: order.index(row["task"]))
     write_atomic(keep, json.dumps({"stamp": stamp, "suite": suite.VERSION, "refs": refs.key, "rows": rows}))
     return rows
 
