@@ -125,7 +125,8 @@ def read_run(run_dir: str | Path) -> dict:
 class AgentPolicy:
     """A trained SB3 agent acting on observations (deterministic actions).
 
-    Follows ``magenv.protocols.Policy``; recurrent agents keep their LSTM
+    Follows ``magenv.protocols.BatchPolicy``: ``act_batch`` acts for n envs in one forward of the network
+    (each env's LSTM state in ``state`` for a recurrent agent), ``policy(obs)`` for one env, keeping its LSTM
     state between calls until ``reset()``. Agents act in [-1, 1] (see
     ``magenv.agents.wrappers.normalized_actions``); ``action_bounds`` = (low, high)
     of the env's action space maps their actions back. ``source`` is the file
@@ -145,17 +146,21 @@ class AgentPolicy:
 
     def reset(self) -> None:
         self._state = None
-        self._episode_start = np.ones((1,), dtype=bool)
 
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        action, self._state = self.model.predict(
-            obs, state=self._state, episode_start=self._episode_start, deterministic=True
-        )
-        self._episode_start = np.zeros((1,), dtype=bool)
+    def act_batch(self, obs: np.ndarray, state=None) -> tuple[np.ndarray, tuple]:
+        """(actions (n, d), state) for observations (n, …) of n envs; ``state`` None at every env's first
+        observation, else the state the previous call returned (the LSTM states of a recurrent agent)."""
+        obs = np.asarray(obs)
+        memory, start = (None, np.ones(len(obs), bool)) if state is None else state
+        action, memory = self.model.predict(obs, state=memory, episode_start=start, deterministic=True)
         if self._bounds is not None:
             low, high = self._bounds
             action = low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
-        return action
+        return action, (memory, np.zeros(len(obs), bool))
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        action, self._state = self.act_batch(np.asarray(obs)[None], self._state)
+        return action[0]
 
 
 def _spaces_env(env_id: str, env_kwargs: dict, n_envs: int):
