@@ -86,11 +86,13 @@ def main() -> None:
                 results[way].append((wall, cpu, rmse))
                 print(f"  round {r + 1} {way:>10}: {wall:7.1f} s wall, {cpu:7.1f} s CPU, load {os.getloadavg()[0]:.1f}")
         ref = results["before"][0][2]
-        median = {way: float(np.median([w for w, _, _ in rows])) for way, rows in results.items()}
+        wall = {way: float(np.median([w for w, _, _ in rows])) for way, rows in results.items()}
+        cpu = {way: float(np.median([c for _, c, _ in rows])) for way, rows in results.items()}
         for way, rows in results.items():
             diff = max(float(np.max(np.abs(x - ref) / ref)) for _, _, x in rows)
-            print(f"  {way:>10}: median {median[way]:7.1f} s wall per task, max relative score difference {diff:.1e}")
-        print(f"  before / after: {median['before'] / median['after']:.0f}× (wall)")
+            print(f"  {way:>10}: median {wall[way]:7.1f} s wall, {cpu[way]:7.1f} s CPU per task; "
+                  f"largest relative score difference {diff:.1e}")  # fmt: skip
+        print(f"  before / after: {wall['before'] / wall['after']:.0f}× wall, {cpu['before'] / cpu['after']:.0f}× CPU")
 
 
 if __name__ == "__main__":

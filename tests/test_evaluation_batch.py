@@ -1,0 +1,111 @@
+"""A trained agent (``magenv.protocols.BatchPolicy``) scores on trials run together as on each trial alone.
+
+``magenv.evaluation`` runs an SB3 agent on all the trials of a call at once: one env per trial, one
+``act_batch`` (one ``model.predict``) per decision for every env, each env until its own trial's end. Its
+scores must be those of the agent run on one trial after the other. They agree to ``REL``, not bit for bit: a
+network's forward on n rows may round its float32 actions differently from n forwards of one row (BLAS picks
+other kernels), and an action that differs in its last bit (relative 6e-8) moves a trial's RMSE by about as
+much; a wrong LSTM state, episode start or trial order moves it by orders of magnitude more.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magenv import evaluation
+from magenv.agents.hyperparams import check_section
+from magenv.agents.loading import AgentPolicy, build_model
+from magenv.agents.wrappers import action_bounds
+from magenv.protocols import BatchPolicy
+from magenv.scenarios import make_trial
+
+ENV = "magenv/MagBlend-v0"
+REL = 1e-6  # relative agreement of the scores (module docstring)
+SECTIONS = {
+    "ppo": {"n_envs": 1, "n_steps": 64, "batch_size": 64},
+    "recurrent_ppo": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "policy_kwargs": {"lstm_hidden_size": 8}},
+}
+
+
+def fresh_agent(algo: str) -> AgentPolicy:
+    """A freshly initialised agent (seed 0) whose action layer is scaled up, so that its λ swings with the
+    observation (and, recurrent, with its memory) over the whole [0, 1]."""
+    section = check_section(algo, {"env_kwargs": {}, **SECTIONS[algo]}, "test")
+    run = {"env_id": ENV, "algo": algo, "env_kwargs": {}, "hyperparams": section}
+    model = build_model(run, seed=0)
+    for p in model.policy.action_net.parameters():
+        p.data *= 30.0
+    return AgentPolicy(model, ENV, {}, f"fresh {algo}", action_bounds(ENV, {}))
+
+
+class OneAtATime:
+    """The agent's network acting on one observation at a time through SB3's own ``predict`` (its memory
+    carried from call to call, as SB3 documents), with no ``act_batch``: run one trial after the other."""
+
+    def __init__(self, agent: AgentPolicy):
+        self.model, self.env_id, self.env_kwargs = agent.model, agent.env_id, agent.env_kwargs
+        self.low, self.high = (np.asarray(b, np.float32) for b in action_bounds(ENV, {}))
+
+    def reset(self) -> None:
+        self.state, self.start = None, np.ones(1, bool)
+
+    def __call__(self, obs):
+        action, self.state = self.model.predict(obs, state=self.state, episode_start=self.start, deterministic=True)
+        self.start = np.zeros(1, bool)
+        return self.low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (self.high - self.low)
+
+
+@pytest.fixture(scope="module")
+def trials():
+    """Trials of different lengths (their envs end at different decisions) and kinds."""
+    return [
+        make_trial("dynamic_magnet", 4000, duration=6.0),
+        make_trial("stationary_magnet", 4001, duration=4.0),
+        make_trial("dynamic_magnet", 4002, duration=5.0),
+        make_trial("dynamic_clean", 4003, duration=3.0),
+    ]
+
+
+@pytest.mark.parametrize("algo", sorted(SECTIONS))
+def test_trials_run_together_score_as_one_after_the_other(algo, trials):
+    agent = fresh_agent(algo)
+    assert isinstance(agent, BatchPolicy) and not isinstance(OneAtATime(agent), BatchPolicy)
+    together = evaluation.run_policy_on_trials(agent, trials)
+    alone = evaluation.run_policy_on_trials(OneAtATime(agent), trials)
+    for a, b in zip(together, alone):
+        for part in ("total", "heading", "inclination"):
+            assert getattr(a, part) == pytest.approx(getattr(b, part), rel=REL, abs=0.0)
+    totals = [s.total for s in alone]
+    assert len(set(totals)) == len(totals)  # each trial its own score (a mix-up of trials would show)
+
+
+def test_one_predict_per_decision_for_all_trials(trials):
+    agent = fresh_agent("recurrent_ppo")
+    calls = []
+    predict = agent.model.predict
+
+    def counted(obs, **kwargs):
+        calls.append(len(obs))
+        return predict(obs, **kwargs)
+
+    agent.model.predict = counted  # type: ignore[method-assign]
+    runs = evaluation.evaluate({"agent": agent}, trials)
+    decisions = -(-max(t.n for t in trials) // 8)  # MagBlend-v0 decides every 8 samples
+    assert calls == [len(trials)] * decisions
+    assert [r.trial.name for r in runs] == [t.name for t in trials]
+    assert all(r.q is not None and r.q.shape == (t.n, 4) and r.lam is not None for r, t in zip(runs, trials))
+
+
+def test_a_trial_that_diverges_leaves_the_others_scored(trials):
+    """A trial whose estimate turns non-finite (NaN gyroscope samples) scores 180° (``DIVERGED_SCORE``); the
+    trials run with it score as alone."""
+    agent = fresh_agent("ppo")
+    bad = make_trial("dynamic_clean", 4004, duration=3.0)
+    bad.gyr = bad.gyr.copy()
+    bad.gyr[100:] = np.nan
+    runs = evaluation.evaluate({"agent": agent}, [trials[0], bad, trials[1]])
+    assert runs[1].diverged and runs[1].score == evaluation.DIVERGED_SCORE
+    assert runs[0].diverged is None and runs[2].diverged is None
+    alone = evaluation.run_policy_on_trials(OneAtATime(agent), [trials[0], trials[1]])
+    assert [runs[0].scored.total, runs[2].scored.total] == pytest.approx([s.total for s in alone], rel=REL)
