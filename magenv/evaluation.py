@@ -5,8 +5,10 @@ named by its ``env_id``, on observations only) or an **Estimator**
 (``run(trial) -> Estimate``). Methods come in as objects (a dict name →
 method); only ``magenv.registry`` turns names into methods. A policy is run on a given Trial by
 ``env.reset(options={"trial": trial})`` and stepped to the end of the trial;
-its estimate is the env's per-sample estimate. Scores are RMSEs (degrees)
-over the trial's ``score_mask`` (``magenv.metrics.score``).
+its estimate is the env's per-sample estimate. A ``BatchPolicy`` (a trained agent) runs on all the trials
+of a call together: one env per trial, one ``act_batch`` (one network forward) per decision for all the envs,
+each env to its own trial's end (:meth:`PolicyRunner.run_all`); other methods run one trial after the other.
+Scores are RMSEs (degrees) over the trial's ``score_mask`` (``magenv.metrics.score``).
 
 Python use::
 

@@ -28,7 +28,8 @@ its env's tasks and writes OUT/baselines.csv (env, task, method, training seed, 
 OUT/baselines.png and OUT/index.md (the protocol, the table with the number of training seeds finished of each
 cell, the aggregates); a run's scores are kept beside it (``SWEEP/benchmark/NAME.json``, written whole) for the
 next call. ``--scored-only`` scores nothing new: the table holds the runs scored before and names the finished
-runs that are not (scoring a recurrent agent takes long).
+runs that are not. An SB3 agent acts on a task's trials together (``magenv.evaluation``: one network forward per
+decision for all), with torch on one thread.
 
 ``--summary`` prints one Markdown table of the tasks of score cards (``card.json`` files, read as JSON only): per
 task the rule, the ratio agent / rule and the normalised score with their 95 % intervals, and the worst trial's
