@@ -145,7 +145,7 @@ class AgentPolicy:
         self.reset()
 
     def reset(self) -> None:
-        self._state = None
+        self._state: tuple | None = None
 
     def act_batch(self, obs: np.ndarray, state=None) -> tuple[np.ndarray, tuple]:
         """(actions (n, d), state) for observations (n, …) of n envs; ``state`` None at every env's first

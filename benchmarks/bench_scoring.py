@@ -86,13 +86,14 @@ def main() -> None:
                 results[way].append((wall, cpu, rmse))
                 print(f"  round {r + 1} {way:>10}: {wall:7.1f} s wall, {cpu:7.1f} s CPU, load {os.getloadavg()[0]:.1f}")
         ref = results["before"][0][2]
-        wall = {way: float(np.median([w for w, _, _ in rows])) for way, rows in results.items()}
-        cpu = {way: float(np.median([c for _, c, _ in rows])) for way, rows in results.items()}
+        walls = {way: float(np.median([w for w, _, _ in rows])) for way, rows in results.items()}
+        cpus = {way: float(np.median([c for _, c, _ in rows])) for way, rows in results.items()}
         for way, rows in results.items():
             diff = max(float(np.max(np.abs(x - ref) / ref)) for _, _, x in rows)
-            print(f"  {way:>10}: median {wall[way]:7.1f} s wall, {cpu[way]:7.1f} s CPU per task; "
+            print(f"  {way:>10}: median {walls[way]:7.1f} s wall, {cpus[way]:7.1f} s CPU per task; "
                   f"largest relative score difference {diff:.1e}")  # fmt: skip
-        print(f"  before / after: {wall['before'] / wall['after']:.0f}× wall, {cpu['before'] / cpu['after']:.0f}× CPU")
+        ratio = walls["before"] / walls["after"], cpus["before"] / cpus["after"]
+        print(f"  before / after: {ratio[0]:.0f}× wall, {ratio[1]:.0f}× CPU")
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ import csv
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -102,6 +102,8 @@ def trial_label(trial: Trial) -> str:
     return str(trial.meta.get(META_SCENARIO, trial.name))
 
 
+#: trials a BatchPolicy runs together at most (one env each, with its per-sample histories)
+MAX_TOGETHER = 64
 #: what running a method on one trial gives: (estimate (N, 4), λ (N,) or None, trust (N,) or None), or the
 #: exception that stopped it on that trial
 Outcome = tuple[np.ndarray, np.ndarray | None, np.ndarray | None] | Exception
@@ -136,11 +138,13 @@ class PolicyRunner:
         return self.envs(policy, trial, 1, render_mode)[0]
 
     def run_all(self, policy, trials: Sequence[Trial]) -> list[Outcome]:
-        """``policy`` over each whole trial: its :data:`Outcome` per trial. A ``BatchPolicy`` runs all the trials
-        together, one env each and one ``act_batch`` call per decision for all; any other policy one trial after
-        the other (it has one memory, ``reset()`` before each trial)."""
+        """``policy`` over each whole trial: its :data:`Outcome` per trial. A ``BatchPolicy`` runs the trials
+        together (up to ``MAX_TOGETHER`` at a time), one env each and one ``act_batch`` call per decision for all;
+        any other policy one trial after the other (it has one memory, ``reset()`` before each trial)."""
+        trials = list(trials)
         if isinstance(policy, BatchPolicy):
-            return self._together(policy, list(trials), batch=True)
+            chunks = [trials[k : k + MAX_TOGETHER] for k in range(0, len(trials), MAX_TOGETHER)]
+            return [out for chunk in chunks for out in self._together(policy, chunk, batch=True)]
         return [out for t in trials for out in self._together(policy, [t], batch=False)]
 
     def run(self, policy, trial: Trial) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -159,11 +163,11 @@ class PolicyRunner:
         envs = self.envs(policy, trials[0], len(trials))
         out: list[Outcome | None] = [None] * len(trials)
         obs: list = [np.zeros(envs[0].observation_space.shape, envs[0].observation_space.dtype)] * len(trials)
-        for i, (env, trial) in enumerate(zip(envs, trials)):
+        for k, (env, trial) in enumerate(zip(envs, trials)):
             try:
-                obs[i], _ = env.reset(seed=0, options={"trial": trial})
+                obs[k], _ = env.reset(seed=0, options={"trial": trial})
             except Exception as exc:  # this trial cannot run: the others go on
-                out[i] = exc
+                out[k] = exc
         running = np.array([o is None for o in out])
         state = None
         if not batch:
@@ -186,7 +190,7 @@ class PolicyRunner:
                     continue
                 if terminated or truncated:
                     out[i], running[i] = _outcome(envs[i]), False
-        return out  # type: ignore[return-value]  (every entry set)
+        return cast(list[Outcome], out)  # every entry set
 
     def record(self, policy, trial: Trial, path: str | Path) -> Path:
         """Run ``policy`` over ``trial`` with ``render_mode="rgb_array"`` and write one frame per step to the MP4

@@ -22,7 +22,7 @@ from magenv.scenarios import make_trial
 
 ENV = "magenv/MagBlend-v0"
 REL = 1e-6  # relative agreement of the scores (module docstring)
-SECTIONS = {
+SECTIONS: dict[str, dict] = {
     "ppo": {"n_envs": 1, "n_steps": 64, "batch_size": 64},
     "recurrent_ppo": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "policy_kwargs": {"lstm_hidden_size": 8}},
 }
@@ -89,7 +89,7 @@ def test_one_predict_per_decision_for_all_trials(trials):
         calls.append(len(obs))
         return predict(obs, **kwargs)
 
-    agent.model.predict = counted  # type: ignore[method-assign]
+    agent.model.predict = counted
     runs = evaluation.evaluate({"agent": agent}, trials)
     decisions = -(-max(t.n for t in trials) // 8)  # MagBlend-v0 decides every 8 samples
     assert calls == [len(trials)] * decisions

@@ -707,8 +707,8 @@ def run_summary(args: argparse.Namespace) -> int:
 
 
 def one_torch_thread() -> None:
-    """Agents act with torch on ``TORCH_THREADS`` (one): on the loaded machine a recurrent agent's decisions took
-    25× longer on torch's default two threads (``benchmarks/bench_scoring.py``)."""
+    """Agents act with torch on ``TORCH_THREADS`` (one): their small networks' decisions take many times longer
+    on torch's default threads of a loaded machine (``benchmarks/bench_scoring.py``)."""
     import torch
 
     from magenv.agents.training import TORCH_THREADS
