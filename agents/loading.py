@@ -45,6 +45,9 @@ RUN_FILE = "run.yaml"
 PRETRAINED_PREFIX = "pretrained:"
 WEIGHTS = {"best": "best.safetensors", "last": "last.safetensors"}
 NO_ENV = "a loaded agent acts on observations; it has no env of its own to step"
+#: Observations per forward of an agent's network (``AgentPolicy.act_batch``). BLAS rounds a product by its
+#: shape: one fixed shape makes an env's actions independent of the other envs acting with it.
+FORWARD_ROWS = 32
 SB3_EXPORTS = {"best": "best_model.zip", "last": "last_model.zip"}
 
 __all__ = [
@@ -149,14 +152,28 @@ class AgentPolicy:
 
     def act_batch(self, obs: np.ndarray, state=None) -> tuple[np.ndarray, tuple]:
         """(actions (n, d), state) for observations (n, …) of n envs; ``state`` None at every env's first
-        observation, else the state the previous call returned (the LSTM states of a recurrent agent)."""
+        observation, else the state the previous call returned (the LSTM states of a recurrent agent). The
+        network acts on blocks of ``FORWARD_ROWS`` observations (the last padded), so an env's actions are the
+        same bit for bit whichever and however many envs act with it."""
         obs = np.asarray(obs)
-        memory, start = (None, np.ones(len(obs), bool)) if state is None else state
-        action, memory = self.model.predict(obs, state=memory, episode_start=start, deterministic=True)
+        n = len(obs)
+        blocks = -(-n // FORWARD_ROWS)
+        padded = np.zeros((blocks * FORWARD_ROWS, *obs.shape[1:]), obs.dtype)
+        padded[:n] = obs
+        memories, start = ([None] * blocks, np.ones(len(padded), bool)) if state is None else state
+        actions, after = [], []
+        for b, memory in enumerate(memories):
+            rows = slice(b * FORWARD_ROWS, (b + 1) * FORWARD_ROWS)
+            action, memory = self.model.predict(
+                padded[rows], state=memory, episode_start=start[rows], deterministic=True
+            )
+            actions.append(action)
+            after.append(memory)
+        action = np.concatenate(actions)[:n]
         if self._bounds is not None:
             low, high = self._bounds
             action = low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
-        return action, (memory, np.zeros(len(obs), bool))
+        return action, (after, np.zeros(len(padded), bool))
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         action, self._state = self.act_batch(np.asarray(obs)[None], self._state)
