@@ -586,6 +586,12 @@ def index_markdown(
         "that the 100 runs train within a day on two free cores: the cost table below says how far the runs "
         "measured so far bear that out) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark`.",
         "",
+        "Scoring an SB3 run: the agent acts on a task's trials together, one env per trial and one forward of its "
+        "network per decision for all (`magenv.evaluation`), with torch on one thread; the same scores as trial "
+        "by trial, bit for bit. On the loaded two-core machine a RecurrentPPO run took SCORE_RPPO s per task "
+        "instead of BEFORE_RPPO s, a PPO run SCORE_PPO s instead of BEFORE_PPO s (MagBlend-v0/dynamic_magnet; "
+        "`python benchmarks/bench_scoring.py --agent RUN`). DAgger students and callables act trial by trial.",
+        "",
         (
             f"**{len(records)} of {n_planned} runs finished and scored**"
             if not unscored
