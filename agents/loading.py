@@ -46,7 +46,8 @@ PRETRAINED_PREFIX = "pretrained:"
 WEIGHTS = {"best": "best.safetensors", "last": "last.safetensors"}
 NO_ENV = "a loaded agent acts on observations; it has no env of its own to step"
 #: Observations per forward of an agent's network (``AgentPolicy.act_batch``). BLAS rounds a product by its
-#: shape: one fixed shape makes an env's actions independent of the other envs acting with it.
+#: shape, and within one shape each row's result depends on that row alone: one fixed shape makes an env's
+#: actions independent of the other envs acting with it (``tests/test_evaluation_batch.py``).
 FORWARD_ROWS = 32
 SB3_EXPORTS = {"best": "best_model.zip", "last": "last_model.zip"}
 
@@ -128,9 +129,9 @@ def read_run(run_dir: str | Path) -> dict:
 class AgentPolicy:
     """A trained SB3 agent acting on observations (deterministic actions).
 
-    Follows ``magenv.protocols.BatchPolicy``: ``act_batch`` acts for n envs in one forward of the network
-    (each env's LSTM state in ``state`` for a recurrent agent), ``policy(obs)`` for one env, keeping its LSTM
-    state between calls until ``reset()``. Agents act in [-1, 1] (see
+    Follows ``magenv.protocols.BatchPolicy``: ``act_batch`` acts for n envs in one forward of the network per
+    ``FORWARD_ROWS`` envs (each env's LSTM state in ``state`` for a recurrent agent), ``policy(obs)`` for one
+    env, keeping its LSTM state between calls until ``reset()``. Agents act in [-1, 1] (see
     ``magenv.agents.wrappers.normalized_actions``); ``action_bounds`` = (low, high)
     of the env's action space maps their actions back. ``source`` is the file
     the weights came from, ``which`` the model (``best`` or ``last``).
