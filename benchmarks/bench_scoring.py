@@ -7,17 +7,17 @@ For each agent (a run folder of ``magenv train``, ``pretrained:ENV_ID``), on the
 (``magenv.benchmark.suite.EVAL_SEEDS``, made once before any timing), ``magenv.evaluation.run_policy_on_trials``
 — what ``magenv benchmark`` runs for the agent — three ways:
 
-* ``before``: one trial after the other, one ``model.predict`` per decision of one env (the agent behind a plain
-  ``policy(obs)``, the path of every policy before issue 53), torch on its default threads (as ``magenv
-  benchmark`` ran);
+* ``before``: one trial after the other, one ``model.predict`` on one observation per decision of one env (as
+  ``AgentPolicy`` acted before issue 53), torch on its default threads (as ``magenv benchmark`` ran);
 * ``one thread``: the same with torch on one thread (``magenv.agents.training.TORCH_THREADS``);
 * ``after``: all the trials together, one ``act_batch`` per decision for all envs, torch on one thread (what
   ``magenv benchmark`` runs now).
 
 The rounds alternate the three (the machine is shared: each round shows the load of its moment); each timing
 prints wall and CPU seconds of this process. The rules' and oracles' RMSEs of the task are not timed
-(``magenv benchmark`` keeps them). The scores of the three must agree (largest relative difference printed):
-batching changes the last bits of the network's float32 actions. Nothing here is a pass/fail test.
+(``magenv benchmark`` keeps them). The scores agree to float32 rounding (largest relative difference printed):
+a forward on one observation rounds differently from one on ``FORWARD_ROWS``. Nothing here is a pass/fail
+test.
 """
 
 from __future__ import annotations
@@ -32,21 +32,26 @@ import torch
 from magenv import evaluation
 from magenv.agents.loading import load_agent
 from magenv.agents.training import TORCH_THREADS
+from magenv.agents.wrappers import action_bounds
 from magenv.benchmark import suite
 from magenv.train.benchmark import task_trials
 
 
 class OneAtATime:
-    """``policy`` acting on one observation at a time (no ``act_batch``): scored one trial after the other."""
+    """The agent as ``magenv`` ran it before issue 53: SB3's ``predict`` on one observation of one env per call
+    (its LSTM state carried from call to call), no ``act_batch``: scored one trial after the other."""
 
-    def __init__(self, policy):
-        self.policy, self.env_id, self.env_kwargs = policy, policy.env_id, policy.env_kwargs
+    def __init__(self, agent):
+        self.model, self.env_id, self.env_kwargs = agent.model, agent.env_id, agent.env_kwargs
+        self.low, self.high = (np.asarray(b, np.float32) for b in action_bounds(agent.env_id, agent.env_kwargs))
 
     def reset(self) -> None:
-        self.policy.reset()
+        self.state, self.start = None, np.ones(1, bool)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        return self.policy(obs)
+        action, self.state = self.model.predict(obs, state=self.state, episode_start=self.start, deterministic=True)
+        self.start = np.zeros(1, bool)
+        return self.low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (self.high - self.low)
 
 
 def timed(policy, trials: list, threads: int) -> tuple[float, float, np.ndarray]:
