@@ -45,6 +45,10 @@ RUN_FILE = "run.yaml"
 PRETRAINED_PREFIX = "pretrained:"
 WEIGHTS = {"best": "best.safetensors", "last": "last.safetensors"}
 NO_ENV = "a loaded agent acts on observations; it has no env of its own to step"
+#: Observations per forward of an agent's network (``AgentPolicy.act_batch``). BLAS rounds a product by its
+#: shape, and within one shape each row's result depends on that row alone: one fixed shape makes an env's
+#: actions independent of the other envs acting with it (``tests/test_evaluation_batch.py``).
+FORWARD_ROWS = 32
 SB3_EXPORTS = {"best": "best_model.zip", "last": "last_model.zip"}
 
 __all__ = [
@@ -125,8 +129,9 @@ def read_run(run_dir: str | Path) -> dict:
 class AgentPolicy:
     """A trained SB3 agent acting on observations (deterministic actions).
 
-    Follows ``magenv.protocols.Policy``; recurrent agents keep their LSTM
-    state between calls until ``reset()``. Agents act in [-1, 1] (see
+    Follows ``magenv.protocols.BatchPolicy``: ``act_batch`` acts for n envs in one forward of the network per
+    ``FORWARD_ROWS`` envs (each env's LSTM state in ``state`` for a recurrent agent), ``policy(obs)`` for one
+    env, keeping its LSTM state between calls until ``reset()``. Agents act in [-1, 1] (see
     ``magenv.agents.wrappers.normalized_actions``); ``action_bounds`` = (low, high)
     of the env's action space maps their actions back. ``source`` is the file
     the weights came from, ``which`` the model (``best`` or ``last``).
@@ -144,18 +149,36 @@ class AgentPolicy:
         self.reset()
 
     def reset(self) -> None:
-        self._state = None
-        self._episode_start = np.ones((1,), dtype=bool)
+        self._state: tuple | None = None
 
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        action, self._state = self.model.predict(
-            obs, state=self._state, episode_start=self._episode_start, deterministic=True
-        )
-        self._episode_start = np.zeros((1,), dtype=bool)
+    def act_batch(self, obs: np.ndarray, state=None) -> tuple[np.ndarray, tuple]:
+        """(actions (n, d), state) for observations (n, …) of n envs; ``state`` None at every env's first
+        observation, else the state the previous call returned (the LSTM states of a recurrent agent). The
+        network acts on blocks of ``FORWARD_ROWS`` observations (the last padded), so an env's actions are the
+        same bit for bit whichever and however many envs act with it."""
+        obs = np.asarray(obs)
+        n = len(obs)
+        blocks = -(-n // FORWARD_ROWS)
+        padded = np.zeros((blocks * FORWARD_ROWS, *obs.shape[1:]), obs.dtype)
+        padded[:n] = obs
+        memories, start = ([None] * blocks, np.ones(len(padded), bool)) if state is None else state
+        actions, after = [], []
+        for b, memory in enumerate(memories):
+            rows = slice(b * FORWARD_ROWS, (b + 1) * FORWARD_ROWS)
+            action, memory = self.model.predict(
+                padded[rows], state=memory, episode_start=start[rows], deterministic=True
+            )
+            actions.append(action)
+            after.append(memory)
+        action = np.concatenate(actions)[:n]
         if self._bounds is not None:
             low, high = self._bounds
             action = low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
-        return action
+        return action, (after, np.zeros(len(padded), bool))
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        action, self._state = self.act_batch(np.asarray(obs)[None], self._state)
+        return action[0]
 
 
 def _spaces_env(env_id: str, env_kwargs: dict, n_envs: int):

@@ -5,8 +5,10 @@ named by its ``env_id``, on observations only) or an **Estimator**
 (``run(trial) -> Estimate``). Methods come in as objects (a dict name →
 method); only ``magenv.registry`` turns names into methods. A policy is run on a given Trial by
 ``env.reset(options={"trial": trial})`` and stepped to the end of the trial;
-its estimate is the env's per-sample estimate. Scores are RMSEs (degrees)
-over the trial's ``score_mask`` (``magenv.metrics.score``).
+its estimate is the env's per-sample estimate. A ``BatchPolicy`` (a trained agent) runs on all the trials
+of a call together: one env per trial, one ``act_batch`` (one network forward) per decision for all the envs,
+each env to its own trial's end (:meth:`PolicyRunner.run_all`); other methods run one trial after the other.
+Scores are RMSEs (degrees) over the trial's ``score_mask`` (``magenv.metrics.score``).
 
 Python use::
 
@@ -30,13 +32,13 @@ import csv
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from magenv import metrics
 from magenv.envs.render import magnetometer_trust, write_video
-from magenv.protocols import is_policy
+from magenv.protocols import BatchPolicy, is_policy
 from magenv.stats import paired_ratio
 from magenv.trial import META_SCENARIO, Trial
 
@@ -100,15 +102,22 @@ def trial_label(trial: Trial) -> str:
     return str(trial.meta.get(META_SCENARIO, trial.name))
 
 
+#: trials a BatchPolicy runs together at most (one env each, with its per-sample histories)
+MAX_TOGETHER = 64
+#: what running a method on one trial gives: (estimate (N, 4), λ (N,) or None, trust (N,) or None), or the
+#: exception that stopped it on that trial
+Outcome = tuple[np.ndarray, np.ndarray | None, np.ndarray | None] | Exception
+
+
 class PolicyRunner:
-    """Keeps one env per (env_id, env options) so many trials are run without re-making it."""
+    """Keeps the envs of each (env_id, env options) so many trials are run without re-making them."""
 
     def __init__(self, env_id: str | None = None, env_kwargs: dict | None = None):
         self.env_id, self.env_kwargs = env_id, dict(env_kwargs or {})
-        self._envs: dict[Any, Any] = {}
+        self._envs: dict[Any, list] = {}
 
-    def env(self, policy, trial: Trial, render_mode: str | None = None):
-        """The env ``policy`` acts in for ``trial`` (made once per env id and options, kept)."""
+    def envs(self, policy, trial: Trial, n: int = 1, render_mode: str | None = None) -> list:
+        """``n`` envs that ``policy`` acts in for ``trial`` (made once per env id and options, kept)."""
         import gymnasium as gym
 
         import magenv  # noqa: F401  (registers the envs)
@@ -119,22 +128,69 @@ class PolicyRunner:
         if "episode_seconds" in kwargs:
             kwargs["episode_seconds"] = None  # evaluation scores whole trials
         key = (env_id, render_mode, repr(sorted((k, repr(v)) for k, v in kwargs.items() if k != "scenario")))
-        if key not in self._envs:
-            self._envs[key] = gym.make(env_id, disable_env_checker=True, render_mode=render_mode, **kwargs).unwrapped
-        return self._envs[key]
+        kept = self._envs.setdefault(key, [])
+        while len(kept) < n:
+            kept.append(gym.make(env_id, disable_env_checker=True, render_mode=render_mode, **kwargs).unwrapped)
+        return kept[:n]
+
+    def env(self, policy, trial: Trial, render_mode: str | None = None):
+        """The env ``policy`` acts in for ``trial`` (made once per env id and options, kept)."""
+        return self.envs(policy, trial, 1, render_mode)[0]
+
+    def run_all(self, policy, trials: Sequence[Trial]) -> list[Outcome]:
+        """``policy`` over each whole trial: its :data:`Outcome` per trial. A ``BatchPolicy`` runs the trials
+        together (up to ``MAX_TOGETHER`` at a time), one env each and one ``act_batch`` call per decision for all;
+        any other policy one trial after the other (it has one memory, ``reset()`` before each trial)."""
+        trials = list(trials)
+        if isinstance(policy, BatchPolicy):
+            chunks = [trials[k : k + MAX_TOGETHER] for k in range(0, len(trials), MAX_TOGETHER)]
+            return [out for chunk in chunks for out in self._together(policy, chunk, batch=True)]
+        return [out for t in trials for out in self._together(policy, [t], batch=False)]
 
     def run(self, policy, trial: Trial) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """Run ``policy`` over the whole ``trial``; returns (estimate (N, 4), λ (N,) or None, trust (N,) or None)."""
-        env = self.env(policy, trial)
-        policy.reset()
-        obs, _ = env.reset(seed=0, options={"trial": trial})
-        truncated = terminated = False
-        while not (truncated or terminated):
-            obs, _, terminated, truncated, _ = env.step(policy(obs))
-        lam = getattr(env, "lambdas", None)
-        lam = None if lam is None else np.array(lam, copy=True)
-        trust = magnetometer_trust(env)
-        return env.estimate.copy(), lam, None if trust is None else trust.copy()
+        out = self.run_all(policy, [trial])[0]
+        if isinstance(out, Exception):
+            raise out
+        return out
+
+    def _together(self, policy, trials: list[Trial], batch: bool) -> list[Outcome]:
+        """Step one env per trial until each trial's end, deciding for all the envs at once (``batch``: one
+        ``act_batch`` call; else one trial and ``policy(obs)``); a trial whose env or decision raises keeps
+        the exception and leaves the batch."""
+        if not trials:
+            return []
+        envs = self.envs(policy, trials[0], len(trials))
+        out: list[Outcome | None] = [None] * len(trials)
+        obs: list = [np.zeros(envs[0].observation_space.shape, envs[0].observation_space.dtype)] * len(trials)
+        for k, (env, trial) in enumerate(zip(envs, trials)):
+            try:
+                obs[k], _ = env.reset(seed=0, options={"trial": trial})
+            except Exception as exc:  # this trial cannot run: the others go on
+                out[k] = exc
+        running = np.array([o is None for o in out])
+        state = None
+        if not batch:
+            policy.reset()
+        while running.any():
+            try:
+                if batch:
+                    actions, state = policy.act_batch(np.stack(obs), state)
+                else:
+                    actions = [policy(obs[0])]
+            except Exception as exc:  # the policy fails on every trial it was acting on
+                for i in np.flatnonzero(running):
+                    out[i] = exc
+                break
+            for i in np.flatnonzero(running):
+                try:
+                    obs[i], _, terminated, truncated, _ = envs[i].step(actions[i])
+                except Exception as exc:
+                    out[i], running[i] = exc, False
+                    continue
+                if terminated or truncated:
+                    out[i], running[i] = _outcome(envs[i]), False
+        return cast(list[Outcome], out)  # every entry set
 
     def record(self, policy, trial: Trial, path: str | Path) -> Path:
         """Run ``policy`` over ``trial`` with ``render_mode="rgb_array"`` and write one frame per step to the MP4
@@ -153,28 +209,65 @@ class PolicyRunner:
         return write_video(frames(), path)
 
 
-def estimate(
-    method, trial: Trial, runner: PolicyRunner | None = None
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """One Policy or Estimator over the whole ``trial`` (no truth needed): (estimate (N, 4), λ (N,) or None,
-    trust (N,) or None). A method with a ``prepare_trial(trial)`` attribute runs on what it returns (e.g. the
-    gyro de-biased at rest)."""
+def _outcome(env) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(estimate, λ, trust) of an env at the end of its episode (copies)."""
+    lam = getattr(env, "lambdas", None)
+    trust = magnetometer_trust(env)
+    return (
+        env.estimate.copy(),
+        None if lam is None else np.array(lam, copy=True),
+        None if trust is None else trust.copy(),
+    )
+
+
+def outcomes(method, trials: Sequence[Trial], runner: PolicyRunner | None = None) -> list[Outcome]:
+    """One Policy or Estimator over each whole trial (no truth needed): its :data:`Outcome` per trial (a
+    ``BatchPolicy`` on all the trials together: :meth:`PolicyRunner.run_all`). A method with a
+    ``prepare_trial(trial)`` attribute runs on what it returns (e.g. the gyro de-biased at rest)."""
     prepare = getattr(method, "prepare_trial", None)
-    seen = trial if prepare is None else prepare(trial)
+    seen: list[Trial | Exception] = []
+    for trial in trials:
+        try:
+            seen.append(trial if prepare is None else prepare(trial))
+        except Exception as exc:  # this trial cannot run: the others go on
+            seen.append(exc)
+    ready = [t for t in seen if isinstance(t, Trial)]
     if is_policy(method):
-        return (runner or PolicyRunner()).run(method, seen)
-    est = method.run(seen)
+        done = iter((runner or PolicyRunner()).run_all(method, ready))
+    else:
+        done = iter(_estimator_outcome(method, t) for t in ready)
+    return [t if isinstance(t, Exception) else next(done) for t in seen]
+
+
+def _estimator_outcome(method, trial: Trial) -> Outcome:
+    try:
+        est = method.run(trial)
+    except Exception as exc:
+        return exc
     return np.asarray(est.q, float), None, est.trust
 
 
-def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = None, label: str | None = None) -> Run:
-    """Run one Policy or Estimator on one trial (:func:`estimate`) and score it against ``trial``'s truth. A
-    method that diverges (see the module docstring) scores ``DIVERGED_SCORE``."""
-    label = label or trial_label(trial)
-    try:
-        q, lam, trust = estimate(method, trial, runner)
-    except DIVERGED as exc:
+def estimate(
+    method, trial: Trial, runner: PolicyRunner | None = None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """One Policy or Estimator over the whole ``trial`` (:func:`outcomes`): (estimate (N, 4), λ (N,) or None,
+    trust (N,) or None); the exception that stopped it is raised."""
+    out = outcomes(method, [trial], runner)[0]
+    if isinstance(out, Exception):
+        raise out
+    return out
+
+
+def scored_run(name: str, trial: Trial, label: str, outcome: Outcome) -> Run:
+    """The Run of ``outcome`` (:func:`outcomes`) of method ``name`` on ``trial``, scored against its truth
+    over its score mask (``magenv.metrics.score``). A method that diverged (see the module docstring) scores
+    ``DIVERGED_SCORE``; any other exception is raised."""
+    if isinstance(outcome, DIVERGED):
+        exc = outcome
         return Run(name, trial, label, None, None, None, DIVERGED_SCORE, diverged=f"{type(exc).__name__}: {exc}")
+    if isinstance(outcome, Exception):
+        raise outcome
+    q, lam, trust = outcome
     if q.shape != (trial.n, 4):
         raise ValueError(
             f"method {name!r} returned an estimate of shape {q.shape} for trial {trial.name!r} ({trial.n} samples)"
@@ -187,12 +280,20 @@ def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = No
     return Run(name, trial, label, q, lam, trust, score)
 
 
+def run_method(name: str, method, trial: Trial, runner: PolicyRunner | None = None, label: str | None = None) -> Run:
+    """Run one Policy or Estimator on one trial (:func:`outcomes`) and score it against ``trial``'s truth
+    (:func:`scored_run`)."""
+    return scored_run(name, trial, label or trial_label(trial), outcomes(method, [trial], runner)[0])
+
+
 def run_policy_on_trials(
     policy, trials: Sequence[Trial], env_id: str | None = None, env_kwargs: dict | None = None
 ) -> list[metrics.Score]:
-    """Scores of ``policy`` on each trial (env ``env_id`` or the policy's own, with ``env_kwargs``)."""
-    runner = PolicyRunner(env_id, env_kwargs)
-    return [run_method(getattr(policy, "name", "policy"), policy, t, runner).scored for t in trials]
+    """Scores of ``policy`` on each trial (env ``env_id`` or the policy's own, with ``env_kwargs``; a
+    ``BatchPolicy`` on all of them together)."""
+    name = getattr(policy, "name", "policy")
+    done = outcomes(policy, trials, PolicyRunner(env_id, env_kwargs))
+    return [scored_run(name, t, trial_label(t), o).scored for t, o in zip(trials, done)]
 
 
 def named(methods) -> dict[str, Any]:
@@ -216,7 +317,9 @@ def evaluate(
     progress: Callable[[str, Trial], None] | None = None,
     keep_going: bool = False,
 ) -> list[Run]:
-    """Every method on every trial (same trials for all). ``progress(method, trial)`` is called after each run.
+    """Every method on every trial (same trials for all), as Runs in the order trial by trial, method by method.
+    A ``BatchPolicy`` runs on all the trials together (:meth:`PolicyRunner.run_all`), the other methods trial
+    by trial. ``progress(method, trial)`` is called after each run.
 
     ``env_kwargs`` are applied to every policy's env (e.g. ``{"decision_every": 1}``);
     ``labels`` gives each trial's table group (default ``trial_label``). With ``keep_going``, a method
@@ -226,16 +329,24 @@ def evaluate(
     trials = list(trials)
     labels = [trial_label(t) for t in trials] if labels is None else list(labels)
     runner = PolicyRunner(None, env_kwargs)
+    together = {}
+    for name, method in methods.items():
+        if isinstance(method, BatchPolicy):
+            together[name] = outcomes(method, trials, runner)
+            for trial in trials:
+                if progress is not None:
+                    progress(name, trial)
     runs = []
-    for trial, label in zip(trials, labels):
+    for k, (trial, label) in enumerate(zip(trials, labels)):
         for name, method in methods.items():
             try:
-                runs.append(run_method(name, method, trial, runner, label))
+                outcome = together[name][k] if name in together else outcomes(method, [trial], runner)[0]
+                runs.append(scored_run(name, trial, label, outcome))
             except Exception as exc:  # keep_going: whatever stops this method on this trial, the rest go on
                 if not keep_going:
                     raise
                 runs.append(Run(name, trial, label, None, None, None, None, f"{type(exc).__name__}: {exc}"))
-            if progress is not None:
+            if progress is not None and name not in together:
                 progress(name, trial)
     return runs
 

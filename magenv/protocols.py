@@ -1,7 +1,8 @@
 """The two small protocols every method follows (the bottom layer: envs, methods and evaluation use them).
 
 * A **Policy** acts inside an environment on the observation alone (a
-  hand-crafted rule, or a trained agent loaded back): ``policy(obs) -> action``.
+  hand-crafted rule, or a trained agent loaded back): ``policy(obs) -> action``;
+  a **BatchPolicy** (a trained agent) also acts for n envs in one call.
 * An **Estimator** is a complete classical filter that cannot be phrased as a
   policy: it runs a whole Trial and returns its orientation estimate.
 
@@ -15,7 +16,7 @@ for ``magenv tune`` (``magenv.registry.tunable_rules``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -33,6 +34,16 @@ class Policy(Protocol):
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """Action for one observation."""
+
+
+@runtime_checkable
+class BatchPolicy(Policy, Protocol):
+    """A Policy that also acts for n envs at once, in one call (a trained agent: one network forward for all);
+    ``magenv.evaluation`` runs the trials of a batch together with it."""
+
+    def act_batch(self, obs: np.ndarray, state: Any = None) -> tuple[np.ndarray, Any]:
+        """(actions (n, …), state) for the observations (n, …) of n envs; ``state`` is None at the start of
+        every env's episode, else what the previous call returned (a recurrent agent's memory per env)."""
 
 
 @dataclass

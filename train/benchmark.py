@@ -28,7 +28,8 @@ its env's tasks and writes OUT/baselines.csv (env, task, method, training seed, 
 OUT/baselines.png and OUT/index.md (the protocol, the table with the number of training seeds finished of each
 cell, the aggregates); a run's scores are kept beside it (``SWEEP/benchmark/NAME.json``, written whole) for the
 next call. ``--scored-only`` scores nothing new: the table holds the runs scored before and names the finished
-runs that are not (scoring a recurrent agent takes long).
+runs that are not. An SB3 agent acts on a task's trials together (``magenv.evaluation``: one network forward per
+decision for all), with torch on one thread.
 
 ``--summary`` prints one Markdown table of the tasks of score cards (``card.json`` files, read as JSON only): per
 task the rule, the ratio agent / rule and the normalised score with their 95 % intervals, and the worst trial's
@@ -590,6 +591,14 @@ def index_markdown(
         "that the 100 runs train within a day on two free cores: the cost table below says how far the runs "
         "measured so far bear that out) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark`.",
         "",
+        "Scoring an SB3 run: the agent acts on a task's trials together, one env per trial and one forward of its "
+        "network per decision for all (`magenv.evaluation`), with torch on one thread; a trial's score does not "
+        "depend on the trials scored with it, bit for bit. On the loaded two-core machine (load 6, 2026-12-07) "
+        "a RecurrentPPO run took 1.6 s per task instead of 285 s trial by trial (18 s with torch on one thread "
+        "alone), a PPO run 1.8 s instead of 13 s (MagBlend-v0/dynamic_magnet, 20 trials of 60 s, wall, median of "
+        "2 alternating rounds; `python benchmarks/bench_scoring.py --agent RUN`). DAgger students and callables "
+        "act trial by trial.",
+        "",
         (
             f"**{len(records)} of {n_planned} runs finished and scored**"
             if not unscored
@@ -710,9 +719,20 @@ def run_summary(args: argparse.Namespace) -> int:
     return 0
 
 
+def one_torch_thread() -> None:
+    """Agents act with torch on ``TORCH_THREADS`` (one): their small networks' decisions take many times longer
+    on torch's default threads of a loaded machine (``benchmarks/bench_scoring.py``)."""
+    import torch
+
+    from magenv.agents.training import TORCH_THREADS
+
+    torch.set_num_threads(TORCH_THREADS)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.scored_only and not args.sweep:
         raise CommandError("--scored-only goes with --sweep")
     if args.summary:
         return run_summary(args)
+    one_torch_thread()
     return run_sweeps(args) if args.sweep else run_agent(args)
