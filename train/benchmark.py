@@ -719,20 +719,9 @@ def run_summary(args: argparse.Namespace) -> int:
     return 0
 
 
-def one_torch_thread() -> None:
-    """Agents act with torch on ``TORCH_THREADS`` (one): their small networks' decisions take many times longer
-    on torch's default threads of a loaded machine (``benchmarks/bench_scoring.py``)."""
-    import torch
-
-    from magenv.agents.training import TORCH_THREADS
-
-    torch.set_num_threads(TORCH_THREADS)
-
-
 def run(args: argparse.Namespace) -> int:
     if args.scored_only and not args.sweep:
         raise CommandError("--scored-only goes with --sweep")
     if args.summary:
         return run_summary(args)
-    one_torch_thread()
     return run_sweeps(args) if args.sweep else run_agent(args)

@@ -148,6 +148,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def one_torch_thread() -> None:
+    """Agents act with torch on ``TORCH_THREADS`` (one) in every command: their small networks' decisions take
+    many times longer on torch's default threads of a loaded machine (``benchmarks/bench_scoring.py``)."""
+    import torch
+
+    from magenv.agents.training import TORCH_THREADS
+
+    torch.set_num_threads(TORCH_THREADS)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser()
@@ -159,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
             args = p.parse_args(argv[1:])
         except SystemExit as exc:  # argparse has printed the usage and the error (or the help)
             return int(exc.code or 0)
+        one_torch_thread()
         try:
             return int(module.run(args) or 0)
         except CommandError as exc:
