@@ -443,27 +443,6 @@ class Batch(NamedTuple):
     sig_h: np.ndarray  # (N, k + 2, N_SIGNALS)
 
 
-@njit(cache=True)
-def _advance_env(b, s, i, w):
-    """Env i of :class:`Batch` (``s``: ``magenv.envs.batch.Steps``) does its step: :func:`advance` on window ``w``;
-    returns −1 or the window's sample where the filter failed."""
-    f, g, e = b.pf[i], b.grav[i], b.earth[i]
-    p = qsf.Params(
-        b.mode, f[0], f[1], f[2], f[3], f[4], f[5], (g[0], g[1], g[2]), (e[0], e[1], e[2]), f[6], f[7],
-        b.update_reference, f[8], f[9],
-    )  # fmt: skip
-    state = qsf.State(b.x[i], b.cov[i], b.active[i], b.age[i], b.mag_t0[i], b.mag_ref[i])
-    r0, r1 = w.r0, w.r1
-    inputs = qsf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.action_h[i], b.trust_h[i])
-    out = qsf.Outputs(b.q_h[i], b.sig_h[i])
-    truth = Truth(s.q_true[r0:r1], s.dist[r0:r1])
-    bad, _ = advance(
-        p, state, inputs, out, (b.codes[r0:r1], b.spread[r0:r1]), truth, b.dt[i], (b.m0[i], b.dip0[i]), b.code[i],
-        b.trust[i], w.start, w.stop, s.err[i], s.feat[i],
-    )  # fmt: skip
-    return bad
-
-
 class MagQSFVectorEnv(BatchVectorEnv):
     """``num_envs`` MagQSF envs advanced together: one numba call per ``step`` fuses every env's samples.
 
@@ -476,9 +455,16 @@ class MagQSFVectorEnv(BatchVectorEnv):
     env_class = MagQSFEnv
     features = FEATURES
     channels = {**ROWS, "codes": ((), np.int8), "spread": ((), float)}
-    advance_env = _advance_env
     _floats = ("sigma_gyr", "sigma_bias_walk", "sigma_acc_bias_walk", "sigma_acc", "sigma_mag", "th_acc",
                "cov_floor", "radial_eps", "max_age_s", "acc_adaptive")  # fmt: skip
+
+    @property
+    def lockstep(self):
+        """The batch kernels: every env's filter in lock-step (``magenv.envs.qsf_lockstep``, which imports this
+        module's kernels)."""
+        from magenv.envs import qsf_lockstep
+
+        return qsf_lockstep.lockstep, qsf_lockstep.lockstep_threads
 
     def _alloc(self, n: int) -> None:
         env = self.template
