@@ -57,7 +57,7 @@ from magenv.filters.qsf import (
 from magenv.metrics import error_sums
 from magenv.quaternion import from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
 
-LANES = 16  # envs per block: the block's working arrays stay in the core's caches
+LANES = 128  # envs per block: the block's working arrays stay in the core's caches
 _L = uint64(LANES)
 _N = uint64(N_AUGMENTED)
 _C0 = uint64(N_STATE)  # the clone's first row (qsf.CLONE.start)
@@ -84,9 +84,10 @@ class Lanes(NamedTuple):
     on: np.ndarray  # (_M, L) int8 per-lane masks (rows _GO …)
 
 
-# rows of Lanes.f: R's diagonal, the gain, the radial eps, |Δq| of the update, a sum being formed
-_RD, _GAIN, _EPS, _CORR, _SUM = range(5)
-_F = 5
+# rows of Lanes.f: R's diagonal, the gain, the radial eps, |Δq| of the update, a sum being formed, then a
+# row of P being formed (15 rows)
+_RD, _GAIN, _EPS, _CORR, _SUM, _ROW = range(6)
+_F = _ROW + N_AUGMENTED
 # rows of Lanes.on: the lane fuses this sample, predicts, updates, has the clone (15 states), H has clone
 # columns, starts a clone, passes the health test, renormalises its clone, commits
 _GO, _PRED, _UPD, _CL, _HCL, _START, _OK, _BOTH, _COMMIT = range(9)
@@ -138,8 +139,16 @@ def _kalman_update(w, c2, n2):
     """``qsf._kalman_update`` on every lane with ``_UPD``: H's nonzero columns are q's and ``n2`` from ``c2``
     (only q's where ``_HCL`` is 0), R = ``f[_RD]``·I, the gain ``f[_GAIN]``; writes ``s_inv`` and
     ``f[_CORR]``. The state's clone entries change only where ``_CL``."""
-    p, h, hp, kt, x, on, f = w.p, w.h, w.hp, w.kt, w.x, w.on, w.f
-    upd, hcl, cl = on[_UPD], on[_HCL], on[_CL]
+    _hp(w, c2, n2)
+    _gain(w, c2, n2)
+    _joseph(w)
+
+
+@njit(cache=True, error_model="numpy")
+def _hp(w, c2, n2):
+    """H P of ``qsf._kalman_update`` (each entry summed over H's nonzero columns in order, from 0.0): q's four,
+    then ``n2`` (3 or 4) from ``c2`` on the lanes with ``_HCL``."""
+    p, h, hp, hcl = w.p, w.h, w.hp, w.on[_HCL]
     for mm in range(3):
         for j in range(_N):
             for e in range(_L):
@@ -149,9 +158,19 @@ def _kalman_update(w, c2, n2):
                 v += h[mm, 2, e] * p[2, j, e]
                 v += h[mm, 3, e] * p[3, j, e]
                 u = v
-                for t in range(n2):
-                    u += h[mm, c2 + t, e] * p[c2 + t, j, e]
+                u += h[mm, c2, e] * p[c2, j, e]
+                u += h[mm, c2 + 1, e] * p[c2 + 1, j, e]
+                u += h[mm, c2 + 2, e] * p[c2 + 2, j, e]
+                if n2 == 4:
+                    u += h[mm, c2 + 3, e] * p[c2 + 3, j, e]
                 hp[mm, j, e] = u if hcl[e] else v
+
+
+@njit(cache=True, error_model="numpy")
+def _gain(w, c2, n2):
+    """S, S⁻¹, the gain, the state."""
+    h, hp, kt, x, on, f = w.h, w.hp, w.kt, w.x, w.on, w.f
+    upd, hcl, cl = on[_UPD], on[_HCL], on[_CL]
     for e in range(_L):
         s00 = s01 = s02 = s11 = s12 = s22 = 0.0
         for t in range(4):
@@ -214,7 +233,6 @@ def _kalman_update(w, c2, n2):
                 f[_CORR, e] += (after - before) ** 2
     for e in range(_L):
         f[_CORR, e] = np.sqrt(f[_CORR, e])
-    _joseph(w)
 
 
 @njit(cache=True, error_model="numpy")
@@ -229,6 +247,7 @@ def _joseph(w):
             g[0, i, e] = (k0 * s0 + k1 * s1 + k2 * s2) - hp[0, i, e]
             g[1, i, e] = (k0 * s1 + k1 * s4 + k2 * s5) - hp[1, i, e]
             g[2, i, e] = (k0 * s2 + k1 * s5 + k2 * s8) - hp[2, i, e]
+    row = w.f[_ROW:]
     for i in range(_N):
         for j in range(i, _N):
             for e in range(_L):
@@ -236,12 +255,14 @@ def _joseph(w):
                 new = old - (kt[0, i, e] * hp[0, j, e] + kt[1, i, e] * hp[1, j, e] + kt[2, i, e] * hp[2, j, e]) + (
                     g[0, i, e] * kt[0, j, e] + g[1, i, e] * kt[1, j, e] + g[2, i, e] * kt[2, j, e]
                 )
-                v = new if upd[e] else old
-                p[i, j, e] = v
-                p[j, i, e] = v
+                row[j, e] = new if upd[e] else old
+        for j in range(i, _N):  # mirrored in a second pass: the stores then alias none of the loads
+            for e in range(_L):
+                p[i, j, e] = row[j, e]
+                p[j, i, e] = row[j, e]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _renormalise(w, mask, off):
     """``qsf._renormalise``'s step for the quaternion at row ``off`` on the lanes with ``mask``: normalise it,
     project the covariance (``linalg.project_quaternion``, 15 states)."""
