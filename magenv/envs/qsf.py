@@ -427,8 +427,8 @@ class Batch(NamedTuple):
     dt: np.ndarray  # (N,) sample interval, s
     m0: np.ndarray  # (N,) the trial's field norm, µT
     dip0: np.ndarray  # (N,) … and dip, degrees
-    x: np.ndarray  # (N, N_AUGMENTED) qsf.State …
-    cov: np.ndarray  # (N, N_AUGMENTED, N_AUGMENTED)
+    x: np.ndarray  # (N_AUGMENTED, N) qsf.State … (x and cov with the env axis last: magenv.envs.qsf_lockstep)
+    cov: np.ndarray  # (N_AUGMENTED, N_AUGMENTED, N)
     active: np.ndarray  # (N, 1) bool
     age: np.ndarray  # (N, 1)
     mag_t0: np.ndarray  # (N, 3)
@@ -474,7 +474,7 @@ class MagQSFVectorEnv(BatchVectorEnv):
         self.pf, self.grav, self.earth = np.ones((n, len(self._floats))), np.zeros((n, 3)), np.zeros((n, 3))
         self.dt, self.m0, self.dip0 = np.ones(n), np.ones(n), np.zeros(n)
         self.state = qsf.State(
-            np.zeros((n, na)), np.zeros((n, na, na)), np.zeros((n, 1), np.bool_), np.zeros((n, 1)),
+            np.zeros((na, n)), np.zeros((na, na, n)), np.zeros((n, 1), np.bool_), np.zeros((n, 1)),
             np.zeros((n, 3)), np.zeros((n, 3)),
         )  # fmt: skip
         self.code, self.trust = np.zeros(n, np.int64), np.zeros(n)
@@ -498,7 +498,9 @@ class MagQSFVectorEnv(BatchVectorEnv):
         p, state, self.dt[i], self.m0[i], self.dip0[i] = description
         self.pf[i] = [getattr(p, name) for name in self._floats]
         self.grav[i], self.earth[i] = p.gravity, p.earth_field
-        for mine, theirs in zip(self.state, state):
+        st = self.state
+        st.x[:, i], st.cov[:, :, i] = state.x, state.cov  # env axis last
+        for mine, theirs in zip(st[2:], state[2:]):
             mine[i] = theirs
 
     def _set_actions(self, values, stepping) -> dict:

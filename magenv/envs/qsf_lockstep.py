@@ -398,9 +398,7 @@ def params(b, i):
 
 @njit(cache=True)
 def _load(b, s, w, lane, v, e, i):
-    """Lane e ← env i: its window, its committed state and, as ``qsf._load`` at a call's first sample, the
-    working copy (symmetrised; ``_BADLOAD`` where not finite)."""
-    x, p, cx, cp = w.x, w.p, w.cx, w.cp
+    """Lane e ← env i: its window, decision and period state."""
     win = window(s, i)
     lane[e, _ENV], lane[e, _WSTART], lane[e, _WSTOP], lane[e, _WBASE], lane[e, _R0], lane[e, _R1] = (
         i, win.start, win.stop, win.base, win.r0, win.r1,
@@ -413,22 +411,46 @@ def _load(b, s, w, lane, v, e, i):
     v[_CON, e], v[_CAGE, e] = 1.0 if on else 0.0, b.age[i, 0]
     for k in range(3):
         v[_CT0 + k, e], v[_CREF + k, e] = b.mag_t0[i, k], b.mag_ref[i, k]
-    na = N_AUGMENTED if (b.mode == MODE_DELAY and on) else N_STATE
     w.f[_EPS, e] = b.pf[i, 7]
-    bad = False
-    for r in range(N_AUGMENTED):
-        x[r, e] = cx[r, e] = b.x[i, r]
-        bad = bad or not np.isfinite(b.x[i, r])
-    for r in range(N_AUGMENTED):
-        for c in range(r, N_AUGMENTED):
-            a_, b_ = b.cov[i, r, c], b.cov[i, c, r]
-            if r < na and c < na:
-                bad = bad or not (np.isfinite(a_) and np.isfinite(b_))
-            m = 0.5 * (a_ + b_)
-            p[r, c, e] = m
-            p[c, r, e] = m
-            cp[r, c, e], cp[c, r, e] = a_, b_
-    lane[e, _BADLOAD] = 1 if bad else 0
+    w.on[_CL, e] = 1 if (b.mode == MODE_DELAY and on) else 0
+
+
+@njit(cache=True, error_model="numpy")
+def _load_states(b, w, e0, n):
+    """Lanes 0 … n−1 ← envs e0 … : the committed state, and, as ``qsf._load`` at a call's first sample, the
+    working copy (P symmetrised); ``on[_OK]`` ← 0 where x or the env's leading 11 or 15 (``_CL``) rows and
+    columns of P are not finite."""
+    x, p, cx, cp, ok, cl = w.x, w.p, w.cx, w.cp, w.on[_OK], w.on[_CL]
+    bx, bc = b.x, b.cov
+    for e in range(n):
+        ok[e] = 1
+    for r in range(_N):
+        for e in range(n):
+            val = bx[r, e0 + e]
+            x[r, e] = val
+            cx[r, e] = val
+            ok[e] = ok[e] & (val - val == 0.0)
+    for r in range(_N):
+        for c in range(_N):
+            for e in range(n):
+                a_, b_ = bc[r, c, e0 + e], bc[c, r, e0 + e]
+                p[r, c, e] = 0.5 * (a_ + b_)
+                cp[r, c, e] = a_
+                outside = (cl[e] == 0) & ((r >= _C0) | (c >= _C0))
+                ok[e] = ok[e] & ((a_ - a_ == 0.0) | outside)
+
+
+@njit(cache=True, error_model="numpy")
+def _store_states(b, w, e0, n):
+    """Envs e0 … ← the committed states of lanes 0 … n−1."""
+    bx, bc, cx, cp = b.x, b.cov, w.cx, w.cp
+    for r in range(_N):
+        for e in range(n):
+            bx[r, e0 + e] = cx[r, e]
+    for r in range(_N):
+        for c in range(_N):
+            for e in range(n):
+                bc[r, c, e0 + e] = cp[r, c, e]
 
 
 @njit(cache=True)
@@ -701,23 +723,25 @@ def _block(b, s, e0, e1, w):
     their ``todo`` in lock-step, each as :func:`magenv.envs.qsf.advance` does it."""
     lane = np.zeros((LANES, 10), np.int64)
     v = np.zeros((_V, LANES))
+    n = e1 - e0
     most = 0
-    for e in range(e1 - e0):
-        i = e0 + e
-        if s.todo[i] >= 0:
-            _load(b, s, w, lane, v, e, i)
-            most = max(most, lane[e, _CNT])
+    for e in range(LANES):
+        w.on[_CL, e] = 0
         lane[e, _BAD] = -1
+        if e < n and s.todo[e0 + e] >= 0:
+            _load(b, s, w, lane, v, e, e0 + e)
+            most = max(most, lane[e, _CNT])
+    _load_states(b, w, uint64(e0), uint64(n))
+    for e in range(n):
+        lane[e, _BADLOAD] = 1 - w.on[_OK, e]
     for t in range(most):
         _sample(b, s, w, lane, v, t)
-    for e in range(e1 - e0):
+    _store_states(b, w, uint64(e0), uint64(n))
+    xe, unused = np.empty(N_AUGMENTED), np.empty((1, 1))  # env i's x for _features (which reads no P)
+    for e in range(n):
         i = e0 + e
         if s.todo[i] < 0:
             continue
-        for r in range(N_AUGMENTED):
-            b.x[i, r] = w.cx[r, e]
-            for c in range(N_AUGMENTED):
-                b.cov[i, r, c] = w.cp[r, c, e]
         b.active[i, 0], b.age[i, 0] = v[_CON, e] != 0.0, v[_CAGE, e]
         for k in range(3):
             b.mag_t0[i, k], b.mag_ref[i, k] = v[_CT0 + k, e], v[_CREF + k, e]
@@ -727,8 +751,10 @@ def _block(b, s, e0, e1, w):
             continue
         s.pos[i] = base + stop
         error_sums(b.q_h[i], s.q_true[r0:r1], s.dist[r0:r1], start, stop, s.err[i])
+        for r in range(N_AUGMENTED):
+            xe[r] = w.cx[r, e]
         _features(
-            params(b, i), qsf.State(b.x[i], b.cov[i], b.active[i], b.age[i], b.mag_t0[i], b.mag_ref[i]),
+            params(b, i), qsf.State(xe, unused, b.active[i], b.age[i], b.mag_t0[i], b.mag_ref[i]),
             qsf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.action_h[i], b.trust_h[i]), b.codes[r0:r1],
             b.spread[r0:r1], b.sig_h[i], (b.m0[i], b.dip0[i]), b.trust[i], stop, s.feat[i],
         )  # fmt: skip
