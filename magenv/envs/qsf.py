@@ -34,7 +34,7 @@ from magenv.filters import qsf
 from magenv.filters.linalg import clip
 from magenv.filters.qsf import SIGNAL
 from magenv.metrics import N_ERR, error_sums
-from magenv.quaternion import GRAVITY, rotate1
+from magenv.quaternion import GRAVITY, rotate3
 from magenv.trial import Trial
 
 AGE_SCALE_S = 10.0  # period age in units of 10 s
@@ -102,7 +102,7 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
     m0, dip0 = site
     q = state.x[0:4]  # qsf.ORIENTATION
     active = state.period_active[0]
-    m_e = rotate1(q, mag[j])
+    m_e = rotate3(q, mag[j])
     sigma_m = p.sigma_mag
     nm = _norm3(mag[j])
     if nm > 0:

@@ -51,7 +51,7 @@ from magenv.filters.qsf import (
     N_AUGMENTED,
     N_STATE,
     SIGNAL,
-    _put_jacobian,
+    jacobian34,
     heading_row4,
 )
 from magenv.metrics import error_sums
@@ -86,7 +86,12 @@ class Lanes(NamedTuple):
 
 # rows of Lanes.f: R's diagonal, the gain, the radial eps, |Δq| of the update, a sum being formed, then a
 # row of P being formed (15 rows)
-_RD, _GAIN, _EPS, _CORR, _SUM, _ROW = range(6)
+# env's Δt, σ_g, σ_bq, σ_ba, σ_a, th_acc, acc_adaptive, g_ENU (3), the sample's accelerometer (3) and gyro
+# quaternion (4)
+_RD, _GAIN, _EPS, _CORR, _SUM = range(5)
+_DT, _SG, _SBW, _SABW, _SACC, _THACC, _ADAPT, _G, _A = 5, 6, 7, 8, 9, 10, 11, 12, 15
+_QY = 18  # the sample's gyro quaternion q_yg (4)
+_ROW = 22
 _F = _ROW + N_AUGMENTED
 # rows of Lanes.on: the lane fuses this sample, predicts, updates, has the clone (15 states), H has clone
 # columns, starts a clone, passes the health test, renormalises its clone, commits
@@ -411,7 +416,11 @@ def _load(b, s, w, lane, v, e, i):
     v[_CON, e], v[_CAGE, e] = 1.0 if on else 0.0, b.age[i, 0]
     for k in range(3):
         v[_CT0 + k, e], v[_CREF + k, e] = b.mag_t0[i, k], b.mag_ref[i, k]
-    w.f[_EPS, e] = b.pf[i, 7]
+    f, pf = w.f, b.pf[i]
+    f[_EPS, e], f[_DT, e], f[_SG, e], f[_SBW, e], f[_SABW, e] = pf[7], b.dt[i], pf[0], pf[1], pf[2]
+    f[_SACC, e], f[_THACC, e], f[_ADAPT, e] = pf[3], pf[5], pf[9]
+    for k in range(3):
+        f[_G + k, e] = b.grav[i, k]
     w.on[_CL, e] = 1 if (b.mode == MODE_DELAY and on) else 0
 
 
@@ -464,16 +473,18 @@ def _predict_quaternions(b, s, w, lane, v, t):
     """``qsf.step_work`` to the prediction's covariance, each lane: the input checks, the period's state, the
     prediction of q (eqs. 17–18) and the rows of F it needs."""
     x, on = w.x, w.on
+    on[:, :] = 0
     for e in range(LANES):
-        for k in range(_M):
-            on[k, e] = 0
         if lane[e, _LIVE] == 0 or t >= lane[e, _CNT]:
             continue
         i = lane[e, _ENV]
         iw = lane[e, _WSTART] + t
-        r0 = lane[e, _R0]
-        gyr_prev, gyr = s.gyr[r0 + (iw - 1 if iw > 0 else 0)], s.gyr[r0 + iw]
-        acc, mag, trust = s.acc[r0 + iw], s.mag[r0 + iw], b.trust_h[i, iw]
+        row = lane[e, _R0] + iw
+        prev = row - 1 if iw > 0 else row
+        g = s.gyr  # rows read by index, not as views (a view costs two atomic reference counts)
+        gyr_prev, gyr = (g[prev, 0], g[prev, 1], g[prev, 2]), (g[row, 0], g[row, 1], g[row, 2])
+        acc, mag = (s.acc[row, 0], s.acc[row, 1], s.acc[row, 2]), (s.mag[row, 0], s.mag[row, 1], s.mag[row, 2])
+        trust = b.trust_h[i, iw]
         if not (finite3(gyr_prev) and finite3(gyr) and finite3(acc) and finite3(mag) and np.isfinite(trust)):
             _fail(lane, e, iw)
             continue
@@ -481,6 +492,7 @@ def _predict_quaternions(b, s, w, lane, v, t):
             _fail(lane, e, iw)
             continue
         on[_GO, e] = 1
+        w.f[_A, e], w.f[_A + 1, e], w.f[_A + 2, e] = acc[0], acc[1], acc[2]
         v[_ACTION, e], v[_TRUST, e] = b.action_h[i, iw], trust
         for k in range(8):
             v[_ON + k, e] = v[_CON + k, e]
@@ -490,59 +502,72 @@ def _predict_quaternions(b, s, w, lane, v, t):
         on[_CL, e] = 1 if (b.mode == MODE_DELAY and active) else 0
         if iw > 0:
             dt = b.dt[i]
-            q = (x[0, e], x[1, e], x[2, e], x[3, e])
             q_yg = from_rotvec4(
                 (0.5 * (gyr_prev[0] + gyr[0]) * dt, 0.5 * (gyr_prev[1] + gyr[1]) * dt,
                  0.5 * (gyr_prev[2] + gyr[2]) * dt)
             )  # fmt: skip
-            q_w = normalize4((q_yg[0] - x[4, e], q_yg[1] - x[5, e], q_yg[2] - x[6, e], q_yg[3] - x[7, e]))
-            x[0, e], x[1, e], x[2, e], x[3, e] = mul4(q, q_w)
-            c, m = right_matrix4(q_w), left_matrix4(q)
-            for a in range(4):
-                for k in range(4):
-                    w.cm[a, k, e], w.mm[a, k, e] = c[a][k], m[a][k]
+            for k in range(4):
+                w.f[_QY + k, e] = q_yg[k]
             on[_PRED, e] = 1
+    _predict_q(w)
 
 
-@njit(cache=True)
-def _acc_setup(b, s, w, lane, v, t):
-    """``qsf.step_work`` from the prediction's noise to the accelerometer update's H, innovation and R."""
-    x, p, on, f = w.x, w.p, w.on, w.f
-    for e in range(LANES):
-        if not on[_GO, e]:
-            continue
-        i = lane[e, _ENV]
-        pf, dt = b.pf[i], b.dt[i]
-        if on[_PRED, e]:
-            qg = (0.5 * pf[0] * dt) ** 2
-            for r in range(4):
-                p[r, r, e] += qg
-                p[4 + r, 4 + r, e] += (0.5 * dt * pf[1]) ** 2 * dt
-            for r in range(3):
-                p[8 + r, 8 + r, e] += pf[2] ** 2 * dt
-            if v[_ACT, e] != 0.0:
-                v[_AGE, e] += dt
-        acc = s.acc[lane[e, _R0] + lane[e, _WSTART] + t]
-        g = b.grav[i]
-        g_norm = np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
-        na_ = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
-        acc_used = abs(na_ - g_norm) < pf[5]
-        v[_ACCU, e] = 1.0 if acc_used else 0.0
-        if acc_used:
-            h = w.h[:, :, e]
-            q = (x[0, e], x[1, e], x[2, e], x[3, e])
-            vv = (acc[0] - x[8, e], acc[1] - x[9, e], acc[2] - x[10, e])
-            _put_jacobian(h, 0, q, vv, 1.0)
-            for c in range(3):
-                u = rotate3(q, (1.0 if c == 0 else 0.0, 1.0 if c == 1 else 0.0, 1.0 if c == 2 else 0.0))
-                h[0, 8 + c], h[1, 8 + c], h[2, 8 + c] = -u[0], -u[1], -u[2]
-            dev = pf[9] * (na_ - g_norm)
-            a_e = rotate3(q, vv)
-            w.nu[0, e], w.nu[1, e], w.nu[2, e] = g[0] - a_e[0], g[1] - a_e[1], g[2] - a_e[2]
-            f[_RD, e] = pf[3] ** 2 + dev * dev
-            f[_GAIN, e] = 1.0
-            on[_UPD, e] = 1
-            on[_HCL, e] = 1
+@njit(cache=True, error_model="numpy")
+def _predict_q(w):
+    """The prediction of q (eq. 18) from ``f[_QY]`` on the lanes with ``_PRED``: ``q ← q ⊗ normalise(q_yg − b_q)``,
+    and the rows of C(q̂_ω) and M(q) that ``_predict_cov`` needs."""
+    x, f, pred = w.x, w.f, w.on[_PRED]
+    for e in range(_L):
+        q = (x[0, e], x[1, e], x[2, e], x[3, e])
+        q_w = normalize4((f[_QY, e] - x[4, e], f[_QY + 1, e] - x[5, e], f[_QY + 2, e] - x[6, e], f[_QY + 3, e] - x[7, e]))
+        qn = mul4(q, q_w)
+        for k in range(4):
+            x[k, e] = qn[k] if pred[e] else q[k]
+        c, m = right_matrix4(q_w), left_matrix4(q)
+        for a in range(4):
+            for k in range(4):
+                w.cm[a, k, e], w.mm[a, k, e] = c[a][k], m[a][k]
+
+
+@njit(cache=True, error_model="numpy")
+def _acc_setup(w, v):
+    """``qsf.step_work`` from the prediction's noise to the accelerometer update's H, innovation and R, on every
+    lane (the noise where ``_PRED``, the update where ``_GO`` and the gate passes)."""
+    x, p, on, f, h, nu = w.x, w.p, w.on, w.f, w.h, w.nu
+    for e in range(_L):
+        pred = on[_PRED, e] != 0
+        dt = f[_DT, e]
+        qg = (0.5 * f[_SG, e] * dt) ** 2
+        qb = (0.5 * dt * f[_SBW, e]) ** 2 * dt
+        qa = f[_SABW, e] ** 2 * dt
+        for r in range(4):
+            p[r, r, e] = p[r, r, e] + qg if pred else p[r, r, e]
+            p[4 + r, 4 + r, e] = p[4 + r, 4 + r, e] + qb if pred else p[4 + r, 4 + r, e]
+        for r in range(3):
+            p[8 + r, 8 + r, e] = p[8 + r, 8 + r, e] + qa if pred else p[8 + r, 8 + r, e]
+        v[_AGE, e] = v[_AGE, e] + dt if (pred & (v[_ACT, e] != 0.0)) else v[_AGE, e]
+        g0, g1, g2 = f[_G, e], f[_G + 1, e], f[_G + 2, e]
+        a0, a1, a2 = f[_A, e], f[_A + 1, e], f[_A + 2, e]
+        g_norm = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        na_ = np.sqrt(a0**2 + a1**2 + a2**2)
+        used = (abs(na_ - g_norm) < f[_THACC, e]) & (on[_GO, e] != 0)
+        v[_ACCU, e] = 1.0 if used else 0.0
+        q = (x[0, e], x[1, e], x[2, e], x[3, e])
+        vv = (a0 - x[8, e], a1 - x[9, e], a2 - x[10, e])
+        j = jacobian34(q, vv, 1.0)
+        for r in range(3):
+            for c in range(4):
+                h[r, c, e] = j[4 * r + c]
+        for c in range(3):  # ∂/∂b_a of q ⊗ (y_a − b_a) ⊗ q̄ = −R(q), column c = −R e_c
+            u = rotate3(q, (1.0 if c == 0 else 0.0, 1.0 if c == 1 else 0.0, 1.0 if c == 2 else 0.0))
+            h[0, 8 + c, e], h[1, 8 + c, e], h[2, 8 + c, e] = -u[0], -u[1], -u[2]
+        dev = f[_ADAPT, e] * (na_ - g_norm)
+        a_e = rotate3(q, vv)
+        nu[0, e], nu[1, e], nu[2, e] = g0 - a_e[0], g1 - a_e[1], g2 - a_e[2]
+        f[_RD, e] = f[_SACC, e] ** 2 + dev * dev
+        f[_GAIN, e] = 1.0
+        on[_UPD, e] = 1 if used else 0
+        on[_HCL, e] = 1
 
 
 @njit(cache=True)
@@ -557,22 +582,21 @@ def _mag_setup(b, s, w, lane, v, t):
         if not on[_GO, e]:
             continue
         i = lane[e, _ENV]
-        pf = b.pf[i]
         active = v[_ACT, e] != 0.0
         m_t0 = (v[_T0, e], v[_T0 + 1, e], v[_T0 + 2, e])
         if v[_ACCU, e] != 0.0 and active and mode == MODE_DELAY and b.update_reference:
             v[_REF, e], v[_REF + 1, e], v[_REF + 2, e] = rotate3((x[11, e], x[12, e], x[13, e], x[14, e]), m_t0)
-        mag = s.mag[lane[e, _R0] + lane[e, _WSTART] + t]
+        row = lane[e, _R0] + lane[e, _WSTART] + t
+        mag = (s.mag[row, 0], s.mag[row, 1], s.mag[row, 2])
         action, trust = v[_ACTION, e], v[_TRUST, e]
-        sm2 = pf[4] ** 2
+        sm2 = b.pf[i, 4] ** 2
         v[_INNOV, e] = v[_NIS, e] = v[_CORRM, e] = v[_UPDATED, e] = 0.0
         if mode == MODE_AEKF:
-            z = b.earth[i]
-            z = (z[0], z[1], z[2])
+            z = (b.earth[i, 0], b.earth[i, 1], b.earth[i, 2])
             do = trust > 0.0
             r_diag = sm2
         else:
-            if action == MAG_START or (action == MAG_KEEP and active and v[_AGE, e] > pf[8]):
+            if action == MAG_START or (action == MAG_KEEP and active and v[_AGE, e] > b.pf[i, 8]):
                 v[_ON, e], v[_AGE, e] = 1.0, 0.0
                 m_t0 = (mag[0], mag[1], mag[2])
                 v[_T0, e], v[_T0 + 1, e], v[_T0 + 2, e] = m_t0
@@ -601,10 +625,15 @@ def _mag_setup(b, s, w, lane, v, t):
             nu = (z[0] - m_e[0], z[1] - m_e[1], z[2] - m_e[2])
             v[_INNOV, e] = np.sqrt(nu[0] * nu[0] + nu[1] * nu[1] + nu[2] * nu[2])
             if do:
-                h = w.h[:, :, e]
-                _put_jacobian(h, 0, q, mag, 1.0)
+                j = jacobian34(q, mag, 1.0)
+                for r in range(3):
+                    for c in range(4):
+                        w.h[r, c, e] = j[4 * r + c]
                 if on[_CL, e]:
-                    _put_jacobian(h, N_STATE, (x[11, e], x[12, e], x[13, e], x[14, e]), m_t0, -1.0)
+                    j = jacobian34((x[11, e], x[12, e], x[13, e], x[14, e]), m_t0, -1.0)
+                    for r in range(3):
+                        for c in range(4):
+                            w.h[r, N_STATE + c, e] = j[4 * r + c]
                     on[_HCL, e] = 1
                 w.nu[0, e], w.nu[1, e], w.nu[2, e] = nu
                 f[_RD, e], f[_GAIN, e] = r_diag, trust
@@ -678,24 +707,24 @@ def _signals(b, w, lane, v, t):
         i = lane[e, _ENV]
         for k in range(8):
             v[_CON + k, e] = v[_ON + k, e]
-        q = b.q_h[i, iw]
-        q[0], q[1], q[2], q[3] = cx[0, e], cx[1, e], cx[2, e], cx[3, e]
+        q = (cx[0, e], cx[1, e], cx[2, e], cx[3, e])
+        b.q_h[i, iw, 0], b.q_h[i, iw, 1], b.q_h[i, iw, 2], b.q_h[i, iw, 3] = q
         hr = heading_row4(q)
         var = 0.0
         for a in range(4):
             var += hr[a] * (cp[a, 0, e] * hr[0] + cp[a, 1, e] * hr[1] + cp[a, 2, e] * hr[2] + cp[a, 3, e] * hr[3])
         active = v[_ACT, e] != 0.0
         updated = v[_UPDATED, e] != 0.0
-        sig = b.sig_h[i, iw]
-        sig[SIGNAL.qsf_active] = 1.0 if (active and mode != MODE_AEKF) else 0.0
-        sig[SIGNAL.innov_norm] = v[_INNOV, e]
-        sig[SIGNAL.nis] = v[_NIS, e]
-        sig[SIGNAL.corr_norm] = v[_CORRM, e]
-        sig[SIGNAL.age] = v[_AGE, e] if active else 0.0
-        sig[SIGNAL.trust] = v[_TRUST, e] if updated else 0.0
-        sig[SIGNAL.heading_std] = np.sqrt(max(0.0, var))
-        sig[SIGNAL.acc_used] = v[_ACCU, e]
-        sig[SIGNAL.mag_updated] = 1.0 if updated else 0.0
+        sig = b.sig_h
+        sig[i, iw, SIGNAL.qsf_active] = 1.0 if (active and mode != MODE_AEKF) else 0.0
+        sig[i, iw, SIGNAL.innov_norm] = v[_INNOV, e]
+        sig[i, iw, SIGNAL.nis] = v[_NIS, e]
+        sig[i, iw, SIGNAL.corr_norm] = v[_CORRM, e]
+        sig[i, iw, SIGNAL.age] = v[_AGE, e] if active else 0.0
+        sig[i, iw, SIGNAL.trust] = v[_TRUST, e] if updated else 0.0
+        sig[i, iw, SIGNAL.heading_std] = np.sqrt(max(0.0, var))
+        sig[i, iw, SIGNAL.acc_used] = v[_ACCU, e]
+        sig[i, iw, SIGNAL.mag_updated] = 1.0 if updated else 0.0
 
 
 @njit(cache=True)
@@ -703,7 +732,7 @@ def _sample(b, s, w, lane, v, t):
     """Sample t of every lane's step (``qsf.step_work``)."""
     _predict_quaternions(b, s, w, lane, v, t)
     _predict_cov(w)
-    _acc_setup(b, s, w, lane, v, t)
+    _acc_setup(w, v)
     _kalman_update(w, uint64(8), uint64(3))
     _renormalise_both(w)
     _mag_setup(b, s, w, lane, v, t)
