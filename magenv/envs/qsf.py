@@ -28,7 +28,7 @@ from numba import njit
 from magenv.checks import check_choice, check_mapping
 from magenv.envs import QSF_ID, lagged, qsf_memory
 from magenv.envs.batch import ROWS, BatchVectorEnv, trial_rows
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array, episode_view
+from magenv.envs.common import TrialRunner, TrustEnv, action_array, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import qsf
 from magenv.filters.linalg import clip
@@ -355,7 +355,8 @@ class MagQSFEnv(TrustEnv):
     - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
       2026-12-01 first version (the hand-held QSF filters, trust of each quasi-static period), the batched vector
       env; 2026-12-02 ``features="extended"``; 2026-12-07 kernels rewritten without allocation (per-trial RMSEs
-      unchanged to 1e-9°).
+      unchanged to 1e-9°), the batched vector env's filters in lock-step (``magenv.envs.qsf_lockstep``; the same
+      numbers bit for bit).
     """
 
     observation = (FEATURES, EXTENDED)

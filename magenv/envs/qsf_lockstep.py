@@ -44,15 +44,14 @@ from magenv.filters.linalg import quad3
 from magenv.filters.qsf import (
     CLONE_JITTER,
     MAG_KEEP,
-    MAG_NONE,
     MAG_START,
     MODE_AEKF,
     MODE_DELAY,
     N_AUGMENTED,
     N_STATE,
     SIGNAL,
-    jacobian34,
     heading_row4,
+    jacobian34,
 )
 from magenv.metrics import error_sums
 from magenv.quaternion import from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
@@ -119,9 +118,19 @@ def _predict_cov(w):
     for a in range(4):
         for j in range(_N):
             for e in range(_L):
-                r[a, j, e] = (c[a, 0, e] * p[0, j, e] + c[a, 1, e] * p[1, j, e] + c[a, 2, e] * p[2, j, e]
-                              + c[a, 3, e] * p[3, j, e]) - (m[a, 0, e] * p[4, j, e] + m[a, 1, e] * p[5, j, e]
-                                                            + m[a, 2, e] * p[6, j, e] + m[a, 3, e] * p[7, j, e])  # fmt: skip
+                cq = (
+                    c[a, 0, e] * p[0, j, e]
+                    + c[a, 1, e] * p[1, j, e]
+                    + c[a, 2, e] * p[2, j, e]
+                    + c[a, 3, e] * p[3, j, e]
+                )
+                mb = (
+                    m[a, 0, e] * p[4, j, e]
+                    + m[a, 1, e] * p[5, j, e]
+                    + m[a, 2, e] * p[6, j, e]
+                    + m[a, 3, e] * p[7, j, e]
+                )
+                r[a, j, e] = cq - mb
     for a in range(4):
         for b in range(a, 4):
             for e in range(_L):
@@ -257,8 +266,10 @@ def _joseph(w):
         for j in range(i, _N):
             for e in range(_L):
                 old = p[i, j, e]
-                new = old - (kt[0, i, e] * hp[0, j, e] + kt[1, i, e] * hp[1, j, e] + kt[2, i, e] * hp[2, j, e]) + (
-                    g[0, i, e] * kt[0, j, e] + g[1, i, e] * kt[1, j, e] + g[2, i, e] * kt[2, j, e]
+                new = (
+                    old
+                    - (kt[0, i, e] * hp[0, j, e] + kt[1, i, e] * hp[1, j, e] + kt[2, i, e] * hp[2, j, e])
+                    + (g[0, i, e] * kt[0, j, e] + g[1, i, e] * kt[1, j, e] + g[2, i, e] * kt[2, j, e])
                 )
                 row[j, e] = new if upd[e] else old
         for j in range(i, _N):  # mirrored in a second pass: the stores then alias none of the loads
@@ -472,7 +483,7 @@ def _fail(lane, e, sample):
 def _predict_quaternions(b, s, w, lane, v, t):
     """``qsf.step_work`` to the prediction's covariance, each lane: the input checks, the period's state, the
     prediction of q (eqs. 17–18) and the rows of F it needs."""
-    x, on = w.x, w.on
+    on = w.on
     on[:, :] = 0
     for e in range(LANES):
         if lane[e, _LIVE] == 0 or t >= lane[e, _CNT]:
@@ -519,7 +530,8 @@ def _predict_q(w):
     x, f, pred = w.x, w.f, w.on[_PRED]
     for e in range(_L):
         q = (x[0, e], x[1, e], x[2, e], x[3, e])
-        q_w = normalize4((f[_QY, e] - x[4, e], f[_QY + 1, e] - x[5, e], f[_QY + 2, e] - x[6, e], f[_QY + 3, e] - x[7, e]))
+        qy = (f[_QY, e], f[_QY + 1, e], f[_QY + 2, e], f[_QY + 3, e])
+        q_w = normalize4((qy[0] - x[4, e], qy[1] - x[5, e], qy[2] - x[6, e], qy[3] - x[7, e]))
         qn = mul4(q, q_w)
         for k in range(4):
             x[k, e] = qn[k] if pred[e] else q[k]
