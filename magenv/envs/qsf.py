@@ -100,11 +100,13 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
     n = gyr.shape[0]
     j = pos if pos < n else n - 1
     m0, dip0 = site
-    q = state.x[0:4]  # qsf.ORIENTATION
+    x = state.x  # rows read by index: a view costs two atomic reference counts
+    q = (x[0], x[1], x[2], x[3])  # qsf.ORIENTATION
     active = state.period_active[0]
-    m_e = rotate3(q, mag[j])
+    mj = (mag[j, 0], mag[j, 1], mag[j, 2])
+    m_e = rotate3(q, mj)
     sigma_m = p.sigma_mag
-    nm = _norm3(mag[j])
+    nm = _norm3(mj)
     if nm > 0:
         s = -m_e[2] / nm
         s = s if s < 1.0 else 1.0  # max(-1, min(1, s)) as Python evaluates it
@@ -128,8 +130,8 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
     f[F.log_nis] = math.log10(1.0 + nis)
     f[F.age] = (state.period_age[0] / AGE_SCALE_S) if active else 0.0
     f[F.active] = 1.0 if active else 0.0
-    f[F.gyro_norm] = _norm3(gyr[j]) / GYRO_SCALE
-    f[F.acc_dev] = (_norm3(acc[j]) - GRAVITY) / GRAVITY
+    f[F.gyro_norm] = _norm3((gyr[j, 0], gyr[j, 1], gyr[j, 2])) / GYRO_SCALE
+    f[F.acc_dev] = (_norm3((acc[j, 0], acc[j, 1], acc[j, 2])) - GRAVITY) / GRAVITY
     f[F.mag_norm_dev] = (nm - m0) / m0
     f[F.dip_dev] = (dip - dip0) / DIP_SCALE_DEG
     f[F.heading_std] = hstd
