@@ -405,10 +405,10 @@ _V = 25
 @njit(cache=True, inline="always")
 def params(b, i):
     """``qsf.Params`` of env i of :class:`magenv.envs.qsf.Batch` ``b``."""
-    f, g, e = b.pf[i], b.grav[i], b.earth[i]
+    f, g, e = b.pf, b.grav, b.earth  # read by index: no views
     return qsf.Params(
-        b.mode, f[0], f[1], f[2], f[3], f[4], f[5], (g[0], g[1], g[2]), (e[0], e[1], e[2]), f[6], f[7],
-        b.update_reference, f[8], f[9],
+        b.mode, f[i, 0], f[i, 1], f[i, 2], f[i, 3], f[i, 4], f[i, 5], (g[i, 0], g[i, 1], g[i, 2]),
+        (e[i, 0], e[i, 1], e[i, 2]), f[i, 6], f[i, 7], b.update_reference, f[i, 8], f[i, 9],
     )  # fmt: skip
 
 
@@ -427,9 +427,9 @@ def _load(b, s, w, lane, v, e, i):
     v[_CON, e], v[_CAGE, e] = 1.0 if on else 0.0, b.age[i, 0]
     for k in range(3):
         v[_CT0 + k, e], v[_CREF + k, e] = b.mag_t0[i, k], b.mag_ref[i, k]
-    f, pf = w.f, b.pf[i]
-    f[_EPS, e], f[_DT, e], f[_SG, e], f[_SBW, e], f[_SABW, e] = pf[7], b.dt[i], pf[0], pf[1], pf[2]
-    f[_SACC, e], f[_THACC, e], f[_ADAPT, e] = pf[3], pf[5], pf[9]
+    f, pf = w.f, b.pf
+    f[_EPS, e], f[_DT, e], f[_SG, e], f[_SBW, e], f[_SABW, e] = pf[i, 7], b.dt[i], pf[i, 0], pf[i, 1], pf[i, 2]
+    f[_SACC, e], f[_THACC, e], f[_ADAPT, e] = pf[i, 3], pf[i, 5], pf[i, 9]
     for k in range(3):
         f[_G + k, e] = b.grav[i, k]
     w.on[_CL, e] = 1 if (b.mode == MODE_DELAY and on) else 0
@@ -778,14 +778,19 @@ def _block(b, s, e0, e1, w):
     for t in range(most):
         _sample(b, s, w, lane, v, t)
     _store_states(b, w, uint64(e0), uint64(n))
-    xe, unused = np.empty(N_AUGMENTED), np.empty((1, 1))  # env i's x for _features (which reads no P)
+    # env i's state for _features (which reads no P), in arrays of this block: no views of the batch's rows
+    st = qsf.State(
+        np.empty(N_AUGMENTED), np.empty((1, 1)), np.empty(1, np.bool_), np.empty(1), np.empty(3), np.empty(3)
+    )
     for e in range(n):
         i = e0 + e
         if s.todo[i] < 0:
             continue
-        b.active[i, 0], b.age[i, 0] = v[_CON, e] != 0.0, v[_CAGE, e]
+        st.period_active[0], st.period_age[0] = v[_CON, e] != 0.0, v[_CAGE, e]
+        b.active[i, 0], b.age[i, 0] = st.period_active[0], st.period_age[0]
         for k in range(3):
-            b.mag_t0[i, k], b.mag_ref[i, k] = v[_CT0 + k, e], v[_CREF + k, e]
+            st.mag_t0[k], st.mag_ref[k] = v[_CT0 + k, e], v[_CREF + k, e]
+            b.mag_t0[i, k], b.mag_ref[i, k] = st.mag_t0[k], st.mag_ref[k]
         start, stop, base, r0, r1 = lane[e, _WSTART], lane[e, _WSTOP], lane[e, _WBASE], lane[e, _R0], lane[e, _R1]
         if lane[e, _BAD] >= 0:
             s.failed[i] = base + lane[e, _BAD]
@@ -793,9 +798,9 @@ def _block(b, s, e0, e1, w):
         s.pos[i] = base + stop
         error_sums(b.q_h[i], s.q_true[r0:r1], s.dist[r0:r1], start, stop, s.err[i])
         for r in range(N_AUGMENTED):
-            xe[r] = w.cx[r, e]
+            st.x[r] = w.cx[r, e]
         _features(
-            params(b, i), qsf.State(xe, unused, b.active[i], b.age[i], b.mag_t0[i], b.mag_ref[i]),
+            params(b, i), st,
             qsf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.action_h[i], b.trust_h[i]), b.codes[r0:r1],
             b.spread[r0:r1], b.sig_h[i], (b.m0[i], b.dip0[i]), b.trust[i], stop, s.feat[i],
         )  # fmt: skip
