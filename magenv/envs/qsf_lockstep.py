@@ -40,7 +40,7 @@ from magenv.envs.batch import window
 from magenv.envs.qsf import _features, fill_decision
 from magenv.filters import qsf
 from magenv.filters.kalman_threshold import finite3, repair_sym
-from magenv.filters.linalg import quad3
+from magenv.filters.linalg import inv3, quad3
 from magenv.filters.qsf import (
     CLONE_JITTER,
     MAG_KEEP,
@@ -180,50 +180,37 @@ def _hp(w, c2, n2):
                 hp[mm, j, e] = u if hcl[e] else v
 
 
+@njit(cache=True, inline="always")
+def _add_hph(hp, h, e, c0, n, s):
+    """The 6-tuple ``s`` (S's triangle: 00 01 02 11 12 22) plus the terms ``(H P)[a, col] H[b, col]`` of lane e's
+    ``n`` columns from ``c0``, added column by column as ``qsf._kalman_update`` sums them."""
+    s00, s01, s02, s11, s12, s22 = s
+    for t in range(n):
+        col = c0 + t
+        s00 += hp[0, col, e] * h[0, col, e]
+        s01 += hp[0, col, e] * h[1, col, e]
+        s02 += hp[0, col, e] * h[2, col, e]
+        s11 += hp[1, col, e] * h[1, col, e]
+        s12 += hp[1, col, e] * h[2, col, e]
+        s22 += hp[2, col, e] * h[2, col, e]
+    return s00, s01, s02, s11, s12, s22
+
+
 @njit(cache=True, error_model="numpy")
 def _gain(w, c2, n2):
     """S, S⁻¹, the gain, the state."""
     h, hp, kt, x, on, f = w.h, w.hp, w.kt, w.x, w.on, w.f
     upd, hcl, cl = on[_UPD], on[_HCL], on[_CL]
     for e in range(_L):
-        s00 = s01 = s02 = s11 = s12 = s22 = 0.0
-        for t in range(4):
-            s00 += hp[0, t, e] * h[0, t, e]
-            s01 += hp[0, t, e] * h[1, t, e]
-            s02 += hp[0, t, e] * h[2, t, e]
-            s11 += hp[1, t, e] * h[1, t, e]
-            s12 += hp[1, t, e] * h[2, t, e]
-            s22 += hp[2, t, e] * h[2, t, e]
-        u00, u01, u02, u11, u12, u22 = s00, s01, s02, s11, s12, s22
-        for t in range(n2):
-            col = c2 + t
-            u00 += hp[0, col, e] * h[0, col, e]
-            u01 += hp[0, col, e] * h[1, col, e]
-            u02 += hp[0, col, e] * h[2, col, e]
-            u11 += hp[1, col, e] * h[1, col, e]
-            u12 += hp[1, col, e] * h[2, col, e]
-            u22 += hp[2, col, e] * h[2, col, e]
-        if hcl[e]:
-            s00, s01, s02, s11, s12, s22 = u00, u01, u02, u11, u12, u22
+        s = _add_hph(hp, h, e, 0, 4, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+        u = _add_hph(hp, h, e, c2, n2, s)
+        s00, s01, s02, s11, s12, s22 = u if hcl[e] else s
         rd = f[_RD, e]
         a0, a1, a2, a3, a4, a5, a6, a7, a8 = s00 + rd, s01, s02, s01, s11 + rd, s12, s02, s12, s22 + rd
-        # linalg.inv3
-        c00 = a4 * a8 - a5 * a7
-        c01 = a5 * a6 - a3 * a8
-        c02 = a3 * a7 - a4 * a6
-        c10 = a2 * a7 - a1 * a8
-        c11 = a0 * a8 - a2 * a6
-        c12 = a1 * a6 - a0 * a7
-        c20 = a1 * a5 - a2 * a4
-        c21 = a2 * a3 - a0 * a5
-        c22 = a0 * a4 - a1 * a3
-        det = a0 * c00 + a1 * c01 + a2 * c02
-        d = 1.0 / det if det != 0.0 else np.nan
-        si = w.s_inv
-        si[0, e], si[1, e], si[2, e] = c00 * d, c10 * d, c20 * d
-        si[3, e], si[4, e], si[5, e] = c01 * d, c11 * d, c21 * d
-        si[6, e], si[7, e], si[8, e] = c02 * d, c12 * d, c22 * d
-        # the Joseph form's G = K S − C needs S: kept in s_inv's place until G is built
+        inv = inv3((a0, a1, a2, a3, a4, a5, a6, a7, a8))
+        for k in range(9):
+            w.s_inv[k, e] = inv[k]
+        # the Joseph form's G = K S − C needs S: the six entries of its triangle in r[3] (G's rows are r[0:3])
         w.r[3, 0, e], w.r[3, 1, e], w.r[3, 2, e] = a0, a1, a2
         w.r[3, 3, e], w.r[3, 4, e], w.r[3, 5, e] = a4, a5, a8
     si = w.s_inv
