@@ -56,8 +56,7 @@ from magenv.filters.qsf import (
 from magenv.metrics import error_sums
 from magenv.quaternion import from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
 
-LANES = 128  # envs per block: the block's working arrays stay in the core's caches
-_L = uint64(LANES)
+LANES = 128  # envs per block at most: the block's working arrays stay in the core's second-level cache
 _N = uint64(N_AUGMENTED)
 _C0 = uint64(N_STATE)  # the clone's first row (qsf.CLONE.start)
 
@@ -81,6 +80,7 @@ class Lanes(NamedTuple):
     s_inv: np.ndarray  # (9, L) S⁻¹ of the last update
     f: np.ndarray  # (_F, L) per-lane numbers (rows _RD …)
     on: np.ndarray  # (_M, L) int8 per-lane masks (rows _GO …)
+    size: np.ndarray  # (1,) uint64: the lanes in use, the first ones (the block's envs)
 
 
 # rows of Lanes.f: R's diagonal, the gain, the radial eps, |Δq| of the update, a sum being formed, then a
@@ -99,12 +99,14 @@ _M = 9
 
 
 @njit(cache=True)
-def lanes() -> Lanes:
-    n, L = N_AUGMENTED, LANES
+def lanes(L) -> Lanes:
+    """Working arrays for blocks of up to L lanes."""
+    n = N_AUGMENTED
     return Lanes(
         np.zeros((n, L)), np.zeros((n, n, L)), np.zeros((n, L)), np.zeros((n, n, L)), np.zeros((3, n, L)),
         np.zeros((3, n, L)), np.zeros((3, n, L)), np.zeros((4, n, L)), np.zeros((n, n, L)), np.zeros((4, 4, L)),
         np.zeros((4, 4, L)), np.zeros((3, L)), np.zeros((9, L)), np.zeros((_F, L)), np.zeros((_M, L), np.int8),
+        np.full(1, L, np.uint64),
     )  # fmt: skip
 
 
@@ -117,7 +119,7 @@ def _predict_cov(w):
     p, r, c, m, pred = w.p, w.r, w.cm, w.mm, w.on[_PRED]
     for a in range(4):
         for j in range(_N):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 cq = (
                     c[a, 0, e] * p[0, j, e]
                     + c[a, 1, e] * p[1, j, e]
@@ -133,7 +135,7 @@ def _predict_cov(w):
                 r[a, j, e] = cq - mb
     for a in range(4):
         for b in range(a, 4):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 v = (r[a, 0, e] * c[b, 0, e] + r[a, 1, e] * c[b, 1, e] + r[a, 2, e] * c[b, 2, e]
                      + r[a, 3, e] * c[b, 3, e]) - (r[a, 4, e] * m[b, 0, e] + r[a, 5, e] * m[b, 1, e]
                                                    + r[a, 6, e] * m[b, 2, e] + r[a, 7, e] * m[b, 3, e])  # fmt: skip
@@ -142,7 +144,7 @@ def _predict_cov(w):
                 p[b, a, e] = v
     for a in range(4):
         for j in range(4, _N):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 v = r[a, j, e] if pred[e] else p[a, j, e]
                 p[a, j, e] = v
                 p[j, a, e] = v
@@ -165,7 +167,7 @@ def _hp(w, c2, n2):
     p, h, hp, hcl = w.p, w.h, w.hp, w.on[_HCL]
     for mm in range(3):
         for j in range(_N):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 v = 0.0
                 v += h[mm, 0, e] * p[0, j, e]
                 v += h[mm, 1, e] * p[1, j, e]
@@ -201,7 +203,7 @@ def _gain(w, c2, n2):
     """S, S⁻¹, the gain, the state."""
     h, hp, kt, x, on, f = w.h, w.hp, w.kt, w.x, w.on, w.f
     upd, hcl, cl = on[_UPD], on[_HCL], on[_CL]
-    for e in range(_L):
+    for e in range(w.size[0]):
         s = _add_hph(hp, h, e, 0, 4, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
         u = _add_hph(hp, h, e, c2, n2, s)
         s00, s01, s02, s11, s12, s22 = u if hcl[e] else s
@@ -215,24 +217,24 @@ def _gain(w, c2, n2):
         w.r[3, 3, e], w.r[3, 4, e], w.r[3, 5, e] = a4, a5, a8
     si = w.s_inv
     for j in range(_N):
-        for e in range(_L):
+        for e in range(w.size[0]):
             g = f[_GAIN, e]
             h0, h1, h2 = hp[0, j, e], hp[1, j, e], hp[2, j, e]
             kt[0, j, e] = g * (h0 * si[0, e] + h1 * si[3, e] + h2 * si[6, e])
             kt[1, j, e] = g * (h0 * si[1, e] + h1 * si[4, e] + h2 * si[7, e])
             kt[2, j, e] = g * (h0 * si[2, e] + h1 * si[5, e] + h2 * si[8, e])
     nu = w.nu
-    for e in range(_L):
+    for e in range(w.size[0]):
         f[_CORR, e] = 0.0
     for j in range(_N):
-        for e in range(_L):
+        for e in range(w.size[0]):
             before = x[j, e]
             after = before + (kt[0, j, e] * nu[0, e] + kt[1, j, e] * nu[1, e] + kt[2, j, e] * nu[2, e])
             keep = (upd[e] != 0) & ((j < _C0) | (cl[e] != 0))
             x[j, e] = after if keep else before
             if j < 4:
                 f[_CORR, e] += (after - before) ** 2
-    for e in range(_L):
+    for e in range(w.size[0]):
         f[_CORR, e] = np.sqrt(f[_CORR, e])
 
 
@@ -242,7 +244,7 @@ def _joseph(w):
     p, hp, kt, g, upd = w.p, w.hp, w.kt, w.r, w.on[_UPD]
     s = g[3]
     for i in range(_N):
-        for e in range(_L):
+        for e in range(w.size[0]):
             k0, k1, k2 = kt[0, i, e], kt[1, i, e], kt[2, i, e]
             s0, s1, s2, s4, s5, s8 = s[0, e], s[1, e], s[2, e], s[3, e], s[4, e], s[5, e]
             g[0, i, e] = (k0 * s0 + k1 * s1 + k2 * s2) - hp[0, i, e]
@@ -251,7 +253,7 @@ def _joseph(w):
     row = w.f[_ROW:]
     for i in range(_N):
         for j in range(i, _N):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 old = p[i, j, e]
                 new = (
                     old
@@ -260,7 +262,7 @@ def _joseph(w):
                 )
                 row[j, e] = new if upd[e] else old
         for j in range(i, _N):  # mirrored in a second pass: the stores then alias none of the loads
-            for e in range(_L):
+            for e in range(w.size[0]):
                 p[i, j, e] = row[j, e]
                 p[j, i, e] = row[j, e]
 
@@ -270,13 +272,13 @@ def _renormalise(w, mask, off):
     """``qsf._renormalise``'s step for the quaternion at row ``off`` on the lanes with ``mask``: normalise it,
     project the covariance (``linalg.project_quaternion``, 15 states)."""
     x, p, eps = w.x, w.p, w.f[_EPS]
-    for e in range(_L):
+    for e in range(w.size[0]):
         qn = np.sqrt(x[off, e] ** 2 + x[off + 1, e] ** 2 + x[off + 2, e] ** 2 + x[off + 3, e] ** 2)
         for i in range(4):
             v = x[off + i, e] / qn
             x[off + i, e] = v if mask[e] else x[off + i, e]
     for j in range(_N):
-        for e in range(_L):
+        for e in range(w.size[0]):
             q0, q1, q2, q3 = x[off, e], x[off + 1, e], x[off + 2, e], x[off + 3, e]
             d = q0 * p[off, j, e] + q1 * p[off + 1, j, e] + q2 * p[off + 2, j, e] + q3 * p[off + 3, j, e]
             m = mask[e]
@@ -285,7 +287,7 @@ def _renormalise(w, mask, off):
             p[off + 2, j, e] = p[off + 2, j, e] - q2 * d if m else p[off + 2, j, e]
             p[off + 3, j, e] = p[off + 3, j, e] - q3 * d if m else p[off + 3, j, e]
     for i in range(_N):
-        for e in range(_L):
+        for e in range(w.size[0]):
             q0, q1, q2, q3 = x[off, e], x[off + 1, e], x[off + 2, e], x[off + 3, e]
             d = q0 * p[i, off, e] + q1 * p[i, off + 1, e] + q2 * p[i, off + 2, e] + q3 * p[i, off + 3, e]
             m = mask[e]
@@ -295,7 +297,7 @@ def _renormalise(w, mask, off):
             p[i, off + 3, e] = p[i, off + 3, e] - q3 * d if m else p[i, off + 3, e]
     for a in range(4):
         for b in range(a, 4):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 v = 0.5 * (p[off + a, off + b, e] + p[off + b, off + a, e]) + eps[e] * x[off + a, e] * x[off + b, e]
                 v = v if mask[e] else p[off + a, off + b, e]
                 p[off + a, off + b, e] = v
@@ -308,7 +310,7 @@ def _renormalise_both(w):
     on = w.on
     _renormalise(w, on[_UPD], 0)
     both = on[_BOTH]
-    for e in range(_L):
+    for e in range(w.size[0]):
         both[e] = on[_UPD, e] & on[_CL, e]
     _renormalise(w, both, N_STATE)
 
@@ -320,16 +322,16 @@ def _clone(w):
     p, st = w.p, w.on[_START]
     for a in range(4):
         for c in range(N_STATE):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 if st[e]:
                     p[N_STATE + a, c, e] = p[a, c, e]
                     p[c, N_STATE + a, e] = p[c, a, e]
         for b in range(4):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 if st[e]:
                     p[N_STATE + a, N_STATE + b, e] = p[a, b, e]
     for r in range(N_STATE, N_AUGMENTED):
-        for e in range(_L):
+        for e in range(w.size[0]):
             if st[e]:
                 p[r, r, e] += CLONE_JITTER
 
@@ -339,26 +341,26 @@ def _healthy(w):
     """``on[_OK]`` ← the Cholesky test of ``kalman_threshold.is_pd`` on each lane's 11 or 15 (``_CL``) rows and
     a finite diagonal there (every lane factors 15 rows; a lane without clone ignores the clone's)."""
     p, lo, ok, cl, s = w.p, w.lo, w.on[_OK], w.on[_CL], w.f[_SUM]
-    for e in range(_L):
+    for e in range(w.size[0]):
         ok[e] = 1
     for j in range(_N):
-        for e in range(_L):
+        for e in range(w.size[0]):
             s[e] = p[j, j, e]
         for k in range(j):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 s[e] -= lo[j, k, e] * lo[j, k, e]
-        for e in range(_L):
+        for e in range(w.size[0]):
             lo[j, j, e] = 1.0 / np.sqrt(s[e])
             d = p[j, j, e]
             good = (s[e] > 0.0) & (d - d == 0.0)
             ok[e] = ok[e] & (good | ((j >= _C0) & (cl[e] == 0)))
         for i in range(j + 1, _N):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 s[e] = p[i, j, e]
             for k in range(j):
-                for e in range(_L):
+                for e in range(w.size[0]):
                     s[e] -= lo[i, k, e] * lo[j, k, e]
-            for e in range(_L):
+            for e in range(w.size[0]):
                 lo[i, j, e] = s[e] * lo[j, j, e]
 
 
@@ -368,11 +370,11 @@ def _commit(w, commit):
     clone)."""
     x, p, cx, cp, cl = w.x, w.p, w.cx, w.cp, w.on[_CL]
     for r in range(_N):
-        for e in range(_L):
+        for e in range(w.size[0]):
             cx[r, e] = x[r, e] if commit[e] else cx[r, e]
     for r in range(_N):
         for c in range(_N):
-            for e in range(_L):
+            for e in range(w.size[0]):
                 v = p[r, c, e] if ((cl[e] != 0) | ((r < _C0) & (c < _C0))) else 0.0
                 cp[r, c, e] = v if commit[e] else cp[r, c, e]
 
@@ -472,7 +474,7 @@ def _predict_quaternions(b, s, w, lane, v, t):
     prediction of q (eqs. 17–18) and the rows of F it needs."""
     on = w.on
     on[:, :] = 0
-    for e in range(LANES):
+    for e in range(w.size[0]):
         if lane[e, _LIVE] == 0 or t >= lane[e, _CNT]:
             continue
         i = lane[e, _ENV]
@@ -515,7 +517,7 @@ def _predict_q(w):
     """The prediction of q (eq. 18) from ``f[_QY]`` on the lanes with ``_PRED``: ``q ← q ⊗ normalise(q_yg − b_q)``,
     and the rows of C(q̂_ω) and M(q) that ``_predict_cov`` needs."""
     x, f, pred = w.x, w.f, w.on[_PRED]
-    for e in range(_L):
+    for e in range(w.size[0]):
         q = (x[0, e], x[1, e], x[2, e], x[3, e])
         qy = (f[_QY, e], f[_QY + 1, e], f[_QY + 2, e], f[_QY + 3, e])
         q_w = normalize4((qy[0] - x[4, e], qy[1] - x[5, e], qy[2] - x[6, e], qy[3] - x[7, e]))
@@ -533,7 +535,7 @@ def _acc_setup(w, v):
     """``qsf.step_work`` from the prediction's noise to the accelerometer update's H, innovation and R, on every
     lane (the noise where ``_PRED``, the update where ``_GO`` and the gate passes)."""
     x, p, on, f, h, nu = w.x, w.p, w.on, w.f, w.h, w.nu
-    for e in range(_L):
+    for e in range(w.size[0]):
         pred = on[_PRED, e] != 0
         dt = f[_DT, e]
         qg = (0.5 * f[_SG, e] * dt) ** 2
@@ -576,7 +578,7 @@ def _mag_setup(b, s, w, lane, v, t):
     update runs, its H and R."""
     x, on, f = w.x, w.on, w.f
     mode = b.mode
-    for e in range(LANES):
+    for e in range(w.size[0]):
         on[_UPD, e], on[_HCL, e], on[_START, e] = 0, 0, 0
         if not on[_GO, e]:
             continue
@@ -644,7 +646,7 @@ def _mag_after(b, w, v):
     """``qsf.step_work`` after the magnetic update: NIS, the reference from the corrected clone, eq. 24's
     literal clone."""
     x, on = w.x, w.on
-    for e in range(LANES):
+    for e in range(w.size[0]):
         if not on[_GO, e]:
             continue
         if on[_UPD, e]:
@@ -668,7 +670,7 @@ def _repair(b, w, lane, t):
     on, p = w.on, w.p
     pm = np.empty((N_AUGMENTED, N_AUGMENTED))
     lo = np.empty((N_AUGMENTED, N_AUGMENTED))
-    for e in range(LANES):
+    for e in range(w.size[0]):
         on[_COMMIT, e] = 0
         if not on[_GO, e]:
             continue
@@ -696,7 +698,7 @@ def _signals(b, w, lane, v, t):
     the estimate and the signals."""
     on, cx, cp = w.on, w.cx, w.cp
     mode = b.mode
-    for e in range(LANES):
+    for e in range(w.size[0]):
         if not on[_GO, e]:
             continue
         iw = lane[e, _WSTART] + t
@@ -747,16 +749,18 @@ def _sample(b, s, w, lane, v, t):
 
 @njit(cache=True)
 def _block(b, s, e0, e1, w):
-    """Envs ``e0 … e1−1`` (at most LANES) of :class:`magenv.envs.qsf.Batch` ``b`` (``s``: ``batch.Steps``) do
+    """Envs ``e0 … e1−1`` (at most ``w``'s lanes) of :class:`magenv.envs.qsf.Batch` ``b`` (``s``: ``batch.Steps``) do
     their ``todo`` in lock-step, each as :func:`magenv.envs.qsf.advance` does it."""
-    lane = np.zeros((LANES, 10), np.int64)
-    v = np.zeros((_V, LANES))
+    width = w.x.shape[1]
+    lane = np.zeros((width, 10), np.int64)
+    v = np.zeros((_V, width))
     n = e1 - e0
+    w.size[0] = n
     most = 0
-    for e in range(LANES):
+    for e in range(n):
         w.on[_CL, e] = 0
         lane[e, _BAD] = -1
-        if e < n and s.todo[e0 + e] >= 0:
+        if s.todo[e0 + e] >= 0:
             _load(b, s, w, lane, v, e, e0 + e)
             most = max(most, lane[e, _CNT])
     _load_states(b, w, uint64(e0), uint64(n))
@@ -798,8 +802,8 @@ def lockstep(b, s):
     """Every env of ``b`` (:class:`magenv.envs.qsf.Batch`; ``s``: ``magenv.envs.batch.Steps``) with ``todo ≥ 0``
     does it, LANES envs at a time (``magenv.envs.batch.each_env``'s contract: ``s.pos`` advanced, or
     ``s.failed`` set to the sample where the env's filter failed)."""
-    w = lanes()
     n = s.todo.shape[0]
+    w = lanes(min(LANES, n))
     for e0 in range(0, n, LANES):
         _block(b, s, e0, min(e0 + LANES, n), w)
 
@@ -810,4 +814,5 @@ def lockstep_threads(b, s):
     n = s.todo.shape[0]
     for k in prange((n + LANES - 1) // LANES):
         e0 = k * LANES
-        _block(b, s, e0, min(e0 + LANES, n), lanes())
+        e1 = min(e0 + LANES, n)
+        _block(b, s, e0, e1, lanes(e1 - e0))
