@@ -189,6 +189,7 @@ def main() -> None:
 
         checkout.use(args.checkout)
     import magenv  # noqa: F401  (registers the envs)
+
     sizes = [int(n) for n in args.envs.split(",")]
     names = args.ids.split(",")
     unknown = [n for n in names if n not in IDS]
