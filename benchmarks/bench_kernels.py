@@ -97,10 +97,16 @@ def env_kernels(num_envs: int, k: int = 8) -> dict[str, float]:
         vec = gym.make_vec(full, num_envs=num_envs, vectorization_mode="vector_entry_point", scenario=[trial],
                            decision_every=k)  # fmt: skip
         venv = vec.unwrapped  # a vector env with a compiled batch kernel (not 3026d33's VQF on C++ objects):
-        if getattr(venv, "advance_env", None) or getattr(venv, "kernels", None):  # (``kernels`` before the template)
+        if _batched(venv):
             out[f"{env_id} batch kernel, N={num_envs}"] = _batch_kernel_ns(vec, trial, num_envs, k)
         vec.close()
     return out
+
+
+def _batched(venv) -> bool:
+    """``venv`` has a compiled batch kernel: ``advance_env`` run by ``batch.each_env``, a ``lockstep`` kernel, or
+    (before the env template) ``kernels``."""
+    return any(getattr(venv, name, None) for name in ("advance_env", "lockstep", "kernels"))
 
 
 def _batch_kernel_ns(vec, trial, num_envs: int, k: int) -> float:
@@ -115,7 +121,7 @@ def _batch_kernel_ns(vec, trial, num_envs: int, k: int) -> float:
         vec.reset(seed=0)
         venv._set_actions(actions, np.ones(num_envs, bool))
         todo, run = venv.todo, venv._entry
-        args = venv._args if hasattr(venv, "advance_env") else (venv._args,)  # one Batch before the env template
+        args = (venv._args,) if getattr(venv, "kernels", None) else venv._args  # one Batch before the env template
         for _ in range(steps):
             todo[:] = k
             run(*args)

@@ -2,7 +2,7 @@
 kernels' cost per sample; each oracle's decisions per second.
 
     .venv/bin/python benchmarks/bench_vector.py [--envs 1,16,256,1024] [--every 8] [--ids blend,kalman,…]
-                                                [--oracle-seconds 10] [--parallel]
+                                                [--oracle-seconds 10] [--parallel] [--checkout DIR]
 
 For each env and N: the env's ``vector_entry_point`` (``gymnasium.make_vec(…, vectorization_mode=
 "vector_entry_point")``, so an env picks up whatever batch implementation it registers) on one pre-made
@@ -16,6 +16,8 @@ this run, interleaved; each rate is the best of 3, per wall second and per CPU s
 rate one free core gives: robust on a shared machine; ratios are of those). Targets (issue 49): vector env
 ≥ 150 k env-steps/s at N = 256 and ≥ 0.6 of the kernel limit. ``--parallel`` measures the threaded
 kernel (``prange`` over the envs, the env's ``parallel=True``) instead of the default serial one.
+``--checkout DIR`` times the checkout in DIR (``benchmarks/checkout.py``; e.g. ``git archive`` of the commit
+before a change) instead of this code: alternate runs with and without it to compare.
 
 Then each env's oracle (``oracle``, ``oracle_kalman``, ``oracle_constraint``, ``oracle_qsf``,
 ``oracle_vqf``: a receding-horizon search at every decision) on the first ``--oracle-seconds`` of the
@@ -29,8 +31,6 @@ import time
 
 import gymnasium as gym
 import numpy as np
-
-import magenv  # noqa: F401  (registers the envs)
 
 IDS = {
     "blend": "magenv/MagBlend-v0",
@@ -182,7 +182,14 @@ def main() -> None:
     p.add_argument("--ids", default=",".join(IDS), help=f"envs among {', '.join(IDS)}")
     p.add_argument("--oracle-seconds", type=float, default=10.0, help="trial seconds each oracle runs (0: none)")
     p.add_argument("--parallel", action="store_true", help="the threaded kernels (numba prange over the envs)")
+    p.add_argument("--checkout", default=None, help="time the checkout in this folder instead of this code")
     args = p.parse_args()
+    if args.checkout:
+        import checkout
+
+        checkout.use(args.checkout)
+    import magenv  # noqa: F401  (registers the envs)
+
     sizes = [int(n) for n in args.envs.split(",")]
     names = args.ids.split(",")
     unknown = [n for n in names if n not in IDS]

@@ -89,8 +89,9 @@ def error_sums(est, q_true, dist, start, stop, err):
     """Reset ``err`` (N_ERR,) to the error sums of samples ``start … stop−1`` of ``est`` (N, 4)."""
     for k in range(N_ERR):
         err[k] = 0.0
-    for i in range(start, stop):
-        add_errors(err, est[i], q_true[i], dist[i])
+    for i in range(start, stop):  # rows as tuples: a view costs two atomic reference counts
+        q = (est[i, 0], est[i, 1], est[i, 2], est[i, 3])
+        add_errors(err, q, (q_true[i, 0], q_true[i, 1], q_true[i, 2], q_true[i, 3]), dist[i])
 
 
 @njit(cache=True)

@@ -15,7 +15,9 @@ starts its filter with the runner's own functions, and its kernel runs the
 single env's kernel ``advance`` on *windows* of the arrays — the samples of
 the step plus the one before and the one after — with scratch outputs of a
 few rows instead of per-sample histories, so a vector env keeps no history
-(``estimate`` and the other per-sample views are single-env features).
+(``estimate`` and the other per-sample views are single-env features). An
+env may instead give a ``lockstep`` kernel that advances all its envs at once
+(MagQSF-v0: ``magenv.envs.qsf_lockstep``, the same numbers as its ``advance``).
 """
 
 from __future__ import annotations
@@ -253,11 +255,12 @@ class BatchVectorEnv(gym.vector.VectorEnv):
     Subclasses set ``env_class``, ``features`` (its FeatureTable), ``channels`` (the store's per-sample
     channels: :data:`ROWS` and the env's own), ``first`` (the first sample a step fuses), ``advance_env`` (the
     numba kernel ``(batch, steps, i, window) → −1 or the failing sample`` that does env i's ``todo``;
-    :func:`each_env` runs it for every env), ``extended_batched`` (it also computes ``features="extended"``),
-    ``idle_action`` (the action value of an env that does not step) and implement ``_alloc(n)``,
-    ``_prepare(trial) → (rows, description)`` (rows: :func:`trial_rows` and the env's own), ``_start(i,
-    description)``, ``_batch()`` (the kernel's env arrays, a ``Batch``), ``_failure(i, sample)`` (the error of a
-    failing filter, if its filter can fail) and, for an action of more than one number,
+    :func:`each_env` runs it for every env) or ``lockstep`` (a serial and a threaded kernel ``(batch, steps)``
+    doing every env's ``todo`` with :func:`each_env`'s contract, e.g. all envs in lock-step), ``extended_batched``
+    (it also computes ``features="extended"``), ``idle_action`` (the action value of an env that does not step)
+    and implement ``_alloc(n)``, ``_prepare(trial) → (rows, description)`` (rows: :func:`trial_rows` and the env's
+    own), ``_start(i, description)``, ``_batch()`` (the kernel's env arrays, a ``Batch``), ``_failure(i, sample)``
+    (the error of a failing filter, if its filter can fail) and, for an action of more than one number,
     ``_set_actions(values, stepping) → action infos``. ``todo[i]`` tells the kernel what env i does: fuse that
     many samples (≥ 1), only compute its observation (0), or nothing (−1).
     """
@@ -268,6 +271,7 @@ class BatchVectorEnv(gym.vector.VectorEnv):
     channels: dict[str, tuple[tuple[int, ...], Any]] = ROWS
     idle_action = 0.0  # the action value of the envs that do not step (the single action of _set_actions)
     advance_env: Any  # numba kernel (the _batch() tuple, i): env i does todo[i]
+    lockstep: Any = None  # or (serial, threaded) numba kernels (the _batch() tuple, steps): every env does its todo
     extended_batched = False  # the kernel also computes the memory of features="extended"
     first = 0
 
@@ -349,8 +353,13 @@ class BatchVectorEnv(gym.vector.VectorEnv):
             a = self.store.arrays
             steps = Steps(a["gyr"], a["acc"], a["mag"], a["q_true"], a["dist"], self.off, self.n, self.pos,
                           self.todo, self.err, self.feat, self.failed)  # fmt: skip
-            self._args, self._args_version = (self.advance_env, self._batch(), steps), self.store.version
-            self._entry = TrialRunner.compiled(each_env_threads if self.parallel else each_env, *self._args)
+            self._args_version = self.store.version
+            if self.lockstep is None:
+                kernel = each_env_threads if self.parallel else each_env
+                self._args = (self.advance_env, self._batch(), steps)
+            else:
+                kernel, self._args = self.lockstep[1 if self.parallel else 0], (self._batch(), steps)
+            self._entry = TrialRunner.compiled(kernel, *self._args)
         self._entry(*self._args)
         bad = np.flatnonzero(self.failed >= 0)
         if bad.size:

@@ -28,13 +28,13 @@ from numba import njit
 from magenv.checks import check_choice, check_mapping
 from magenv.envs import QSF_ID, lagged, qsf_memory
 from magenv.envs.batch import ROWS, BatchVectorEnv, trial_rows
-from magenv.envs.common import TrialRunner, TrustEnv, Truth, action_array, episode_view
+from magenv.envs.common import TrialRunner, TrustEnv, action_array, episode_view
 from magenv.envs.features import DIP_SCALE_DEG, GYRO_SCALE, Feature, FeatureTable, document
 from magenv.filters import qsf
 from magenv.filters.linalg import clip
 from magenv.filters.qsf import SIGNAL
 from magenv.metrics import N_ERR, error_sums
-from magenv.quaternion import GRAVITY, rotate1
+from magenv.quaternion import GRAVITY, rotate3
 from magenv.trial import Trial
 
 AGE_SCALE_S = 10.0  # period age in units of 10 s
@@ -100,11 +100,13 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
     n = gyr.shape[0]
     j = pos if pos < n else n - 1
     m0, dip0 = site
-    q = state.x[0:4]  # qsf.ORIENTATION
+    x = state.x  # rows read by index: a view costs two atomic reference counts
+    q = (x[0], x[1], x[2], x[3])  # qsf.ORIENTATION
     active = state.period_active[0]
-    m_e = rotate1(q, mag[j])
+    mj = (mag[j, 0], mag[j, 1], mag[j, 2])
+    m_e = rotate3(q, mj)
     sigma_m = p.sigma_mag
-    nm = _norm3(mag[j])
+    nm = _norm3(mj)
     if nm > 0:
         s = -m_e[2] / nm
         s = s if s < 1.0 else 1.0  # max(-1, min(1, s)) as Python evaluates it
@@ -128,8 +130,8 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
     f[F.log_nis] = math.log10(1.0 + nis)
     f[F.age] = (state.period_age[0] / AGE_SCALE_S) if active else 0.0
     f[F.active] = 1.0 if active else 0.0
-    f[F.gyro_norm] = _norm3(gyr[j]) / GYRO_SCALE
-    f[F.acc_dev] = (_norm3(acc[j]) - GRAVITY) / GRAVITY
+    f[F.gyro_norm] = _norm3((gyr[j, 0], gyr[j, 1], gyr[j, 2])) / GYRO_SCALE
+    f[F.acc_dev] = (_norm3((acc[j, 0], acc[j, 1], acc[j, 2])) - GRAVITY) / GRAVITY
     f[F.mag_norm_dev] = (nm - m0) / m0
     f[F.dip_dev] = (dip - dip0) / DIP_SCALE_DEG
     f[F.heading_std] = hstd
@@ -355,7 +357,8 @@ class MagQSFEnv(TrustEnv):
     - v0 (the id stays ``-v0`` until the first release; dates are of the commits):
       2026-12-01 first version (the hand-held QSF filters, trust of each quasi-static period), the batched vector
       env; 2026-12-02 ``features="extended"``; 2026-12-07 kernels rewritten without allocation (per-trial RMSEs
-      unchanged to 1e-9°).
+      unchanged to 1e-9°), the batched vector env's filters in lock-step (``magenv.envs.qsf_lockstep``; the same
+      numbers bit for bit).
     """
 
     observation = (FEATURES, EXTENDED)
@@ -427,8 +430,8 @@ class Batch(NamedTuple):
     dt: np.ndarray  # (N,) sample interval, s
     m0: np.ndarray  # (N,) the trial's field norm, µT
     dip0: np.ndarray  # (N,) … and dip, degrees
-    x: np.ndarray  # (N, N_AUGMENTED) qsf.State …
-    cov: np.ndarray  # (N, N_AUGMENTED, N_AUGMENTED)
+    x: np.ndarray  # (N_AUGMENTED, N) qsf.State … (x and cov with the env axis last: magenv.envs.qsf_lockstep)
+    cov: np.ndarray  # (N_AUGMENTED, N_AUGMENTED, N)
     active: np.ndarray  # (N, 1) bool
     age: np.ndarray  # (N, 1)
     mag_t0: np.ndarray  # (N, 3)
@@ -443,27 +446,6 @@ class Batch(NamedTuple):
     sig_h: np.ndarray  # (N, k + 2, N_SIGNALS)
 
 
-@njit(cache=True)
-def _advance_env(b, s, i, w):
-    """Env i of :class:`Batch` (``s``: ``magenv.envs.batch.Steps``) does its step: :func:`advance` on window ``w``;
-    returns −1 or the window's sample where the filter failed."""
-    f, g, e = b.pf[i], b.grav[i], b.earth[i]
-    p = qsf.Params(
-        b.mode, f[0], f[1], f[2], f[3], f[4], f[5], (g[0], g[1], g[2]), (e[0], e[1], e[2]), f[6], f[7],
-        b.update_reference, f[8], f[9],
-    )  # fmt: skip
-    state = qsf.State(b.x[i], b.cov[i], b.active[i], b.age[i], b.mag_t0[i], b.mag_ref[i])
-    r0, r1 = w.r0, w.r1
-    inputs = qsf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.action_h[i], b.trust_h[i])
-    out = qsf.Outputs(b.q_h[i], b.sig_h[i])
-    truth = Truth(s.q_true[r0:r1], s.dist[r0:r1])
-    bad, _ = advance(
-        p, state, inputs, out, (b.codes[r0:r1], b.spread[r0:r1]), truth, b.dt[i], (b.m0[i], b.dip0[i]), b.code[i],
-        b.trust[i], w.start, w.stop, s.err[i], s.feat[i],
-    )  # fmt: skip
-    return bad
-
-
 class MagQSFVectorEnv(BatchVectorEnv):
     """``num_envs`` MagQSF envs advanced together: one numba call per ``step`` fuses every env's samples.
 
@@ -476,9 +458,16 @@ class MagQSFVectorEnv(BatchVectorEnv):
     env_class = MagQSFEnv
     features = FEATURES
     channels = {**ROWS, "codes": ((), np.int8), "spread": ((), float)}
-    advance_env = _advance_env
     _floats = ("sigma_gyr", "sigma_bias_walk", "sigma_acc_bias_walk", "sigma_acc", "sigma_mag", "th_acc",
                "cov_floor", "radial_eps", "max_age_s", "acc_adaptive")  # fmt: skip
+
+    @property
+    def lockstep(self):
+        """The batch kernels: every env's filter in lock-step (``magenv.envs.qsf_lockstep``, which imports this
+        module's kernels)."""
+        from magenv.envs import qsf_lockstep
+
+        return qsf_lockstep.lockstep, qsf_lockstep.lockstep_threads
 
     def _alloc(self, n: int) -> None:
         env = self.template
@@ -488,7 +477,7 @@ class MagQSFVectorEnv(BatchVectorEnv):
         self.pf, self.grav, self.earth = np.ones((n, len(self._floats))), np.zeros((n, 3)), np.zeros((n, 3))
         self.dt, self.m0, self.dip0 = np.ones(n), np.ones(n), np.zeros(n)
         self.state = qsf.State(
-            np.zeros((n, na)), np.zeros((n, na, na)), np.zeros((n, 1), np.bool_), np.zeros((n, 1)),
+            np.zeros((na, n)), np.zeros((na, na, n)), np.zeros((n, 1), np.bool_), np.zeros((n, 1)),
             np.zeros((n, 3)), np.zeros((n, 3)),
         )  # fmt: skip
         self.code, self.trust = np.zeros(n, np.int64), np.zeros(n)
@@ -512,7 +501,9 @@ class MagQSFVectorEnv(BatchVectorEnv):
         p, state, self.dt[i], self.m0[i], self.dip0[i] = description
         self.pf[i] = [getattr(p, name) for name in self._floats]
         self.grav[i], self.earth[i] = p.gravity, p.earth_field
-        for mine, theirs in zip(self.state, state):
+        st = self.state
+        st.x[:, i], st.cov[:, :, i] = state.x, state.cov  # env axis last
+        for mine, theirs in zip(st[2:], state[2:]):
             mine[i] = theirs
 
     def _set_actions(self, values, stepping) -> dict:

@@ -258,9 +258,9 @@ def make_params(
 
 
 @njit(cache=True, inline="always")
-def _put_jacobian(h, col, q, v, sign):
-    """``h[:, col:col+4] = sign ·`` the 3×4 Jacobian of ``h(q) = q ⊗ v ⊗ q̄`` with respect to q = [w, u]
-    (eqs. 12, 14): ``∂h/∂w = 2(w v + u × v)``, ``∂h/∂u = 2((u·v) I + u vᵀ − v uᵀ − w [v×])``."""
+def jacobian34(q, v, sign):
+    """``sign ·`` the 3×4 Jacobian of ``h(q) = q ⊗ v ⊗ q̄`` with respect to q = [w, u] (eqs. 12, 14), a 12-tuple
+    (row-major): ``∂h/∂w = 2(w v + u × v)``, ``∂h/∂u = 2((u·v) I + u vᵀ − v uᵀ − w [v×])``."""
     w, ux, uy, uz = q[0], q[1], q[2], q[3]
     v0, v1, v2 = v[0], v[1], v[2]
     cx = uy * v2 - uz * v1
@@ -268,18 +268,23 @@ def _put_jacobian(h, col, q, v, sign):
     cz = ux * v1 - uy * v0
     uv = ux * v0 + uy * v1 + uz * v2
     s2 = 2.0 * sign
-    h[0, col] = s2 * (w * v0 + cx)
-    h[1, col] = s2 * (w * v1 + cy)
-    h[2, col] = s2 * (w * v2 + cz)
-    h[0, col + 1] = s2 * (ux * v0 - v0 * ux + uv)
-    h[0, col + 2] = s2 * (ux * v1 - v0 * uy) + s2 * w * v2
-    h[0, col + 3] = s2 * (ux * v2 - v0 * uz) - s2 * w * v1
-    h[1, col + 1] = s2 * (uy * v0 - v1 * ux) - s2 * w * v2
-    h[1, col + 2] = s2 * (uy * v1 - v1 * uy + uv)
-    h[1, col + 3] = s2 * (uy * v2 - v1 * uz) + s2 * w * v0
-    h[2, col + 1] = s2 * (uz * v0 - v2 * ux) + s2 * w * v1
-    h[2, col + 2] = s2 * (uz * v1 - v2 * uy) - s2 * w * v0
-    h[2, col + 3] = s2 * (uz * v2 - v2 * uz + uv)
+    return (
+        s2 * (w * v0 + cx), s2 * (ux * v0 - v0 * ux + uv), s2 * (ux * v1 - v0 * uy) + s2 * w * v2,
+        s2 * (ux * v2 - v0 * uz) - s2 * w * v1,
+        s2 * (w * v1 + cy), s2 * (uy * v0 - v1 * ux) - s2 * w * v2, s2 * (uy * v1 - v1 * uy + uv),
+        s2 * (uy * v2 - v1 * uz) + s2 * w * v0,
+        s2 * (w * v2 + cz), s2 * (uz * v0 - v2 * ux) + s2 * w * v1, s2 * (uz * v1 - v2 * uy) - s2 * w * v0,
+        s2 * (uz * v2 - v2 * uz + uv),
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def _put_jacobian(h, col, q, v, sign):
+    """``h[:, col:col+4] =`` :func:`jacobian34`."""
+    j = jacobian34(q, v, sign)
+    for r in range(3):
+        for c in range(4):
+            h[r, col + c] = j[4 * r + c]
 
 
 @njit(cache=True)
