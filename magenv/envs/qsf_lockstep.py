@@ -344,24 +344,27 @@ def _healthy(w):
     for e in range(w.size[0]):
         ok[e] = 1
     for j in range(_N):
-        for e in range(w.size[0]):
-            s[e] = p[j, j, e]
-        for k in range(j):
-            for e in range(w.size[0]):
-                s[e] -= lo[j, k, e] * lo[j, k, e]
+        _residual(p, lo, s, j, j, w.size[0])
         for e in range(w.size[0]):
             lo[j, j, e] = 1.0 / np.sqrt(s[e])
             d = p[j, j, e]
             good = (s[e] > 0.0) & (d - d == 0.0)
             ok[e] = ok[e] & (good | ((j >= _C0) & (cl[e] == 0)))
         for i in range(j + 1, _N):
-            for e in range(w.size[0]):
-                s[e] = p[i, j, e]
-            for k in range(j):
-                for e in range(w.size[0]):
-                    s[e] -= lo[i, k, e] * lo[j, k, e]
+            _residual(p, lo, s, i, j, w.size[0])
             for e in range(w.size[0]):
                 lo[i, j, e] = s[e] * lo[j, j, e]
+
+
+@njit(cache=True, inline="always")
+def _residual(p, lo, s, i, j, n):
+    """``s[e]`` ← p[i, j, e] − Σ_{k<j} lo[i, k, e] lo[j, k, e] on the first ``n`` lanes: a Cholesky entry before
+    its scaling (the diagonal's for i = j)."""
+    for e in range(n):
+        s[e] = p[i, j, e]
+    for k in range(j):
+        for e in range(n):
+            s[e] -= lo[i, k, e] * lo[j, k, e]
 
 
 @njit(cache=True, error_model="numpy")
