@@ -68,9 +68,9 @@ from magenv.agents.wrappers import action_bounds
 from magenv.evaluation import run_policy_on_trials
 from magenv.scenarios import make_trial, scenario_names
 
-#: Torch threads while an agent trains or is scored (``magenv benchmark``). The 64×64 networks are too small to
-#: share between threads: on the loaded 2-core machine PPO on 128 batched envs ran 4.1 k env-steps/s with 2
-#: threads, 20 k with 1.
+#: Torch threads while an agent trains, and in every ``magenv`` command (``train.cli.one_torch_thread``). The
+#: 64×64 networks are too small to share between threads: on the loaded 2-core machine PPO on 128 batched envs ran
+#: 4.1 k env-steps/s with 2 threads, 20 k with 1.
 TORCH_THREADS = 1
 
 REPLAY_FILE = "replay_buffer.safetensors"
