@@ -21,7 +21,7 @@ The worlds, one module each (configs, planning, simulation; physics in ``magenv.
   ``handheld_random``);
 * ``board`` — a sensor board moved by hand in a room, as in the BROAD
   recordings, randomised wide (``board_clean``, ``board_attached``,
-  ``board_stationary``, ``board_office``, ``board_shocks``, ``board_random``):
+  ``board_stationary``, ``board_office``, ``board_shocks``, ``board_random``, ``board_spinning``):
   the training worlds of trust that must hold on real sensors;
 * ``rtwin:PATH`` — a randomised twin (``magenv.scenarios.board.random_twin``): the recording's true motion
   in a drawn room with a drawn disturbance and sensor, as ``board_random`` draws them (``rtwins:DIR`` in a

@@ -17,12 +17,16 @@ family each; ``board_random`` draws one of the five per trial):
 * ``board_office`` — a spatially varying indoor field (ferrous structures 0.3–1.5 m from the board's path,
   1–15 µT at their nearest, ceiling wires), and sometimes a magnet visited as above;
 * ``board_shocks`` — tapping on the board (knocks of 5–60 m/s²) or a vibrating phone on it (90–250 Hz,
-  1–15 m/s²) in bursts: the accelerometer disturbed, the field not.
+  1–15 m/s²) in bursts: the accelerometer disturbed, the field not;
+* ``board_spinning`` — ``board_random`` with the board also spinning steadily while it moves (below).
 
 Motion (``magenv.sim.board.hand_motion``): an initial rest (in half the trials 25–45 s, as every BROAD
 recording rests its first 30–45 s, else 2–10 s), then 50–130 s of rotations, translations or both
 (BROAD's motion classes), slow (RMS 10–35 °/s), medium (35–90 °/s) or fast (90–250 °/s, peaks near
-800 °/s), with or without breaks (1–4 rests of 5–10 s). Sensor: ``magenv.sim.sensors.SensorConfig`` drawn
+800 °/s), with or without breaks (1–4 rests of 5–10 s). The sums of sines have no net rotation; with
+probability ``spin_prob`` (``board_spinning``: always) the board also spins steadily at 20–200 °/s about a
+sensor axis while it moves, as it does in the BROAD magnet recordings (43–181 °/s net about one axis), where the
+gyro's scale and misalignment errors then drift VQF's unaided heading by 0.08–0.14 °/s. Sensor: ``magenv.sim.sensors.SensorConfig`` drawn
 around the BROAD unit (gyro noise 0.05–0.3 °/s, bias 0.05–0.6 °/s and drift, scale and misalignment errors of
 up to 0.4 % per entry (the recordings' fits: 0.1–0.4 %, which at 400 °/s drift the heading by ~1 °/s),
 accelerometer noise 0.02–0.12 m/s², magnetometer noise 0.2–1.5 µT white or coloured, residual hard iron
@@ -77,6 +81,8 @@ class BoardConfig:
             probability that it is removed before the end.
         magnets, visits: counts of room magnets and of visits to them. moment: A·m² (log-uniform).
             distance_m: closest approach (log-uniform). dwell_s, travel_s: held there, carried there.
+        spin_prob, spin_dps: probability that the board also spins steadily while it moves, about a drawn
+            sensor-frame axis near one of the sensor's axes, and that rate, °/s (either sense).
         berlin_prob: probability of the BROAD site's Earth field (else a random location).
         field_norm, field_dip: the BROAD site (µT, °).
     """
@@ -103,6 +109,8 @@ class BoardConfig:
     distance_m: tuple = limited((0.03, 0.3), 0.005, 5.0)
     dwell_s: tuple = limited((0.0, 15.0), 0.0, 600.0)
     travel_s: tuple = limited((1.0, 4.0), 0.1, 60.0)
+    spin_prob: float = limited(0.0, 0.0, 1.0)
+    spin_dps: tuple = limited((20.0, 200.0), 0.0, 2000.0)
     berlin_prob: float = limited(0.5, 0.0, 1.0)
     field_norm: float = limited(earth.BERLIN[0], 1.0, 1000.0)
     field_dip: float = limited(earth.BERLIN[1], -90.0, 90.0)
@@ -192,11 +200,24 @@ def _simulate(scenario: str, cfg: BoardConfig, seed: int, rngs: list[np.random.G
     rot = r_mo.uniform(*SPEEDS[speed]) if motion != "translation" else r_mo.uniform(1.0, 5.0)
     fast = speed == "fast"
     trans = r_mo.uniform(0.05, 0.15) if motion != "rotation" else r_mo.uniform(0.005, 0.02)
+    spin = _spin(rngs[5], cfg)
     q, w, p, acc_e = board.hand_motion(r_mo, n, rate, rot, (0.05, 3.0 if fast else 1.2), trans,
-                                       (0.1, 2.5 if fast else 0.8), rest_s, breaks, 20.0)  # fmt: skip
+                                       (0.1, 2.5 if fast else 0.8), rest_s, breaks, 20.0, spin)  # fmt: skip
     drawn = {"motion": motion, "speed": speed, "rot_rms_dps": rot, "trans_rms_m": trans, "breaks": breaks}
+    if spin is not None:
+        drawn["spin_dps"] = np.rad2deg(spin).tolist()
     motion_of = Recorded(rate, q, w, p, acc_e, rest_s, q, t >= rest_s)
-    return _dress(trial_name(scenario, seed), scenario, seed, cfg, motion_of, rngs[1:], drawn, bend=True)
+    return _dress(trial_name(scenario, seed), scenario, seed, cfg, motion_of, rngs[1:5], drawn, bend=True)
+
+
+def _spin(rng, cfg: BoardConfig) -> np.ndarray | None:
+    """A steady body rate (3,) rad/s, sensor frame, with probability ``spin_prob`` (else None): about a sensor
+    axis tilted by ~0.3 rad (the BROAD magnet recordings turn 43–181 °/s net about one axis), ``spin_dps``
+    fast, either sense."""
+    if rng.uniform() >= cfg.spin_prob:
+        return None
+    axis = np.eye(3)[int(rng.integers(3))] + 0.3 * rng.normal(size=3)
+    return axis / np.linalg.norm(axis) * np.deg2rad(rng.uniform(*cfg.spin_dps)) * rng.choice((-1.0, 1.0))
 
 
 class Recorded(NamedTuple):
@@ -338,6 +359,7 @@ def random_twin(name: str, seed: int, **overrides) -> Trial:
 SCENARIOS: dict[str, BoardConfig] = {
     "board_random": BoardConfig(),
     **{f"board_{f}": BoardConfig(family=f) for f in FAMILIES},
+    "board_spinning": BoardConfig(spin_prob=1.0),
 }
 
-WORLD = World("board", "board", SCENARIOS, _simulate, n_streams=5)
+WORLD = World("board", "board", SCENARIOS, _simulate, n_streams=6)

@@ -78,15 +78,19 @@ def hand_motion(
     rest_s: float,
     breaks: list[tuple[float, float]],
     tilt0_deg: float,
+    spin: np.ndarray | None = None,
 ):
     """The board's true motion (module docstring): (q (N, 4) sensor → ENU, ω (N, 3) rad/s sensor frame, p (N, 3)
     m, p̈ (N, 3) m/s² ENU). ``rot_dps``: RMS angular rate while moving, °/s; ``trans_m``: RMS excursion of the
     position per axis, m; ``rot_hz`` / ``trans_hz``: their frequency bands; ``tilt0_deg``: the start's tilt
-    (a random axis), the start's heading uniform."""
+    (a random axis), the start's heading uniform; ``spin``: a steady body rate (3,) rad/s, sensor frame, added
+    while moving (a net rotation in one sense; None: none)."""
     t = np.arange(n) / rate
     env = envelope(t, rest_s, breaks)
     w, _, _ = sines(rng, t, 6, rot_hz)
     w *= np.deg2rad(rot_dps) * env[:, None]
+    if spin is not None:
+        w += env[:, None] * np.asarray(spin, float)
     x, dx, ddx = sines(rng, t, 5, trans_hz)
     # p = trans_m·env·x: the product rule keeps p̈ exact through the ramps
     de = np.gradient(env, t)
