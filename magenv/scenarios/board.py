@@ -23,11 +23,12 @@ family each; ``board_random`` draws one of the five per trial):
 Motion (``magenv.sim.board.hand_motion``): an initial rest (in half the trials 25–45 s, as every BROAD
 recording rests its first 30–45 s, else 2–10 s), then 50–130 s of rotations, translations or both
 (BROAD's motion classes), slow (RMS 10–35 °/s), medium (35–90 °/s) or fast (90–250 °/s, peaks near
-800 °/s), with or without breaks (1–4 rests of 5–10 s). The sums of sines have no net rotation; with
-probability ``spin_prob`` (``board_spinning``: always) the board also spins steadily at 20–200 °/s about a
-sensor axis while it moves, as it does in the BROAD magnet recordings (43–181 °/s net about one axis), where the
-gyro's scale and misalignment errors then drift VQF's unaided heading by 0.08–0.14 °/s. Sensor: ``magenv.sim.sensors.SensorConfig`` drawn
-around the BROAD unit (gyro noise 0.05–0.3 °/s, bias 0.05–0.6 °/s and drift, scale and misalignment errors of
+800 °/s), with or without breaks (1–4 rests of 5–10 s). Sums of sines have no net rotation over a minute;
+with probability ``spin_prob`` (``board_spinning``: always) the board also spins steadily at 20–200 °/s about
+a sensor axis while it moves, as in the BROAD magnet recordings (43–181 °/s net about one axis), where the
+gyro's scale and misalignment errors then drift VQF's unaided heading by 0.08–0.14 °/s.
+Sensor: ``magenv.sim.sensors.SensorConfig`` drawn around the BROAD unit (gyro noise 0.05–0.3 °/s,
+bias 0.05–0.6 °/s and drift, scale and misalignment errors of
 up to 0.4 % per entry (the recordings' fits: 0.1–0.4 %, which at 400 °/s drift the heading by ~1 °/s),
 accelerometer noise 0.02–0.12 m/s², magnetometer noise 0.2–1.5 µT white or coloured, residual hard iron
 (0–0.8 µT per axis) and soft iron, gyro lag 0–2 and magnetometer lag 0–6 samples, sample-and-hold of 0–40 % in
