@@ -1,13 +1,16 @@
 """MagVQF-v0: does the board world's gyroscope drift as fast as the real one when the magnetometer is not trusted?
 
-    python -m studies.vqf_drift [--scenarios board_clean,board_random] [--trials 16] [--recordings FILE ...]
+    python -m studies.vqf_drift [--scenarios board_clean,board_random] [--trials 16] [--recordings FILE ...] [--twins]
 
 VQF (MagVQF-v0, rejection on) trusts the magnetometer fully (u = 1) through each trial's initial rest and not at all
 (u = 0) from the first scored sample on, so its heading then follows the gyroscope alone. Per trial: the heading
 drift rate (°/s), the magnitude of the least-squares slope of the earth-frame heading error (q_est ⊗ q_true*, about
 earth z) over the scored samples with truth, and that heading error's RMS about its mean (°). Recordings
 (default: the shared BROAD ones) beside trials of the board world's scenarios (training seeds from 10 000: a check
-of the world, not of a policy); medians per group. It prints what it measures; nothing here is a test.
+of the world, not of a policy); medians per group. ``--twins``: beside each recording, its twin (seed 10 000;
+``magenv.scenarios.twin``) as fitted, and without the fitted gyro scale / misalignment K (``gyr_scale=False``):
+how much of the drift the twin reproduces, and how much of that K makes. It prints what it measures; nothing here
+is a test.
 """
 
 from __future__ import annotations
@@ -64,13 +67,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenarios", default="board_clean,board_random", help="comma list of simulated scenarios")
     p.add_argument("--trials", type=int, default=16, help="trials per scenario (default %(default)s)")
     p.add_argument("--recordings", nargs="+", default=None, help="recording files (default: the shared BROAD ones)")
+    p.add_argument("--twins", action="store_true", help="each recording's twin beside it, with and without K")
     args = p.parse_args(argv)
     runner = evaluation.PolicyRunner()
     groups: dict[str, list[tuple[float, float]]] = {}
-    for trial in [load_recording(f) for f in (args.recordings or list_recordings())]:
+    for file in args.recordings or list_recordings():
+        trial = load_recording(file)
         row = drift(trial, runner)
         groups.setdefault(f"real {group_of(trial.name)}", []).append(row)
-        print(f"  {trial.name:44s} {row[0]:.4f} °/s  heading RMS {row[1]:.2f}°", flush=True)
+        twins = ""
+        if args.twins:
+            twin = f"twin:{file}"
+            both = [drift(make_trial(twin, FIRST_SEED, gyr_scale=k), runner)[0] for k in (True, False)]
+            twins = f"  twin {both[0]:.4f} °/s, without K {both[1]:.4f} °/s"
+        print(f"  {trial.name:44s} {row[0]:.4f} °/s  heading RMS {row[1]:.2f}°{twins}", flush=True)
     for scenario in args.scenarios.split(","):
         for seed in range(FIRST_SEED, FIRST_SEED + args.trials):
             groups.setdefault(scenario, []).append(drift(make_trial(scenario, seed), runner))
