@@ -67,8 +67,7 @@ class Lanes(NamedTuple):
 
     x: np.ndarray  # (15, L) the state being updated (qsf.Work.x)
     p: np.ndarray  # (15, 15, L) its covariance
-    cx: np.ndarray  # (15, L) the committed state (qsf.State.x)
-    cp: np.ndarray  # (15, 15, L) … and covariance
+    cx: np.ndarray  # (15, L) the committed state (qsf.State.x; its covariance is p's: see _block)
     h: np.ndarray  # (3, 15, L) measurement Jacobian
     hp: np.ndarray  # (3, 15, L) H P
     kt: np.ndarray  # (3, 15, L) the gain, transposed
@@ -103,7 +102,7 @@ def lanes(L) -> Lanes:
     """Working arrays for blocks of up to L lanes."""
     n = N_AUGMENTED
     return Lanes(
-        np.zeros((n, L)), np.zeros((n, n, L)), np.zeros((n, L)), np.zeros((n, n, L)), np.zeros((3, n, L)),
+        np.zeros((n, L)), np.zeros((n, n, L)), np.zeros((n, L)), np.zeros((3, n, L)),
         np.zeros((3, n, L)), np.zeros((3, n, L)), np.zeros((4, n, L)), np.zeros((n, n, L)), np.zeros((4, 4, L)),
         np.zeros((4, 4, L)), np.zeros((3, L)), np.zeros((9, L)), np.zeros((_F, L)), np.zeros((_M, L), np.int8),
         np.full(1, L, np.uint64),
@@ -362,31 +361,33 @@ def _residual(p, lo, s, i, j, n):
     its scaling (the diagonal's for i = j)."""
     for e in range(n):
         s[e] = p[i, j, e]
-    for k in range(j):
+    m = np.int64(j)  # the sum's terms, four a pass over the lanes (subtracted in the sum's order), then one
+    for k in range(0, m - 3, 4):
+        for e in range(n):
+            v = s[e] - lo[i, k, e] * lo[j, k, e]
+            v = v - lo[i, k + 1, e] * lo[j, k + 1, e]
+            v = v - lo[i, k + 2, e] * lo[j, k + 2, e]
+            s[e] = v - lo[i, k + 3, e] * lo[j, k + 3, e]
+    for k in range(m - m % 4, m):
         for e in range(n):
             s[e] -= lo[i, k, e] * lo[j, k, e]
 
 
 @njit(cache=True, error_model="numpy")
 def _commit(w, commit):
-    """``qsf._commit_healthy``'s copy on the lanes with ``commit``: x, P (its clone block zeroed without a
-    clone)."""
-    x, p, cx, cp, cl = w.x, w.p, w.cx, w.cp, w.on[_CL]
+    """``qsf._commit_healthy``'s copy of x on the lanes with ``commit`` (its covariance is p: see :func:`_block`)."""
+    x, cx = w.x, w.cx
     for r in range(_N):
         for e in range(w.size[0]):
             cx[r, e] = x[r, e] if commit[e] else cx[r, e]
-    for r in range(_N):
-        for c in range(_N):
-            for e in range(w.size[0]):
-                v = p[r, c, e] if ((cl[e] != 0) | ((r < _C0) & (c < _C0))) else 0.0
-                cp[r, c, e] = v if commit[e] else cp[r, c, e]
 
 
 # ------------------------------------------------------------ a block of envs
 
 # columns of a block's int64 lane table: env, its window (batch.Window: start, stop, base, r0, r1), samples to
-# fuse, the window's sample where it failed (−1), its state not finite at the load (1), still fusing (1)
-_ENV, _WSTART, _WSTOP, _WBASE, _R0, _R1, _CNT, _BAD, _BADLOAD, _LIVE = range(10)
+# fuse, the window's sample where it failed (−1), its state not finite at the load (1), still fusing (1), the
+# samples committed, whether the last had the clone (15 states), failed after its covariance changed (1)
+_ENV, _WSTART, _WSTOP, _WBASE, _R0, _R1, _CNT, _BAD, _BADLOAD, _LIVE, _DONE, _CLONED, _DIRTY = range(13)
 # rows of a block's per-lane numbers: committed period on, age, m_t0 (3), m_ref (3); the same being updated;
 # then the sample's active, keep_clone, acc_used, innovation norm, NIS, |K_q δz|, mag updated, action, trust
 _CON, _CAGE, _CT0, _CREF, _ON, _AGE, _T0, _REF = 0, 1, 2, 5, 8, 9, 10, 13
@@ -432,7 +433,7 @@ def _load_states(b, w, e0, n):
     """Lanes 0 … n−1 ← envs e0 … : the committed state, and, as ``qsf._load`` at a call's first sample, the
     working copy (P symmetrised); ``on[_OK]`` ← 0 where x or the env's leading 11 or 15 (``_CL``) rows and
     columns of P are not finite."""
-    x, p, cx, cp, ok, cl = w.x, w.p, w.cx, w.cp, w.on[_OK], w.on[_CL]
+    x, p, cx, ok, cl = w.x, w.p, w.cx, w.on[_OK], w.on[_CL]
     bx, bc = b.x, b.cov
     for e in range(n):
         ok[e] = 1
@@ -447,22 +448,23 @@ def _load_states(b, w, e0, n):
             for e in range(n):
                 a_, b_ = bc[r, c, e0 + e], bc[c, r, e0 + e]
                 p[r, c, e] = 0.5 * (a_ + b_)
-                cp[r, c, e] = a_
                 outside = (cl[e] == 0) & ((r >= _C0) | (c >= _C0))
                 ok[e] = ok[e] & ((a_ - a_ == 0.0) | outside)
 
 
 @njit(cache=True, error_model="numpy")
 def _store_states(b, w, e0, n):
-    """Envs e0 … ← the committed states of lanes 0 … n−1."""
-    bx, bc, cx, cp = b.x, b.cov, w.cx, w.cp
+    """Envs e0 … ← the committed states of lanes 0 … n−1 that committed a sample (``on[_COMMIT]``): x and P,
+    its clone block zeroed where the last sample had no clone (``on[_CL]`` 0), as ``qsf._commit_healthy``."""
+    bx, bc, cx, p, done, cl = b.x, b.cov, w.cx, w.p, w.on[_COMMIT], w.on[_CL]
     for r in range(_N):
         for e in range(n):
-            bx[r, e0 + e] = cx[r, e]
+            bx[r, e0 + e] = cx[r, e] if done[e] else bx[r, e0 + e]
     for r in range(_N):
         for c in range(_N):
             for e in range(n):
-                bc[r, c, e0 + e] = cp[r, c, e]
+                v = p[r, c, e] if ((cl[e] != 0) | ((r < _C0) & (c < _C0))) else 0.0
+                bc[r, c, e0 + e] = v if done[e] else bc[r, c, e0 + e]
 
 
 @njit(cache=True)
@@ -684,6 +686,7 @@ def _repair(b, w, lane, t):
                     pm[r, c] = p[r, c, e]
             if repair_sym(pm, na, b.pf[lane[e, _ENV], 6], lo) < 0:
                 _fail(lane, e, lane[e, _WSTART] + t)
+                lane[e, _DIRTY] = 1
                 on[_GO, e] = 0
                 continue
             for r in range(na):
@@ -699,7 +702,7 @@ def _repair(b, w, lane, t):
 def _signals(b, w, lane, v, t):
     """``qsf.step_work``'s end and ``qsf.run_kernel``'s output row, each committed lane: the period's state,
     the estimate and the signals."""
-    on, cx, cp = w.on, w.cx, w.cp
+    on, cx, cp = w.on, w.cx, w.p  # p: the committed covariance
     mode = b.mode
     for e in range(w.size[0]):
         if not on[_GO, e]:
@@ -707,7 +710,10 @@ def _signals(b, w, lane, v, t):
         iw = lane[e, _WSTART] + t
         if not on[_COMMIT, e]:
             _fail(lane, e, iw)
+            lane[e, _DIRTY] = 1
             continue
+        lane[e, _DONE] += 1
+        lane[e, _CLONED] = on[_CL, e]
         i = lane[e, _ENV]
         for k in range(8):
             v[_CON + k, e] = v[_ON + k, e]
@@ -751,26 +757,50 @@ def _sample(b, s, w, lane, v, t):
 
 
 @njit(cache=True)
-def _block(b, s, e0, e1, w):
-    """Envs ``e0 … e1−1`` (at most ``w``'s lanes) of :class:`magenv.envs.qsf.Batch` ``b`` (``s``: ``batch.Steps``) do
-    their ``todo`` in lock-step, each as :func:`magenv.envs.qsf.advance` does it."""
-    width = w.x.shape[1]
-    lane = np.zeros((width, 10), np.int64)
-    v = np.zeros((_V, width))
-    n = e1 - e0
-    w.size[0] = n
+def _fuse(b, s, w, lane, v, e0, n, cap):
+    """Lanes 0 … n−1 ← envs e0 …, then their ``todo`` samples in lock-step, lane e's stopping before its step's
+    sample ``cap[e]``."""
     most = 0
     for e in range(n):
         w.on[_CL, e] = 0
         lane[e, _BAD] = -1
+        lane[e, _DONE] = lane[e, _CLONED] = lane[e, _DIRTY] = 0
         if s.todo[e0 + e] >= 0:
             _load(b, s, w, lane, v, e, e0 + e)
+            lane[e, _CNT] = min(lane[e, _CNT], cap[e])
             most = max(most, lane[e, _CNT])
     _load_states(b, w, uint64(e0), uint64(n))
     for e in range(n):
         lane[e, _BADLOAD] = 1 - w.on[_OK, e]
     for t in range(most):
         _sample(b, s, w, lane, v, t)
+
+
+@njit(cache=True)
+def _block(b, s, e0, e1, w):
+    """Envs ``e0 … e1−1`` (at most ``w``'s lanes) of :class:`magenv.envs.qsf.Batch` ``b`` (``s``: ``batch.Steps``) do
+    their ``todo`` in lock-step, each as :func:`magenv.envs.qsf.advance` does it.
+
+    A lane's committed covariance is its working one (no copy per sample): a lane that fails after its
+    covariance changed (a failed repair, a non-finite state) makes the block fuse again from the envs' states,
+    that lane stopping before the failed sample, so that it keeps the state it had there."""
+    width = w.x.shape[1]
+    lane = np.zeros((width, 13), np.int64)
+    v = np.zeros((_V, width))
+    n = e1 - e0
+    w.size[0] = n
+    cap = np.full(width, np.iinfo(np.int64).max)
+    _fuse(b, s, w, lane, v, e0, n, cap)
+    again = False
+    for e in range(n):
+        if lane[e, _DIRTY]:
+            cap[e], again = lane[e, _BAD] - lane[e, _WSTART], True
+    if again:  # rare: the vector env raises FilterError on any failure
+        bad = lane[:, _BAD].copy()
+        _fuse(b, s, w, lane, v, e0, n, cap)
+        lane[:, _BAD] = bad
+    for e in range(n):
+        w.on[_COMMIT, e], w.on[_CL, e] = lane[e, _DONE] > 0, lane[e, _CLONED]
     _store_states(b, w, uint64(e0), uint64(n))
     # env i's state for _features (which reads no P), in arrays of this block: no views of the batch's rows
     st = qsf.State(
