@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit, prange, uint64
 
 from magenv.envs.batch import window
-from magenv.envs.qsf import _features, fill_decision
+from magenv.envs.qsf import feature_row, fill_decision, observed
 from magenv.filters import qsf
 from magenv.filters.kalman_threshold import finite3, repair_sym
 from magenv.filters.linalg import inv3, quad3
@@ -53,7 +53,7 @@ from magenv.filters.qsf import (
     heading_row4,
     jacobian34,
 )
-from magenv.metrics import error_sums
+from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
 
 LANES = 128  # envs per block at most: the block's working arrays stay in the core's second-level cache
@@ -82,15 +82,13 @@ class Lanes(NamedTuple):
     size: np.ndarray  # (1,) uint64: the lanes in use, the first ones (the block's envs)
 
 
-# rows of Lanes.f: R's diagonal, the gain, the radial eps, |Δq| of the update, a sum being formed, then a
-# row of P being formed (15 rows)
+# rows of Lanes.f: R's diagonal, the gain, the radial eps, |Δq| of the update, a sum being formed, then the
 # env's Δt, σ_g, σ_bq, σ_ba, σ_a, th_acc, acc_adaptive, g_ENU (3), the sample's accelerometer (3) and gyro
 # quaternion (4)
 _RD, _GAIN, _EPS, _CORR, _SUM = range(5)
 _DT, _SG, _SBW, _SABW, _SACC, _THACC, _ADAPT, _G, _A = 5, 6, 7, 8, 9, 10, 11, 12, 15
 _QY = 18  # the sample's gyro quaternion q_yg (4)
-_ROW = 22
-_F = _ROW + N_AUGMENTED
+_F = _QY + 4
 # rows of Lanes.on: the lane fuses this sample, predicts, updates, has the clone (15 states), H has clone
 # columns, starts a clone, passes the health test, renormalises its clone, commits
 _GO, _PRED, _UPD, _CL, _HCL, _START, _OK, _BOTH, _COMMIT = range(9)
@@ -249,21 +247,26 @@ def _joseph(w):
             g[0, i, e] = (k0 * s0 + k1 * s1 + k2 * s2) - hp[0, i, e]
             g[1, i, e] = (k0 * s1 + k1 * s4 + k2 * s5) - hp[1, i, e]
             g[2, i, e] = (k0 * s2 + k1 * s5 + k2 * s8) - hp[2, i, e]
-    row = w.f[_ROW:]
     for i in range(_N):
-        for j in range(i, _N):
+        for e in range(w.size[0]):  # the diagonal entry apart: its store and its mirror's are one
+            p[i, i, e] = _joseph_entry(p, hp, kt, g, upd, i, i, e)
+        for j in range(i + 1, _N):  # the upper triangle is read, the lower written (its mirror)
             for e in range(w.size[0]):
-                old = p[i, j, e]
-                new = (
-                    old
-                    - (kt[0, i, e] * hp[0, j, e] + kt[1, i, e] * hp[1, j, e] + kt[2, i, e] * hp[2, j, e])
-                    + (g[0, i, e] * kt[0, j, e] + g[1, i, e] * kt[1, j, e] + g[2, i, e] * kt[2, j, e])
-                )
-                row[j, e] = new if upd[e] else old
-        for j in range(i, _N):  # mirrored in a second pass: the stores then alias none of the loads
-            for e in range(w.size[0]):
-                p[i, j, e] = row[j, e]
-                p[j, i, e] = row[j, e]
+                v = _joseph_entry(p, hp, kt, g, upd, i, j, e)
+                p[i, j, e] = v
+                p[j, i, e] = v
+
+
+@njit(cache=True, inline="always")
+def _joseph_entry(p, hp, kt, g, upd, i, j, e):
+    """Entry (i, j) of lane e after ``linalg.joseph_update`` (where ``upd[e]``), i ≤ j."""
+    old = p[i, j, e]
+    new = (
+        old
+        - (kt[0, i, e] * hp[0, j, e] + kt[1, i, e] * hp[1, j, e] + kt[2, i, e] * hp[2, j, e])
+        + (g[0, i, e] * kt[0, j, e] + g[1, i, e] * kt[1, j, e] + g[2, i, e] * kt[2, j, e])
+    )
+    return new if upd[e] else old
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -393,16 +396,6 @@ _ENV, _WSTART, _WSTOP, _WBASE, _R0, _R1, _CNT, _BAD, _BADLOAD, _LIVE, _DONE, _CL
 _CON, _CAGE, _CT0, _CREF, _ON, _AGE, _T0, _REF = 0, 1, 2, 5, 8, 9, 10, 13
 _ACT, _KEEPC, _ACCU, _INNOV, _NIS, _CORRM, _UPDATED, _ACTION, _TRUST = range(16, 25)
 _V = 25
-
-
-@njit(cache=True, inline="always")
-def params(b, i):
-    """``qsf.Params`` of env i of :class:`magenv.envs.qsf.Batch` ``b``."""
-    f, g, e = b.pf, b.grav, b.earth  # read by index: no views
-    return qsf.Params(
-        b.mode, f[i, 0], f[i, 1], f[i, 2], f[i, 3], f[i, 4], f[i, 5], (g[i, 0], g[i, 1], g[i, 2]),
-        (e[i, 0], e[i, 1], e[i, 2]), f[i, 6], f[i, 7], b.update_reference, f[i, 8], f[i, 9],
-    )  # fmt: skip
 
 
 @njit(cache=True)
@@ -802,10 +795,14 @@ def _block(b, s, e0, e1, w):
     for e in range(n):
         w.on[_COMMIT, e], w.on[_CL, e] = lane[e, _DONE] > 0, lane[e, _CLONED]
     _store_states(b, w, uint64(e0), uint64(n))
-    # env i's state for _features (which reads no P), in arrays of this block: no views of the batch's rows
+    # env i's state for feature_row (which reads no P), in arrays of this block: no views of the batch's rows
     st = qsf.State(
         np.empty(N_AUGMENTED), np.empty((1, 1)), np.empty(1, np.bool_), np.empty(1), np.empty(3), np.empty(3)
     )
+    rows = b.sig_h.shape[1]  # env i's window sample iw: row i·rows + iw of sig and est
+    sig = b.sig_h.reshape((b.sig_h.shape[0] * rows, b.sig_h.shape[2]))
+    est = b.q_h.reshape((b.q_h.shape[0] * rows, 4))
+    err = np.empty(N_ERR)
     for e in range(n):
         i = e0 + e
         if s.todo[i] < 0:
@@ -820,14 +817,14 @@ def _block(b, s, e0, e1, w):
             s.failed[i] = base + lane[e, _BAD]
             continue
         s.pos[i] = base + stop
-        error_sums(b.q_h[i], s.q_true[r0:r1], s.dist[r0:r1], start, stop, s.err[i])
+        error_sums(est, s.q_true, s.dist, start, stop, err, i * rows, r0)
+        for k in range(N_ERR):
+            s.err[i, k] = err[k]
         for r in range(N_AUGMENTED):
             st.x[r] = w.cx[r, e]
-        _features(
-            params(b, i), st,
-            qsf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.action_h[i], b.trust_h[i]), b.codes[r0:r1],
-            b.spread[r0:r1], b.sig_h[i], (b.m0[i], b.dip0[i]), b.trust[i], stop, s.feat[i],
-        )  # fmt: skip
+        last = i * rows + stop - 1 if stop > 0 else -1
+        feature_row(b.pf[i, 4], st, s.gyr, s.acc, s.mag, b.codes, b.spread, r0 + observed(stop, r1 - r0), sig, last,
+                    (b.m0[i], b.dip0[i]), b.trust[i], s.feat, i)  # fmt: skip
 
 
 @njit(cache=True)
