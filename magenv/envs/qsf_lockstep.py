@@ -37,7 +37,8 @@ import numpy as np
 from numba import njit, prange, uint64
 
 from magenv.envs.batch import window
-from magenv.envs.qsf import feature_row, fill_decision, observed
+from magenv.envs.common import Truth
+from magenv.envs.qsf import advance, feature_row, fill_decision, observed
 from magenv.filters import qsf
 from magenv.filters.kalman_threshold import finite3, repair_sym
 from magenv.filters.linalg import inv3, quad3
@@ -57,6 +58,7 @@ from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
 
 LANES = 128  # envs per block at most: the block's working arrays stay in the core's second-level cache
+NARROW = 8  # a block of fewer envs runs them one by one (qsf.advance): the lock-step loops cost more than they gain
 _N = uint64(N_AUGMENTED)
 _C0 = uint64(N_STATE)  # the clone's first row (qsf.CLONE.start)
 
@@ -827,15 +829,71 @@ def _block(b, s, e0, e1, w):
                     (b.m0[i], b.dip0[i]), b.trust[i], s.feat, i)  # fmt: skip
 
 
+@njit(cache=True, inline="always")
+def params(b, i):
+    """``qsf.Params`` of env i of :class:`magenv.envs.qsf.Batch` ``b``."""
+    f, g, e = b.pf, b.grav, b.earth  # read by index: no views
+    return qsf.Params(
+        b.mode, f[i, 0], f[i, 1], f[i, 2], f[i, 3], f[i, 4], f[i, 5], (g[i, 0], g[i, 1], g[i, 2]),
+        (e[i, 0], e[i, 1], e[i, 2]), f[i, 6], f[i, 7], b.update_reference, f[i, 8], f[i, 9],
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _env_by_env(b, s, e0, e1):
+    """Envs ``e0 … e1−1`` as :func:`_block`, one after the other through the single env's kernel
+    (:func:`magenv.envs.qsf.advance`), on copies of their states (the batch's have the env axis last)."""
+    na = N_AUGMENTED
+    st = qsf.State(np.empty(na), np.empty((na, na)), np.empty(1, np.bool_), np.empty(1), np.empty(3), np.empty(3))
+    for i in range(e0, e1):
+        if s.todo[i] < 0:
+            continue
+        for r in range(na):
+            st.x[r] = b.x[r, i]
+            for c in range(na):
+                st.cov[r, c] = b.cov[r, c, i]
+        st.period_active[0], st.period_age[0] = b.active[i, 0], b.age[i, 0]
+        for k in range(3):
+            st.mag_t0[k], st.mag_ref[k] = b.mag_t0[i, k], b.mag_ref[i, k]
+        w = window(s, i)
+        r0, r1 = w.r0, w.r1
+        bad, _ = advance(
+            params(b, i), st, qsf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.action_h[i], b.trust_h[i]),
+            qsf.Outputs(b.q_h[i], b.sig_h[i]), (b.codes[r0:r1], b.spread[r0:r1]), Truth(s.q_true[r0:r1], s.dist[r0:r1]),
+            b.dt[i], (b.m0[i], b.dip0[i]), b.code[i], b.trust[i], w.start, w.stop, s.err[i], s.feat[i],
+        )  # fmt: skip
+        for r in range(na):  # as committed (up to the failed sample, if any)
+            b.x[r, i] = st.x[r]
+            for c in range(na):
+                b.cov[r, c, i] = st.cov[r, c]
+        b.active[i, 0], b.age[i, 0] = st.period_active[0], st.period_age[0]
+        for k in range(3):
+            b.mag_t0[i, k], b.mag_ref[i, k] = st.mag_t0[k], st.mag_ref[k]
+        if bad < 0:
+            s.pos[i] = w.base + w.stop
+        else:
+            s.failed[i] = w.base + bad
+
+
+@njit(cache=True)
+def _blocks(b, s, e0, e1, w):
+    """Envs ``e0 … e1−1`` (at most LANES) in lock-step (``w``: lanes for them), or one by one when fewer than
+    NARROW."""
+    if e1 - e0 < NARROW:
+        _env_by_env(b, s, e0, e1)
+    else:
+        _block(b, s, e0, e1, w)
+
+
 @njit(cache=True)
 def lockstep(b, s):
     """Every env of ``b`` (:class:`magenv.envs.qsf.Batch`; ``s``: ``magenv.envs.batch.Steps``) with ``todo ≥ 0``
     does it, LANES envs at a time (``magenv.envs.batch.each_env``'s contract: ``s.pos`` advanced, or
     ``s.failed`` set to the sample where the env's filter failed)."""
     n = s.todo.shape[0]
-    w = lanes(min(LANES, n))
+    w = lanes(min(LANES, n) if n >= NARROW else 1)
     for e0 in range(0, n, LANES):
-        _block(b, s, e0, min(e0 + LANES, n), w)
+        _blocks(b, s, e0, min(e0 + LANES, n), w)
 
 
 @njit(cache=True, parallel=True)
@@ -845,4 +903,4 @@ def lockstep_threads(b, s):
     for k in prange((n + LANES - 1) // LANES):
         e0 = k * LANES
         e1 = min(e0 + LANES, n)
-        _block(b, s, e0, e1, lanes(e1 - e0))
+        _blocks(b, s, e0, e1, lanes(e1 - e0 if e1 - e0 >= NARROW else 1))
