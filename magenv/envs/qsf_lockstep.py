@@ -4,8 +4,10 @@
 ``magenv.envs.qsf.advance`` does for one env, but ``LANES`` envs at a time: a block's filter states are
 copied into arrays whose last axis is the env (structure of arrays), and each sample runs once for the
 whole block, so the covariance arithmetic (``qsf._predict_cov``, ``qsf._kalman_update`` with its Joseph
-form, the tangent projections, the health check's Cholesky test, the commit) is a loop over envs that LLVM
-turns into SIMD; the per-env quaternion algebra, decisions and signals stay scalar loops over the block.
+form, the tangent projections, the health check's Cholesky test) is a loop over envs that LLVM turns into
+SIMD; the per-env quaternion algebra, decisions and signals stay scalar loops over the block. A block of fewer
+than ``NARROW`` envs runs them one by one through ``advance`` instead (the loops' fixed cost outweighs their
+vectors there).
 
 Bit for bit ``qsf.step_work``: every quantity of an env is computed by the same operations in the same
 order (no fused multiply-add, no reassociation), so the lanes give exactly what the single env gives
@@ -15,7 +17,7 @@ Where the envs differ the work is masked, never reordered:
 * every lane runs on the 15 augmented states; an env without a clone (11 states) has zeros in the clone's
   rows and columns of its working covariance, and every operation keeps its 11×11 block apart from them
   (the clone's entries never enter it), while the writes the 11-state kernel does not do (the state's
-  clone entries, the clone's normalisation) are masked and the commit zeroes the clone block as
+  clone entries, the clone's normalisation) are masked and the store zeroes the clone block as
   ``qsf._commit_healthy`` does;
 * sums over H's nonzero columns stop after q's four for an env whose magnetic H has no clone columns
   (the four-term sum is selected, so the order of additions is the 11-state kernel's);
@@ -23,7 +25,9 @@ Where the envs differ the work is masked, never reordered:
   accelerometer gate, no magnetic update, an env with fewer samples left or failed);
 * the Cholesky test runs to 15 rows for every env and decides on the env's own rows; an env that fails it
   (or has a non-finite diagonal) is repaired by ``kalman_threshold.repair_sym`` on a copy of its matrix, the
-  per-env code path.
+  per-env code path;
+* a lane's committed covariance is its working one; a lane that fails after its covariance changed makes the
+  block fuse again, that lane stopping before the failed sample (:func:`_block`).
 
 Loops over the lanes use unsigned indices (numba's signed ones carry a negative-index wrap that stops
 LLVM's vectoriser).
