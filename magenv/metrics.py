@@ -85,13 +85,16 @@ def add_errors(err, q, t, dist):
 
 
 @njit(cache=True)
-def error_sums(est, q_true, dist, start, stop, err):
-    """Reset ``err`` (N_ERR,) to the error sums of samples ``start … stop−1`` of ``est`` (N, 4)."""
+def error_sums(est, q_true, dist, start, stop, err, est_row=0, true_row=0):
+    """Reset ``err`` (N_ERR,) to the error sums of samples ``start … stop−1`` of ``est`` (N, 4) against
+    ``q_true`` (N, 4) and ``dist`` (N,), sample i on row ``est_row + i`` of ``est`` and ``true_row + i`` of the
+    truth (a batch's arrays read in place)."""
     for k in range(N_ERR):
         err[k] = 0.0
     for i in range(start, stop):  # rows as tuples: a view costs two atomic reference counts
-        q = (est[i, 0], est[i, 1], est[i, 2], est[i, 3])
-        add_errors(err, q, (q_true[i, 0], q_true[i, 1], q_true[i, 2], q_true[i, 3]), dist[i])
+        r, t = est_row + i, true_row + i
+        q = (est[r, 0], est[r, 1], est[r, 2], est[r, 3])
+        add_errors(err, q, (q_true[t, 0], q_true[t, 1], q_true[t, 2], q_true[t, 3]), dist[t])
 
 
 @njit(cache=True)

@@ -92,20 +92,34 @@ def _norm3(v):
     return np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
 
+@njit(cache=True, inline="always")
+def observed(pos, n):
+    """The sample an observation reports after fusing up to ``pos`` of ``n``: the next to fuse, the last once
+    all are fused."""
+    return pos if pos < n else n - 1
+
+
 @njit(cache=True)
 def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat):
     """``feat`` of sample j = ``pos``, the next to fuse (the last sample once all are fused), and of the last
     fused sample (``sig[pos − 1]``; zeros before any). ``site``: (m0 µT, θ0 degrees) of the trial."""
     gyr, acc, mag = inputs.gyr, inputs.acc, inputs.mag
-    n = gyr.shape[0]
-    j = pos if pos < n else n - 1
+    row = feat.reshape((1, feat.shape[0]))
+    feature_row(p.sigma_mag, state, gyr, acc, mag, codes, spread, observed(pos, gyr.shape[0]), sig, pos - 1, site,
+                trust_prev, row, 0)  # fmt: skip
+
+
+@njit(cache=True)
+def feature_row(sigma_m, state, gyr, acc, mag, codes, spread, j, sig, last, site, trust_prev, feat, row):
+    """:func:`_features` from rows read by index (a view costs two atomic reference counts): the sample's row
+    j of the sensors, ``codes`` and ``spread``, the last fused sample's row ``last`` of ``sig`` (−1: none),
+    written to ``feat[row]``; ``sigma_m``: the filter's σ_m (µT)."""
     m0, dip0 = site
-    x = state.x  # rows read by index: a view costs two atomic reference counts
+    x = state.x
     q = (x[0], x[1], x[2], x[3])  # qsf.ORIENTATION
     active = state.period_active[0]
     mj = (mag[j, 0], mag[j, 1], mag[j, 2])
     m_e = rotate3(q, mj)
-    sigma_m = p.sigma_mag
     nm = _norm3(mj)
     if nm > 0:
         s = -m_e[2] / nm
@@ -115,29 +129,29 @@ def _features(p, state, inputs, codes, spread, sig, site, trust_prev, pos, feat)
     else:
         dip = dip0
     innov, nis, hstd = 0.0, 0.0, 0.0
-    if pos > 0:
-        innov, nis, hstd = sig[pos - 1, SIGNAL.innov_norm], sig[pos - 1, SIGNAL.nis], sig[pos - 1, SIGNAL.heading_std]
+    if last >= 0:
+        innov, nis, hstd = sig[last, SIGNAL.innov_norm], sig[last, SIGNAL.nis], sig[last, SIGNAL.heading_std]
     f = feat
-    f[F.spread] = spread[j]
-    f[F.det_start] = 1.0 if codes[j] == qsf.MAG_START else 0.0
-    f[F.det_keep] = 1.0 if codes[j] == qsf.MAG_KEEP else 0.0
+    f[row, F.spread] = spread[j]
+    f[row, F.det_start] = 1.0 if codes[j] == qsf.MAG_START else 0.0
+    f[row, F.det_keep] = 1.0 if codes[j] == qsf.MAG_KEEP else 0.0
     if active:
         d0, d1, d2 = state.mag_ref[0] - m_e[0], state.mag_ref[1] - m_e[1], state.mag_ref[2] - m_e[2]
-        f[F.ref_mismatch] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) / sigma_m
+        f[row, F.ref_mismatch] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) / sigma_m
     else:
-        f[F.ref_mismatch] = 0.0
-    f[F.innov_norm] = innov / sigma_m
-    f[F.log_nis] = math.log10(1.0 + nis)
-    f[F.age] = (state.period_age[0] / AGE_SCALE_S) if active else 0.0
-    f[F.active] = 1.0 if active else 0.0
-    f[F.gyro_norm] = _norm3((gyr[j, 0], gyr[j, 1], gyr[j, 2])) / GYRO_SCALE
-    f[F.acc_dev] = (_norm3((acc[j, 0], acc[j, 1], acc[j, 2])) - GRAVITY) / GRAVITY
-    f[F.mag_norm_dev] = (nm - m0) / m0
-    f[F.dip_dev] = (dip - dip0) / DIP_SCALE_DEG
-    f[F.heading_std] = hstd
-    f[F.trust_prev] = trust_prev
-    for k in range(f.shape[0]):
-        f[k] = clip(f[k], _LOW[k], _HIGH[k])
+        f[row, F.ref_mismatch] = 0.0
+    f[row, F.innov_norm] = innov / sigma_m
+    f[row, F.log_nis] = math.log10(1.0 + nis)
+    f[row, F.age] = (state.period_age[0] / AGE_SCALE_S) if active else 0.0
+    f[row, F.active] = 1.0 if active else 0.0
+    f[row, F.gyro_norm] = _norm3((gyr[j, 0], gyr[j, 1], gyr[j, 2])) / GYRO_SCALE
+    f[row, F.acc_dev] = (_norm3((acc[j, 0], acc[j, 1], acc[j, 2])) - GRAVITY) / GRAVITY
+    f[row, F.mag_norm_dev] = (nm - m0) / m0
+    f[row, F.dip_dev] = (dip - dip0) / DIP_SCALE_DEG
+    f[row, F.heading_std] = hstd
+    f[row, F.trust_prev] = trust_prev
+    for k in range(f.shape[1]):
+        f[row, k] = clip(f[row, k], _LOW[k], _HIGH[k])
 
 
 @njit(cache=True)

@@ -4,8 +4,10 @@
 ``magenv.envs.qsf.advance`` does for one env, but ``LANES`` envs at a time: a block's filter states are
 copied into arrays whose last axis is the env (structure of arrays), and each sample runs once for the
 whole block, so the covariance arithmetic (``qsf._predict_cov``, ``qsf._kalman_update`` with its Joseph
-form, the tangent projections, the health check's Cholesky test, the commit) is a loop over envs that LLVM
-turns into SIMD; the per-env quaternion algebra, decisions and signals stay scalar loops over the block.
+form, the tangent projections, the health check's Cholesky test) is a loop over envs that LLVM turns into
+SIMD; the per-env quaternion algebra, decisions and signals stay scalar loops over the block. A block of fewer
+than ``NARROW`` envs runs them one by one through ``advance`` instead (the loops' fixed cost outweighs their
+vectors there).
 
 Bit for bit ``qsf.step_work``: every quantity of an env is computed by the same operations in the same
 order (no fused multiply-add, no reassociation), so the lanes give exactly what the single env gives
@@ -15,7 +17,7 @@ Where the envs differ the work is masked, never reordered:
 * every lane runs on the 15 augmented states; an env without a clone (11 states) has zeros in the clone's
   rows and columns of its working covariance, and every operation keeps its 11×11 block apart from them
   (the clone's entries never enter it), while the writes the 11-state kernel does not do (the state's
-  clone entries, the clone's normalisation) are masked and the commit zeroes the clone block as
+  clone entries, the clone's normalisation) are masked and the store zeroes the clone block as
   ``qsf._commit_healthy`` does;
 * sums over H's nonzero columns stop after q's four for an env whose magnetic H has no clone columns
   (the four-term sum is selected, so the order of additions is the 11-state kernel's);
@@ -23,7 +25,9 @@ Where the envs differ the work is masked, never reordered:
   accelerometer gate, no magnetic update, an env with fewer samples left or failed);
 * the Cholesky test runs to 15 rows for every env and decides on the env's own rows; an env that fails it
   (or has a non-finite diagonal) is repaired by ``kalman_threshold.repair_sym`` on a copy of its matrix, the
-  per-env code path.
+  per-env code path;
+* a lane's committed covariance is its working one; a lane that fails after its covariance changed makes the
+  block fuse again, that lane stopping before the failed sample (:func:`_block`).
 
 Loops over the lanes use unsigned indices (numba's signed ones carry a negative-index wrap that stops
 LLVM's vectoriser).
@@ -37,7 +41,8 @@ import numpy as np
 from numba import njit, prange, uint64
 
 from magenv.envs.batch import window
-from magenv.envs.qsf import _features, fill_decision
+from magenv.envs.common import Truth
+from magenv.envs.qsf import advance, feature_row, fill_decision, observed
 from magenv.filters import qsf
 from magenv.filters.kalman_threshold import finite3, repair_sym
 from magenv.filters.linalg import inv3, quad3
@@ -53,10 +58,11 @@ from magenv.filters.qsf import (
     heading_row4,
     jacobian34,
 )
-from magenv.metrics import error_sums
+from magenv.metrics import N_ERR, error_sums
 from magenv.quaternion import from_rotvec4, left_matrix4, mul4, normalize4, right_matrix4, rotate3
 
 LANES = 128  # envs per block at most: the block's working arrays stay in the core's second-level cache
+NARROW = 8  # a block of fewer envs runs them one by one (qsf.advance): the lock-step loops cost more than they gain
 _N = uint64(N_AUGMENTED)
 _C0 = uint64(N_STATE)  # the clone's first row (qsf.CLONE.start)
 
@@ -67,8 +73,7 @@ class Lanes(NamedTuple):
 
     x: np.ndarray  # (15, L) the state being updated (qsf.Work.x)
     p: np.ndarray  # (15, 15, L) its covariance
-    cx: np.ndarray  # (15, L) the committed state (qsf.State.x)
-    cp: np.ndarray  # (15, 15, L) … and covariance
+    cx: np.ndarray  # (15, L) the committed state (qsf.State.x; its covariance is p's: see _block)
     h: np.ndarray  # (3, 15, L) measurement Jacobian
     hp: np.ndarray  # (3, 15, L) H P
     kt: np.ndarray  # (3, 15, L) the gain, transposed
@@ -83,15 +88,13 @@ class Lanes(NamedTuple):
     size: np.ndarray  # (1,) uint64: the lanes in use, the first ones (the block's envs)
 
 
-# rows of Lanes.f: R's diagonal, the gain, the radial eps, |Δq| of the update, a sum being formed, then a
-# row of P being formed (15 rows)
+# rows of Lanes.f: R's diagonal, the gain, the radial eps, |Δq| of the update, a sum being formed, then the
 # env's Δt, σ_g, σ_bq, σ_ba, σ_a, th_acc, acc_adaptive, g_ENU (3), the sample's accelerometer (3) and gyro
 # quaternion (4)
 _RD, _GAIN, _EPS, _CORR, _SUM = range(5)
 _DT, _SG, _SBW, _SABW, _SACC, _THACC, _ADAPT, _G, _A = 5, 6, 7, 8, 9, 10, 11, 12, 15
 _QY = 18  # the sample's gyro quaternion q_yg (4)
-_ROW = 22
-_F = _ROW + N_AUGMENTED
+_F = _QY + 4
 # rows of Lanes.on: the lane fuses this sample, predicts, updates, has the clone (15 states), H has clone
 # columns, starts a clone, passes the health test, renormalises its clone, commits
 _GO, _PRED, _UPD, _CL, _HCL, _START, _OK, _BOTH, _COMMIT = range(9)
@@ -103,7 +106,7 @@ def lanes(L) -> Lanes:
     """Working arrays for blocks of up to L lanes."""
     n = N_AUGMENTED
     return Lanes(
-        np.zeros((n, L)), np.zeros((n, n, L)), np.zeros((n, L)), np.zeros((n, n, L)), np.zeros((3, n, L)),
+        np.zeros((n, L)), np.zeros((n, n, L)), np.zeros((n, L)), np.zeros((3, n, L)),
         np.zeros((3, n, L)), np.zeros((3, n, L)), np.zeros((4, n, L)), np.zeros((n, n, L)), np.zeros((4, 4, L)),
         np.zeros((4, 4, L)), np.zeros((3, L)), np.zeros((9, L)), np.zeros((_F, L)), np.zeros((_M, L), np.int8),
         np.full(1, L, np.uint64),
@@ -250,21 +253,26 @@ def _joseph(w):
             g[0, i, e] = (k0 * s0 + k1 * s1 + k2 * s2) - hp[0, i, e]
             g[1, i, e] = (k0 * s1 + k1 * s4 + k2 * s5) - hp[1, i, e]
             g[2, i, e] = (k0 * s2 + k1 * s5 + k2 * s8) - hp[2, i, e]
-    row = w.f[_ROW:]
     for i in range(_N):
-        for j in range(i, _N):
+        for e in range(w.size[0]):  # the diagonal entry apart: its store and its mirror's are one
+            p[i, i, e] = _joseph_entry(p, hp, kt, g, upd, i, i, e)
+        for j in range(i + 1, _N):  # the upper triangle is read, the lower written (its mirror)
             for e in range(w.size[0]):
-                old = p[i, j, e]
-                new = (
-                    old
-                    - (kt[0, i, e] * hp[0, j, e] + kt[1, i, e] * hp[1, j, e] + kt[2, i, e] * hp[2, j, e])
-                    + (g[0, i, e] * kt[0, j, e] + g[1, i, e] * kt[1, j, e] + g[2, i, e] * kt[2, j, e])
-                )
-                row[j, e] = new if upd[e] else old
-        for j in range(i, _N):  # mirrored in a second pass: the stores then alias none of the loads
-            for e in range(w.size[0]):
-                p[i, j, e] = row[j, e]
-                p[j, i, e] = row[j, e]
+                v = _joseph_entry(p, hp, kt, g, upd, i, j, e)
+                p[i, j, e] = v
+                p[j, i, e] = v
+
+
+@njit(cache=True, inline="always")
+def _joseph_entry(p, hp, kt, g, upd, i, j, e):
+    """Entry (i, j) of lane e after ``linalg.joseph_update`` (where ``upd[e]``), i ≤ j."""
+    old = p[i, j, e]
+    new = (
+        old
+        - (kt[0, i, e] * hp[0, j, e] + kt[1, i, e] * hp[1, j, e] + kt[2, i, e] * hp[2, j, e])
+        + (g[0, i, e] * kt[0, j, e] + g[1, i, e] * kt[1, j, e] + g[2, i, e] * kt[2, j, e])
+    )
+    return new if upd[e] else old
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -362,46 +370,38 @@ def _residual(p, lo, s, i, j, n):
     its scaling (the diagonal's for i = j)."""
     for e in range(n):
         s[e] = p[i, j, e]
-    for k in range(j):
+    m = np.int64(j)  # the sum's terms, four a pass over the lanes (subtracted in the sum's order), then one
+    for k in range(0, m - 3, 4):
+        for e in range(n):
+            v = s[e] - lo[i, k, e] * lo[j, k, e]
+            v = v - lo[i, k + 1, e] * lo[j, k + 1, e]
+            v = v - lo[i, k + 2, e] * lo[j, k + 2, e]
+            s[e] = v - lo[i, k + 3, e] * lo[j, k + 3, e]
+    for k in range(m - m % 4, m):
         for e in range(n):
             s[e] -= lo[i, k, e] * lo[j, k, e]
 
 
 @njit(cache=True, error_model="numpy")
 def _commit(w, commit):
-    """``qsf._commit_healthy``'s copy on the lanes with ``commit``: x, P (its clone block zeroed without a
-    clone)."""
-    x, p, cx, cp, cl = w.x, w.p, w.cx, w.cp, w.on[_CL]
+    """``qsf._commit_healthy``'s copy of x on the lanes with ``commit`` (its covariance is p: see :func:`_block`)."""
+    x, cx = w.x, w.cx
     for r in range(_N):
         for e in range(w.size[0]):
             cx[r, e] = x[r, e] if commit[e] else cx[r, e]
-    for r in range(_N):
-        for c in range(_N):
-            for e in range(w.size[0]):
-                v = p[r, c, e] if ((cl[e] != 0) | ((r < _C0) & (c < _C0))) else 0.0
-                cp[r, c, e] = v if commit[e] else cp[r, c, e]
 
 
 # ------------------------------------------------------------ a block of envs
 
 # columns of a block's int64 lane table: env, its window (batch.Window: start, stop, base, r0, r1), samples to
-# fuse, the window's sample where it failed (−1), its state not finite at the load (1), still fusing (1)
-_ENV, _WSTART, _WSTOP, _WBASE, _R0, _R1, _CNT, _BAD, _BADLOAD, _LIVE = range(10)
+# fuse, the window's sample where it failed (−1), its state not finite at the load (1), still fusing (1), the
+# samples committed, whether the last had the clone (15 states), failed after its covariance changed (1)
+_ENV, _WSTART, _WSTOP, _WBASE, _R0, _R1, _CNT, _BAD, _BADLOAD, _LIVE, _DONE, _CLONED, _DIRTY = range(13)
 # rows of a block's per-lane numbers: committed period on, age, m_t0 (3), m_ref (3); the same being updated;
 # then the sample's active, keep_clone, acc_used, innovation norm, NIS, |K_q δz|, mag updated, action, trust
 _CON, _CAGE, _CT0, _CREF, _ON, _AGE, _T0, _REF = 0, 1, 2, 5, 8, 9, 10, 13
 _ACT, _KEEPC, _ACCU, _INNOV, _NIS, _CORRM, _UPDATED, _ACTION, _TRUST = range(16, 25)
 _V = 25
-
-
-@njit(cache=True, inline="always")
-def params(b, i):
-    """``qsf.Params`` of env i of :class:`magenv.envs.qsf.Batch` ``b``."""
-    f, g, e = b.pf, b.grav, b.earth  # read by index: no views
-    return qsf.Params(
-        b.mode, f[i, 0], f[i, 1], f[i, 2], f[i, 3], f[i, 4], f[i, 5], (g[i, 0], g[i, 1], g[i, 2]),
-        (e[i, 0], e[i, 1], e[i, 2]), f[i, 6], f[i, 7], b.update_reference, f[i, 8], f[i, 9],
-    )  # fmt: skip
 
 
 @njit(cache=True)
@@ -432,7 +432,7 @@ def _load_states(b, w, e0, n):
     """Lanes 0 … n−1 ← envs e0 … : the committed state, and, as ``qsf._load`` at a call's first sample, the
     working copy (P symmetrised); ``on[_OK]`` ← 0 where x or the env's leading 11 or 15 (``_CL``) rows and
     columns of P are not finite."""
-    x, p, cx, cp, ok, cl = w.x, w.p, w.cx, w.cp, w.on[_OK], w.on[_CL]
+    x, p, cx, ok, cl = w.x, w.p, w.cx, w.on[_OK], w.on[_CL]
     bx, bc = b.x, b.cov
     for e in range(n):
         ok[e] = 1
@@ -447,22 +447,23 @@ def _load_states(b, w, e0, n):
             for e in range(n):
                 a_, b_ = bc[r, c, e0 + e], bc[c, r, e0 + e]
                 p[r, c, e] = 0.5 * (a_ + b_)
-                cp[r, c, e] = a_
                 outside = (cl[e] == 0) & ((r >= _C0) | (c >= _C0))
                 ok[e] = ok[e] & ((a_ - a_ == 0.0) | outside)
 
 
 @njit(cache=True, error_model="numpy")
 def _store_states(b, w, e0, n):
-    """Envs e0 … ← the committed states of lanes 0 … n−1."""
-    bx, bc, cx, cp = b.x, b.cov, w.cx, w.cp
+    """Envs e0 … ← the committed states of lanes 0 … n−1 that committed a sample (``on[_COMMIT]``): x and P,
+    its clone block zeroed where the last sample had no clone (``on[_CL]`` 0), as ``qsf._commit_healthy``."""
+    bx, bc, cx, p, done, cl = b.x, b.cov, w.cx, w.p, w.on[_COMMIT], w.on[_CL]
     for r in range(_N):
         for e in range(n):
-            bx[r, e0 + e] = cx[r, e]
+            bx[r, e0 + e] = cx[r, e] if done[e] else bx[r, e0 + e]
     for r in range(_N):
         for c in range(_N):
             for e in range(n):
-                bc[r, c, e0 + e] = cp[r, c, e]
+                v = p[r, c, e] if ((cl[e] != 0) | ((r < _C0) & (c < _C0))) else 0.0
+                bc[r, c, e0 + e] = v if done[e] else bc[r, c, e0 + e]
 
 
 @njit(cache=True)
@@ -684,6 +685,7 @@ def _repair(b, w, lane, t):
                     pm[r, c] = p[r, c, e]
             if repair_sym(pm, na, b.pf[lane[e, _ENV], 6], lo) < 0:
                 _fail(lane, e, lane[e, _WSTART] + t)
+                lane[e, _DIRTY] = 1
                 on[_GO, e] = 0
                 continue
             for r in range(na):
@@ -699,7 +701,7 @@ def _repair(b, w, lane, t):
 def _signals(b, w, lane, v, t):
     """``qsf.step_work``'s end and ``qsf.run_kernel``'s output row, each committed lane: the period's state,
     the estimate and the signals."""
-    on, cx, cp = w.on, w.cx, w.cp
+    on, cx, cp = w.on, w.cx, w.p  # p: the committed covariance
     mode = b.mode
     for e in range(w.size[0]):
         if not on[_GO, e]:
@@ -707,7 +709,10 @@ def _signals(b, w, lane, v, t):
         iw = lane[e, _WSTART] + t
         if not on[_COMMIT, e]:
             _fail(lane, e, iw)
+            lane[e, _DIRTY] = 1
             continue
+        lane[e, _DONE] += 1
+        lane[e, _CLONED] = on[_CL, e]
         i = lane[e, _ENV]
         for k in range(8):
             v[_CON + k, e] = v[_ON + k, e]
@@ -751,31 +756,59 @@ def _sample(b, s, w, lane, v, t):
 
 
 @njit(cache=True)
-def _block(b, s, e0, e1, w):
-    """Envs ``e0 … e1−1`` (at most ``w``'s lanes) of :class:`magenv.envs.qsf.Batch` ``b`` (``s``: ``batch.Steps``) do
-    their ``todo`` in lock-step, each as :func:`magenv.envs.qsf.advance` does it."""
-    width = w.x.shape[1]
-    lane = np.zeros((width, 10), np.int64)
-    v = np.zeros((_V, width))
-    n = e1 - e0
-    w.size[0] = n
+def _fuse(b, s, w, lane, v, e0, n, cap):
+    """Lanes 0 … n−1 ← envs e0 …, then their ``todo`` samples in lock-step, lane e's stopping before its step's
+    sample ``cap[e]``."""
     most = 0
     for e in range(n):
         w.on[_CL, e] = 0
         lane[e, _BAD] = -1
+        lane[e, _DONE] = lane[e, _CLONED] = lane[e, _DIRTY] = 0
         if s.todo[e0 + e] >= 0:
             _load(b, s, w, lane, v, e, e0 + e)
+            lane[e, _CNT] = min(lane[e, _CNT], cap[e])
             most = max(most, lane[e, _CNT])
     _load_states(b, w, uint64(e0), uint64(n))
     for e in range(n):
         lane[e, _BADLOAD] = 1 - w.on[_OK, e]
     for t in range(most):
         _sample(b, s, w, lane, v, t)
+
+
+@njit(cache=True)
+def _block(b, s, e0, e1, w):
+    """Envs ``e0 … e1−1`` (at most ``w``'s lanes) of :class:`magenv.envs.qsf.Batch` ``b`` (``s``: ``batch.Steps``) do
+    their ``todo`` in lock-step, each as :func:`magenv.envs.qsf.advance` does it.
+
+    A lane's committed covariance is its working one (no copy per sample): a lane that fails after its
+    covariance changed (a failed repair, a non-finite state) makes the block fuse again from the envs' states,
+    that lane stopping before the failed sample, so that it keeps the state it had there."""
+    width = w.x.shape[1]
+    lane = np.zeros((width, 13), np.int64)
+    v = np.zeros((_V, width))
+    n = e1 - e0
+    w.size[0] = n
+    cap = np.full(width, np.iinfo(np.int64).max)
+    _fuse(b, s, w, lane, v, e0, n, cap)
+    again = False
+    for e in range(n):
+        if lane[e, _DIRTY]:
+            cap[e], again = lane[e, _BAD] - lane[e, _WSTART], True
+    if again:  # rare: the vector env raises FilterError on any failure
+        bad = lane[:, _BAD].copy()
+        _fuse(b, s, w, lane, v, e0, n, cap)
+        lane[:, _BAD] = bad
+    for e in range(n):
+        w.on[_COMMIT, e], w.on[_CL, e] = lane[e, _DONE] > 0, lane[e, _CLONED]
     _store_states(b, w, uint64(e0), uint64(n))
-    # env i's state for _features (which reads no P), in arrays of this block: no views of the batch's rows
+    # env i's state for feature_row (which reads no P), in arrays of this block: no views of the batch's rows
     st = qsf.State(
         np.empty(N_AUGMENTED), np.empty((1, 1)), np.empty(1, np.bool_), np.empty(1), np.empty(3), np.empty(3)
     )
+    rows = b.sig_h.shape[1]  # env i's window sample iw: row i·rows + iw of sig and est
+    sig = b.sig_h.reshape((b.sig_h.shape[0] * rows, b.sig_h.shape[2]))
+    est = b.q_h.reshape((b.q_h.shape[0] * rows, 4))
+    err = np.empty(N_ERR)
     for e in range(n):
         i = e0 + e
         if s.todo[i] < 0:
@@ -790,14 +823,70 @@ def _block(b, s, e0, e1, w):
             s.failed[i] = base + lane[e, _BAD]
             continue
         s.pos[i] = base + stop
-        error_sums(b.q_h[i], s.q_true[r0:r1], s.dist[r0:r1], start, stop, s.err[i])
+        error_sums(est, s.q_true, s.dist, start, stop, err, i * rows, r0)
+        for k in range(N_ERR):
+            s.err[i, k] = err[k]
         for r in range(N_AUGMENTED):
             st.x[r] = w.cx[r, e]
-        _features(
-            params(b, i), st,
-            qsf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.action_h[i], b.trust_h[i]), b.codes[r0:r1],
-            b.spread[r0:r1], b.sig_h[i], (b.m0[i], b.dip0[i]), b.trust[i], stop, s.feat[i],
+        last = i * rows + stop - 1 if stop > 0 else -1
+        feature_row(b.pf[i, 4], st, s.gyr, s.acc, s.mag, b.codes, b.spread, r0 + observed(stop, r1 - r0), sig, last,
+                    (b.m0[i], b.dip0[i]), b.trust[i], s.feat, i)  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def params(b, i):
+    """``qsf.Params`` of env i of :class:`magenv.envs.qsf.Batch` ``b``."""
+    f, g, e = b.pf, b.grav, b.earth  # read by index: no views
+    return qsf.Params(
+        b.mode, f[i, 0], f[i, 1], f[i, 2], f[i, 3], f[i, 4], f[i, 5], (g[i, 0], g[i, 1], g[i, 2]),
+        (e[i, 0], e[i, 1], e[i, 2]), f[i, 6], f[i, 7], b.update_reference, f[i, 8], f[i, 9],
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _env_by_env(b, s, e0, e1):
+    """Envs ``e0 … e1−1`` as :func:`_block`, one after the other through the single env's kernel
+    (:func:`magenv.envs.qsf.advance`), on copies of their states (the batch's have the env axis last)."""
+    na = N_AUGMENTED
+    st = qsf.State(np.empty(na), np.empty((na, na)), np.empty(1, np.bool_), np.empty(1), np.empty(3), np.empty(3))
+    for i in range(e0, e1):
+        if s.todo[i] < 0:
+            continue
+        for r in range(na):
+            st.x[r] = b.x[r, i]
+            for c in range(na):
+                st.cov[r, c] = b.cov[r, c, i]
+        st.period_active[0], st.period_age[0] = b.active[i, 0], b.age[i, 0]
+        for k in range(3):
+            st.mag_t0[k], st.mag_ref[k] = b.mag_t0[i, k], b.mag_ref[i, k]
+        w = window(s, i)
+        r0, r1 = w.r0, w.r1
+        bad, _ = advance(
+            params(b, i), st, qsf.Inputs(s.gyr[r0:r1], s.acc[r0:r1], s.mag[r0:r1], b.action_h[i], b.trust_h[i]),
+            qsf.Outputs(b.q_h[i], b.sig_h[i]), (b.codes[r0:r1], b.spread[r0:r1]), Truth(s.q_true[r0:r1], s.dist[r0:r1]),
+            b.dt[i], (b.m0[i], b.dip0[i]), b.code[i], b.trust[i], w.start, w.stop, s.err[i], s.feat[i],
         )  # fmt: skip
+        for r in range(na):  # as committed (up to the failed sample, if any)
+            b.x[r, i] = st.x[r]
+            for c in range(na):
+                b.cov[r, c, i] = st.cov[r, c]
+        b.active[i, 0], b.age[i, 0] = st.period_active[0], st.period_age[0]
+        for k in range(3):
+            b.mag_t0[i, k], b.mag_ref[i, k] = st.mag_t0[k], st.mag_ref[k]
+        if bad < 0:
+            s.pos[i] = w.base + w.stop
+        else:
+            s.failed[i] = w.base + bad
+
+
+@njit(cache=True)
+def _blocks(b, s, e0, e1, w):
+    """Envs ``e0 … e1−1`` (at most LANES) in lock-step (``w``: lanes for them), or one by one when fewer than
+    NARROW."""
+    if e1 - e0 < NARROW:
+        _env_by_env(b, s, e0, e1)
+    else:
+        _block(b, s, e0, e1, w)
 
 
 @njit(cache=True)
@@ -806,9 +895,9 @@ def lockstep(b, s):
     does it, LANES envs at a time (``magenv.envs.batch.each_env``'s contract: ``s.pos`` advanced, or
     ``s.failed`` set to the sample where the env's filter failed)."""
     n = s.todo.shape[0]
-    w = lanes(min(LANES, n))
+    w = lanes(min(LANES, n) if n >= NARROW else 1)
     for e0 in range(0, n, LANES):
-        _block(b, s, e0, min(e0 + LANES, n), w)
+        _blocks(b, s, e0, min(e0 + LANES, n), w)
 
 
 @njit(cache=True, parallel=True)
@@ -818,4 +907,4 @@ def lockstep_threads(b, s):
     for k in prange((n + LANES - 1) // LANES):
         e0 = k * LANES
         e1 = min(e0 + LANES, n)
-        _block(b, s, e0, e1, lanes(e1 - e0))
+        _blocks(b, s, e0, e1, lanes(e1 - e0 if e1 - e0 >= NARROW else 1))
