@@ -46,6 +46,7 @@ from magenv.trial import Trial
 CANDIDATES = (0.0, 0.25, 0.5, 0.75, 1.0)  # trust levels searched
 _NORM_DEV, _DIP_DEV = FEATURES.index("norm_dev"), FEATURES.index("dip_dev")  # the Fan rule's features
 HORIZON_S = 4.0  # s, look-ahead of each search (half of VQF's τ_mag: a trust's cost shows)
+TAIL_S = vqf.Options.tau_mag / 2  # s, oracle_vqf_tail's terminal cost: ∫ e² exp(−2t/τ_mag) dt = e² τ_mag / 2
 DECISION_EVERY = 32  # samples per decision (≈ 9 Hz at BROAD's 286 Hz)
 
 
@@ -71,15 +72,21 @@ def field_rows(p, s, w, gyr, acc, mag, q_true, rows):
 
 
 @njit(cache=True)
-def heading_costs(p, delta, init, rows, start, stop, cands, costs):
+def heading_costs(p, delta, init, rows, start, stop, cands, costs, tail_s=0.0):
     """``costs[c]`` = Σ (total error, °)² over samples start … stop−1 of trust ``cands[c]`` held, from the heading
     offset δ = ``delta`` and the initial convergence's 1/N = ``init`` before sample ``start``; ``rows`` of
-    :func:`field_rows`. The 9D estimate's scalar product with the truth is r cos(δ/2 − φ)."""
+    :func:`field_rows`. The 9D estimate's scalar product with the truth is r cos(δ/2 − φ).
+
+    With ``tail_s`` > 0 (s) a terminal cost is added: the window's last error e (its last sample with truth)
+    counted for tail_s / Ts more samples, and the sum rescaled to the window's H samples,
+    (Σ e_i² + e² tail_s / Ts) · H / (H + tail_s / Ts), so that a unit of cost stays one (°)² a sample."""
     ts = p[P.ts]
+    tail = tail_s / ts
+    span = stop - start
     for c in range(cands.shape[0]):
         k, tau = vqf.trust_gain(p, cands[c])
         d, n0 = delta, init
-        cost = 0.0
+        cost, last = 0.0, 0.0
         for i in range(start, stop):
             if rows[i, 1] != 0.0:
                 d, n0, _, _ = vqf.heading_update(d, n0, rows[i, 0], rows[i, 1], k, tau, ts)
@@ -88,6 +95,9 @@ def heading_costs(p, delta, init, rows, start, stop, cands, costs):
                 wq = r * np.cos(d / 2 - rows[i, 3])
                 total = np.rad2deg(2.0 * np.arccos(min(1.0, abs(wq)))) if np.isfinite(wq) else WORST_DEG
                 cost += total * total
+                last = total
+        if tail > 0.0:
+            cost = (cost + last * last * tail) * span / (span + tail)
         costs[c] = cost
 
 
@@ -99,6 +109,8 @@ class VQFOracle:
         horizon_s: look-ahead, s. decision_every: samples per decision (k).
         rejection: the env option it searches under (``"on"``: on top of VQF's own rejection).
         rule: (norm_tol, th_dip°) of the Fan rule whose trust is searched too and continued with; None: u = 1.
+        tail_s: terminal cost, s (:func:`heading_costs`; ``oracle_vqf_tail``: τ_mag / 2, the error at the window's
+            end decaying with VQF's heading time constant as its sum over the rest of the trial; 0: none).
     """
 
     name = "oracle_vqf"
@@ -112,6 +124,7 @@ class VQFOracle:
         decision_every: int = DECISION_EVERY,
         rejection: str = "on",
         rule: tuple[float, float] | None = None,
+        tail_s: float = 0.0,
     ):
         levels = np.asarray(candidates, float)
         if levels.ndim != 1 or levels.size == 0 or not np.all((levels >= 0.0) & (levels <= 1.0)):
@@ -119,7 +132,9 @@ class VQFOracle:
         if not horizon_s > 0 or isinstance(decision_every, bool) or int(decision_every) < 1:
             raise ValueError(f"horizon_s must be > 0 and decision_every ≥ 1, got {horizon_s}, {decision_every}")
         self.levels, self.candidates = levels, levels[:, None]
-        self.horizon_s, self.decision_every = float(horizon_s), int(decision_every)
+        if not tail_s >= 0:
+            raise ValueError(f"tail_s must be ≥ 0 s, got {tail_s}")
+        self.horizon_s, self.decision_every, self.tail_s = float(horizon_s), int(decision_every), float(tail_s)
         self.env_kwargs = {"rejection": rejection}
         self.rule = None if rule is None else (float(rule[0]), float(rule[1]))
         self.options = filter_options(rejection, vqf.Options.tau_acc, vqf.Options.tau_mag, True, True)
@@ -129,6 +144,11 @@ class VQFOracle:
     def from_fan_params(cls, params: dict) -> VQFOracle:
         """``oracle_vqf_rule``: also searching, and continuing with, the Fan rule of ``params`` (its tuned file)."""
         return cls(rule=(params["norm_tol"], params["th_dip_deg"]))
+
+    @classmethod
+    def with_tail(cls, params: dict) -> VQFOracle:
+        """``oracle_vqf_tail``: ``oracle_vqf_rule`` with the terminal cost of ``TAIL_S``."""
+        return cls(rule=(params["norm_tol"], params["th_dip_deg"]), tail_s=TAIL_S)
 
     def rule_trust(self, runner: VQFRunner) -> float:
         """The rule's trust at the runner's next sample, from its observation as the student sees it (float32)."""
@@ -144,7 +164,7 @@ class VQFOracle:
         levels = self.levels if candidates is None else np.ascontiguousarray(np.asarray(candidates, float)[:, 0])
         costs = np.empty(levels.size)
         heading_costs(runner.params, runner.state[S.delta], runner.state[S.k_mag_init], self.rows(runner), start,
-                      stop, levels, costs)  # fmt: skip
+                      stop, levels, costs, self.tail_s)  # fmt: skip
         return costs
 
     def rows(self, runner: VQFRunner) -> np.ndarray:

@@ -26,7 +26,8 @@ a fresh one. ``names()`` lists them all:
   ``oracle_qsf`` (MagQSF-v0, continuing with
   ``qsf_detector_tuned``, ``magenv.baselines.oracle_qsf``; ``oracle_qsf_hold`` with ``qsf_hold``) and
   ``oracle_vqf`` for MagVQF-v0 (``magenv.baselines.oracle_vqf``; ``oracle_vqf_rule`` also searches and
-  continues with ``vqf_fan_lambda_tuned``'s trust on top of VQF's rejection, the teacher of its student);
+  continues with ``vqf_fan_lambda_tuned``'s trust on top of VQF's rejection, the teacher of its student;
+  ``oracle_vqf_tail`` adds a terminal cost for the error the look-ahead leaves);
 * ``register(name, factory)`` at run time (one line anywhere);
 * ``agent:RUN_DIR`` — a trained agent loaded with ``magenv.agents.load_agent``; ``pretrained:ENV_ID`` (or
   ``agent:pretrained:ENV_ID``) — the agent shipped for that env.
@@ -171,6 +172,7 @@ TUNED_VARIANTS: dict[str, tuple[str, Callable[[dict], Any]]] = {
     "oracle_qsf_hold": ("delay_magyq", oracle_qsf.QSFOracle.holding),
     "vqf_fan_rejection_tuned": ("vqf_fan_lambda", vqf_rules.fan_on_rejection),
     "oracle_vqf_rule": ("vqf_fan_lambda", oracle_vqf.VQFOracle.from_fan_params),
+    "oracle_vqf_tail": ("vqf_fan_lambda", oracle_vqf.VQFOracle.with_tail),
 }
 
 _REGISTERED: dict[str, tuple[Callable[[], Any], str]] = {}

@@ -298,7 +298,40 @@ def test_a_run_is_scored_only_on_the_tasks_it_has_no_kept_rows_for(tmp_path, mon
 
 def test_scored_only_goes_with_sweep(capsys):
     assert cli(["benchmark", "--summary", "x.json", "--scored-only"]) == 2
-    assert "--scored-only goes with --sweep" in capsys.readouterr().err
+    assert "--scored-only and --rows go with --sweep" in capsys.readouterr().err
+
+
+def test_an_earlier_table_reads_back_and_fills_the_runs_the_sweeps_lack(tmp_path):
+    """A table finished on another machine: the earlier baselines.csv's runs join those scored now; a run in both
+    is the sweep's."""
+    rows = [
+        {"env": suite.BLEND.env_id, "task": "MagBlend-v0/dynamic_magnet", "method": m, "seed": s, "rmse": 1.5 + s,
+         "normalised": None if m == "SAC" else 0.25 * s, "per_trial": None}
+        for m in ("PPO", "SAC") for s in (0, 1)
+    ]  # fmt: skip
+    path = benchmark.baselines_csv(rows, tmp_path / "baselines.csv")
+    assert benchmark.read_rows(path) == sorted(rows, key=lambda r: (r["method"], r["seed"]))
+    page = benchmark.index_markdown(rows, [], 100, {}, {}, n_earlier=4)
+    assert "**4 of 100 runs finished and scored** (4 of them read from an earlier table" in page
+    assert "timed here (not the runs read from the earlier table)" not in page  # no run timed here: no cost table
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("env,task\n", "is not a baselines.csv"),
+        (",".join(benchmark.CSV_HEADER) + "\nmagenv/MagBlend-v0,MagBlend-v0/dynamic_magnet,PPO,x,1,0\n", "line 2"),
+        (",".join(benchmark.CSV_HEADER) + "\nmagenv/MagBlend-v0,MagBlend-v0/nowhere,PPO,0,1,0\n", "not a task"),
+        (",".join(benchmark.CSV_HEADER) + "\nmagenv/MagBlend-v0,MagBlend-v0/dynamic_magnet,PPO,0,nan,0\n", "finite"),
+    ],
+)
+def test_a_bad_earlier_table_is_named_before_any_work(tmp_path, capsys, text, message):
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "sweep.json").write_text('{"runs": {}}')
+    (tmp_path / "old.csv").write_text(text)
+    args = ["benchmark", "--sweep", str(tmp_path / "runs"), "--out", str(tmp_path / "out")]
+    assert cli([*args, "--rows", str(tmp_path / "old.csv")]) == 2
+    assert message in capsys.readouterr().err and not (tmp_path / "out").exists()
 
 
 def test_the_baseline_configs_are_what_train_sh_runs():

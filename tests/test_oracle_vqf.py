@@ -60,6 +60,30 @@ def test_candidate_costs_are_the_env_run_with_the_candidate_held(disturbed):
         assert cost == pytest.approx(np.nansum(err**2), rel=1e-9)
 
 
+def test_the_terminal_cost_counts_the_last_error_for_the_tail_rescaled_to_the_window(disturbed):
+    """oracle_vqf_tail: (Σ e_i² + e_last² · tail / Ts) · H / (H + tail / Ts), from the same runner state."""
+    plain = VQFOracle(candidates=(0.0, 0.6), decision_every=16, horizon_s=0.5)
+    tailed = VQFOracle(candidates=(0.0, 0.6), decision_every=16, horizon_s=0.5, tail_s=2.0)
+    runner = VQFRunner(disturbed)
+    for _ in range(40):
+        runner.advance(16, 1.0)
+    horizon, tail = int(round(0.5 * disturbed.rate)), 2.0 * disturbed.rate
+    start = runner.pos
+    for u, cost, cost_plain in zip((0.0, 0.6), tailed.candidate_costs(runner), plain.candidate_costs(runner)):
+        fork = VQFRunner(disturbed)
+        fork.state[:] = runner.state
+        fork.pos = start
+        fork.advance(horizon, u)
+        sl = slice(start, start + horizon)
+        err = metrics.total_error(metrics.error_quaternion(fork.est[sl], disturbed.q_true[sl]))
+        last = err[np.isfinite(err)][-1]
+        assert cost_plain == pytest.approx(np.nansum(err**2), rel=1e-9)
+        assert cost == pytest.approx((np.nansum(err**2) + last**2 * tail) * horizon / (horizon + tail), rel=1e-9)
+    assert registry.make("oracle_vqf_tail").tail_s == pytest.approx(4.5)
+    with pytest.raises(ValueError, match="tail_s"):
+        VQFOracle(tail_s=-1.0)
+
+
 def test_the_oracle_beats_vqf_on_a_disturbed_trial(disturbed):
     oracle = VQFOracle(decision_every=32, horizon_s=1.0)
     vqf_q = evaluation.run_method("vqf", registry.make("vqf"), disturbed).q

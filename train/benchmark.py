@@ -1,7 +1,7 @@
 """``magenv benchmark``: score a policy on magenv-bench v1 (``magenv.benchmark.suite``) and write its score card.
 
     magenv benchmark --agent AGENT [--tasks LIST] [--out DIR] [--seeds S] [--duration S] [--no-cache]
-    magenv benchmark --sweep RUNS --out docs/benchmark [--scored-only]   (the baselines' table)
+    magenv benchmark --sweep RUNS --out docs/benchmark [--scored-only] [--rows CSV]   (the baselines' table)
     magenv benchmark --summary CARD.json [CARD.json ...]    (one table of score cards: the README's results)
 
 AGENT is a run folder (``magenv train``), ``pretrained:ENV_ID`` (a shipped agent), one weights-only file of an SB3
@@ -28,8 +28,10 @@ its env's tasks and writes OUT/baselines.csv (env, task, method, training seed, 
 OUT/baselines.png and OUT/index.md (the protocol, the table with the number of training seeds finished of each
 cell, the aggregates); a run's scores are kept beside it (``SWEEP/benchmark/NAME.json``, written whole) for the
 next call. ``--scored-only`` scores nothing new: the table holds the runs scored before and names the finished
-runs that are not. An SB3 agent acts on a task's trials together (``magenv.evaluation``: one network forward per
-decision for all), with torch on one thread.
+runs that are not. ``--rows CSV`` adds the runs of an earlier table (its ``baselines.csv``, read as text only)
+that the sweeps do not hold, so that a table can be finished on another machine than the one that trained its
+first runs; a run in both is taken from the sweeps. An SB3 agent acts on a task's trials together
+(``magenv.evaluation``: one network forward per decision for all), with torch on one thread.
 
 ``--summary`` prints one Markdown table of the tasks of score cards (``card.json`` files, read as JSON only): per
 task the rule, the ratio agent / rule and the normalised score with their 95 % intervals, and the worst trial's
@@ -72,6 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=None, help="quick look: trials cut to S seconds")
     p.add_argument("--no-cache", action="store_true", help="recompute the rules' and oracles' RMSEs")
     p.add_argument("--scored-only", action="store_true", help="with --sweep: only runs scored before, no new scoring")
+    p.add_argument("--rows", type=Path, default=None, metavar="CSV", help="with --sweep: an earlier baselines.csv")
 
 
 # ----------------------------------------------------------------- the agent
@@ -463,16 +466,58 @@ def _run_scores(sweep: Path, record: dict, tasks, refs: References) -> list[dict
     return rows
 
 
+CSV_HEADER = ["env", "task", "method", "training_seed", "rmse_deg", "normalised_score"]
+
+
 def baselines_csv(rows: list[dict], path: Path) -> Path:
     import csv
 
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["env", "task", "method", "training_seed", "rmse_deg", "normalised_score"])
+        w.writerow(CSV_HEADER)
         for r in sorted(rows, key=lambda r: (r["task"], r["method"], r["seed"])):
             n = "" if r["normalised"] is None else f"{r['normalised']:.4f}"
             w.writerow([r["env"], r["task"], r["method"], r["seed"], f"{r['rmse']:.4f}", n])
     return path
+
+
+def read_rows(path: Path) -> list[dict]:
+    """The rows of an earlier ``baselines.csv`` (:func:`baselines_csv`), read as text; CommandError naming the
+    file and line where it is not one of the suite's tables."""
+    import csv
+
+    from magenv.benchmark import suite
+
+    tasks = {t.name: t for t in suite.TASKS}
+    try:
+        with open(path, newline="") as f:
+            lines = list(csv.reader(f))
+    except FileNotFoundError:
+        raise CommandError(f"--rows: no file {path}") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise CommandError(f"--rows: {path} is not a CSV file ({exc})") from None
+    if not lines or lines[0] != CSV_HEADER:
+        raise CommandError(f"--rows: {path} is not a baselines.csv (its header is not {','.join(CSV_HEADER)})")
+    rows = []
+    for number, line in enumerate(lines[1:], start=2):
+        try:
+            env, task, method, seed, rmse, norm = line
+            row = {"env": env, "task": task, "method": method, "seed": int(seed), "rmse": float(rmse),
+                   "normalised": float(norm) if norm else None, "per_trial": None}  # fmt: skip
+        except ValueError:
+            raise CommandError(f"--rows: {path} line {number} is not env,task,method,seed,rmse,score") from None
+        task_of = tasks.get(task)
+        if task_of is None or task_of.env_id != env or method not in ALGO_LABELS.values():
+            raise CommandError(f"--rows: {path} line {number}: {env} {task} {method} is not a task and method of "
+                               f"{suite.VERSION}")  # fmt: skip
+        if not math.isfinite(row["rmse"]) or (norm and not math.isfinite(row["normalised"])):
+            raise CommandError(f"--rows: {path} line {number}: a score that is not a finite number")
+        rows.append(row)
+    return rows
+
+
+def _run_key(row: dict) -> tuple:
+    return row["env"], row["method"], row["seed"]
 
 
 def baseline_matrices(rows: list[dict], tasks: list[str]) -> tuple[dict[str, np.ndarray], dict[str, str]]:
@@ -525,13 +570,21 @@ def cost_lines(records: list[dict]) -> list[str]:
 
 
 def index_markdown(
-    rows: list[dict], records: list[dict], n_planned: int, agg: dict, covered: dict, unscored: Sequence[dict] = ()
+    rows: list[dict],
+    records: list[dict],
+    n_planned: int,
+    agg: dict,
+    covered: dict,
+    unscored: Sequence[dict] = (),
+    n_earlier: int = 0,
 ) -> str:
     """docs/benchmark/index.md: the protocol (from the suite) and the baselines' table of the scored runs
-    (``records``; ``unscored``: finished runs not scored yet)."""
+    (``records``; ``unscored``: finished runs not scored yet; ``n_earlier``: runs read from an earlier table,
+    ``--rows``, whose timings are not known here)."""
     from magenv.benchmark import suite
 
     methods = list(ALGO_LABELS.values())
+    n_scored = len(records) + n_earlier
     lines = [
         f"# Benchmark: {suite.VERSION}",
         "",
@@ -589,7 +642,9 @@ def index_markdown(
         f"at the budget with {suite.BASELINE_SEEDS} training seeds (configs: `agents/configs/bench/`), trained by "
         "`nice -n 19 agents/configs/bench/train.sh RUNS` (`magenv sweep`, resumable; the budget was chosen so "
         "that the 100 runs train within a day on two free cores: the cost table below says how far the runs "
-        "measured so far bear that out) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark`.",
+        "measured so far bear that out) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark` (with "
+        "`--rows docs/benchmark/baselines.csv` the runs of the table before, whose folders are on another machine, "
+        "are kept).",
         "",
         "Scoring an SB3 run: the agent acts on a task's trials together, one env per trial and one forward of its "
         "network per decision for all (`magenv.evaluation`), with torch on one thread; a trial's score does not "
@@ -600,14 +655,20 @@ def index_markdown(
         "act trial by trial.",
         "",
         (
-            f"**{len(records)} of {n_planned} runs finished and scored**"
+            f"**{n_scored} of {n_planned} runs finished and scored**"
             if not unscored
-            else f"**{len(records) + len(unscored)} of {n_planned} runs finished, {len(records)} of them scored** "
+            else f"**{n_scored + len(unscored)} of {n_planned} runs finished, {n_scored} of them scored** "
             f"(not yet scored: {', '.join(sorted(r['name'] for r in unscored))})"
         )
         + (
+            f" ({n_earlier} of them read from an earlier table, `--rows`, trained and scored on another machine "
+            f"under the same {suite.VERSION})"
+            if n_earlier
+            else ""
+        )
+        + (
             "; the table is complete."
-            if len(records) == n_planned
+            if n_scored == n_planned
             else ": the table is incomplete. A cell shows the mean over the training seeds scored (n = how "
             "many); – where none did."
         ),
@@ -637,7 +698,8 @@ def index_markdown(
     if records or unscored:
         lines += [
             "",
-            "Minutes per run (training, validation and the sweep's own scoring), mean over the finished runs:",
+            "Minutes per run (training, validation and the sweep's own scoring), mean over the finished runs"
+            + (" timed here (not the runs read from the earlier table):" if n_earlier else ":"),
         ]
         lines += ["", *cost_lines([*records, *unscored])]
     return "\n".join(lines) + "\n"
@@ -651,6 +713,7 @@ def run_sweeps(args: argparse.Namespace) -> int:
     if args.tasks is not None or args.seeds is not None or args.duration is not None:
         raise CommandError("--sweep scores the baselines on the whole suite: drop --tasks, --seeds and --duration")
     planned = len(suite.ENVS) * len(ALGO_LABELS) * suite.BASELINE_SEEDS
+    earlier = read_rows(args.rows) if args.rows is not None else []
     finished = _finished_runs(sweeps)
     print(f"{len(finished)} finished run(s) in {len(sweeps)} sweep folder(s)", flush=True)
     refs = References(cache_folder(args.no_cache))
@@ -662,6 +725,9 @@ def run_sweeps(args: argparse.Namespace) -> int:
         scored = [(record, _run_scores(sweep, record, list(suite.TASKS), refs)) for sweep, record in finished]
         unscored = []
     rows = [row for _, run_rows in scored for row in run_rows]
+    have = {_run_key(row) for row in rows}
+    earlier = [row for row in earlier if _run_key(row) not in have]
+    rows += earlier
     out.mkdir(parents=True, exist_ok=True)
     baselines_csv(rows, out / f"{BASELINES}.csv")
     names = [t.name for t in suite.TASKS if t.normalised]
@@ -670,7 +736,8 @@ def run_sweeps(args: argparse.Namespace) -> int:
     if matrices:
         score.profile_png(matrices, out / f"{BASELINES}.png", f"{suite.VERSION} baselines")
     records = [record for record, _ in scored]
-    write_atomic(out / "index.md", index_markdown(rows, records, planned, agg, covered, unscored))
+    n_earlier = len({_run_key(row) for row in earlier})
+    write_atomic(out / "index.md", index_markdown(rows, records, planned, agg, covered, unscored, n_earlier))
     print(f"wrote {out / (BASELINES + '.csv')}, {out / 'index.md'}" + (f", {out / BASELINES}.png" if agg else ""))
     return 0
 
@@ -720,8 +787,8 @@ def run_summary(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.scored_only and not args.sweep:
-        raise CommandError("--scored-only goes with --sweep")
+    if (args.scored_only or args.rows is not None) and not args.sweep:
+        raise CommandError("--scored-only and --rows go with --sweep")
     if args.summary:
         return run_summary(args)
     return run_sweeps(args) if args.sweep else run_agent(args)
