@@ -8,6 +8,10 @@ low-rank factors, symmetric updates of one triangle), so each sample's arithmeti
 in the last bits (relative 1e-16); the filters are contractive, so these differences stay at that scale
 (measured: below 1e-11° on every RMSE here), and 1e-9° leaves room for a platform's BLAS while catching any
 change of a filter's equations, which moves an RMSE by far more.
+
+A shipped agent's RMSE gets 1e-6°: its network's products go through the platform's BLAS (numpy's, torch's), whose
+summation order changes between releases, and a continuous action (MagConstraint-v0's w) carries that last-bit
+difference into the filter (seen: 1.5e-7° on a fresh install of December 2026, numpy 2.4.6 and torch 2.13.0).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import numpy as np
 import pytest
 
 TOLERANCE_DEG = 1e-9
+AGENT_TOLERANCE_DEG = 1e-6  # a shipped agent's RMSE (the module docstring)
 RECORDED = json.loads(kernel_rmse.FIXTURE.read_text())
 
 
@@ -37,4 +42,5 @@ def test_rmses_unchanged(case, monkeypatch, tmp_path):
     want = RECORDED[kernel_rmse.case_key(*case[:4])]
     for name, values in want.items():
         diff = np.abs(np.array(got[name]) - np.array(values))
-        assert np.all(diff <= TOLERANCE_DEG), f"{name}: RMSE (total, heading, inclination) {got[name]} != {values}"
+        tolerance = AGENT_TOLERANCE_DEG if name.startswith("pretrained:") else TOLERANCE_DEG
+        assert np.all(diff <= tolerance), f"{name}: RMSE (total, heading, inclination) {got[name]} != {values}"

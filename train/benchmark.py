@@ -501,16 +501,17 @@ def read_rows(path: Path) -> list[dict]:
     rows = []
     for number, line in enumerate(lines[1:], start=2):
         try:
-            env, task, method, seed, rmse, norm = line
-            row = {"env": env, "task": task, "method": method, "seed": int(seed), "rmse": float(rmse),
-                   "normalised": float(norm) if norm else None, "per_trial": None}  # fmt: skip
+            env, task, method, seed, rmse_text, norm_text = line
+            rmse, norm = float(rmse_text), float(norm_text) if norm_text else None
+            row = {"env": env, "task": task, "method": method, "seed": int(seed), "rmse": rmse, "normalised": norm,
+                   "per_trial": None}  # fmt: skip
         except ValueError:
             raise CommandError(f"--rows: {path} line {number} is not env,task,method,seed,rmse,score") from None
         task_of = tasks.get(task)
         if task_of is None or task_of.env_id != env or method not in ALGO_LABELS.values():
             raise CommandError(f"--rows: {path} line {number}: {env} {task} {method} is not a task and method of "
                                f"{suite.VERSION}")  # fmt: skip
-        if not math.isfinite(row["rmse"]) or (norm and not math.isfinite(row["normalised"])):
+        if not math.isfinite(rmse) or (norm is not None and not math.isfinite(norm)):
             raise CommandError(f"--rows: {path} line {number}: a score that is not a finite number")
         rows.append(row)
     return rows
