@@ -323,6 +323,10 @@ def test_an_earlier_table_reads_back_and_fills_the_runs_the_sweeps_lack(tmp_path
         (",".join(benchmark.CSV_HEADER) + "\nmagenv/MagBlend-v0,MagBlend-v0/dynamic_magnet,PPO,x,1,0\n", "line 2"),
         (",".join(benchmark.CSV_HEADER) + "\nmagenv/MagBlend-v0,MagBlend-v0/nowhere,PPO,0,1,0\n", "not a task"),
         (",".join(benchmark.CSV_HEADER) + "\nmagenv/MagBlend-v0,MagBlend-v0/dynamic_magnet,PPO,0,nan,0\n", "finite"),
+        (
+            ",".join(benchmark.CSV_HEADER) + "\n" + "magenv/MagBlend-v0,MagBlend-v0/dynamic_clean,SAC,0,1,\n" * 2,
+            "twice",
+        ),
     ],
 )
 def test_a_bad_earlier_table_is_named_before_any_work(tmp_path, capsys, text, message):

@@ -498,7 +498,7 @@ def read_rows(path: Path) -> list[dict]:
         raise CommandError(f"--rows: {path} is not a CSV file ({exc})") from None
     if not lines or lines[0] != CSV_HEADER:
         raise CommandError(f"--rows: {path} is not a baselines.csv (its header is not {','.join(CSV_HEADER)})")
-    rows = []
+    rows: list[dict] = []
     for number, line in enumerate(lines[1:], start=2):
         try:
             env, task, method, seed, rmse_text, norm_text = line
@@ -513,6 +513,8 @@ def read_rows(path: Path) -> list[dict]:
                                f"{suite.VERSION}")  # fmt: skip
         if not math.isfinite(rmse) or (norm is not None and not math.isfinite(norm)):
             raise CommandError(f"--rows: {path} line {number}: a score that is not a finite number")
+        if any((r["task"], r["method"], r["seed"]) == (task, method, row["seed"]) for r in rows):
+            raise CommandError(f"--rows: {path} line {number}: {task} {method} seed {seed} is there twice")
         rows.append(row)
     return rows
 
