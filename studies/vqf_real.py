@@ -1,7 +1,7 @@
 """MagVQF-v0 on real recordings it never trained on (docs/results.md): the sim-to-real table against VQF.
 
     python -m studies.vqf_real [--agent RUN|pretrained:ID ...] [--recordings FILE ...] [--oracle] [--cv RUN ...]
-        [--twins N] [--json FILE]
+        [--twins N] [--select] [--json FILE]
 
 Every method on each recording (default: the shared BROAD ones), paired recording by recording with VQF as
 published (``vqf``, the reference): per group of recordings (BROAD's own groups, from the recording's name:
@@ -16,8 +16,12 @@ CFG with recordings or their twins among its scenarios): each recording scored b
 never saw it nor its twin (its ``cv.csv``). ``--oracle`` adds the privileged ``oracle_vqf`` (it reads truth:
 headroom). For a guarded student, the share of its decisions that fell back on its guard's fallback. ``--twins N``
 scores N twins of each recording (``twin:PATH``, validation seeds from 5000) in its place, grouped as the
-recording: whether simulation fitted to the recordings ranks the methods as the recordings do. It prints what it
-measures; nothing here is a test.
+recording: whether simulation fitted to the recordings ranks the methods as the recordings do. ``--select``
+chooses among the agents on the recordings without reporting a chosen agent's figures on the recordings it was
+chosen on (nested leave-one-recording-out): recording r is scored by the agent whose geometric-mean ratio to
+``vqf`` over the other recordings is lowest (row ``selected (held out)``); the agent chosen on all of them is the
+one to ship, and the held-out row estimates what choosing so is worth. It prints what it measures; nothing here
+is a test.
 """
 
 from __future__ import annotations
@@ -101,6 +105,27 @@ def table(scores: dict[str, dict[str, float]], names: list[str]) -> list[str]:
     return lines
 
 
+def choice(scores: dict[str, dict[str, float]], agents: list[str], without: str | None = None) -> str:
+    """The agent with the lowest geometric mean of its per-recording ratio to ``vqf`` over the recordings
+    (all but ``without``; ties: the first of ``agents``)."""
+    recs = [r for r in scores[REFERENCE] if r != without]
+    return min(agents, key=lambda a: float(np.sum(np.log([scores[a][r] / scores[REFERENCE][r] for r in recs]))))
+
+
+def nested_selection(scores: dict[str, dict[str, float]], agents: list[str]) -> tuple[dict[str, float], dict]:
+    """Leave-one-recording-out ``choice`` among ``agents``: (recording → the RMSE of the agent chosen without
+    it, recording → that agent's name). Raises ValueError on fewer than two recordings or an agent missing a
+    recording."""
+    recs = list(scores[REFERENCE])
+    if len(recs) < 2 or not agents:
+        raise ValueError(f"a nested choice needs ≥ 2 recordings and ≥ 1 agent, got {len(recs)} and {len(agents)}")
+    missing = [(a, r) for a in agents for r in recs if r not in scores.get(a, {})]
+    if missing:
+        raise ValueError(f"no score of agent {missing[0][0]!r} on recording {missing[0][1]!r}")
+    picked = {r: choice(scores, agents, without=r) for r in recs}
+    return {r: scores[picked[r]][r] for r in recs}, picked
+
+
 def recordings_needed(scores: dict[str, dict[str, float]], a: str, b: str, effect: float = 0.9) -> tuple[float, int]:
     """(σ, n): the spread σ of the per-recording log ratios of ``a`` to ``b`` (sample SD) and the recordings n
     that a 95 % interval of their geometric mean needs to exclude a tie when the true ratio is ``effect``:
@@ -132,13 +157,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--oracle", action="store_true", help="add the privileged oracle_vqf (headroom)")
     p.add_argument("--cv", action="append", type=Path, default=[], help="a leave-recordings-out run (repeatable)")
     p.add_argument("--twins", type=int, default=0, help="score N twins of each recording in its place")
+    p.add_argument("--select", action="store_true", help="nested leave-one-recording-out choice among the agents")
     p.add_argument("--json", type=Path, default=None, help="write the per-recording RMSEs")
     args = p.parse_args(argv)
     if args.twins < 0 or (args.twins and args.cv):
         raise SystemExit("--twins N needs N ≥ 0 and no --cv (a cross-validation run scored the recordings)")
     agents = args.agent if args.agent is not None else ["pretrained:magenv/MagVQF-v0"]
-    t0 = time.time()
     files = args.recordings or list_recordings()
+    if args.select and (len(agents) < 2 or len(files) < 2):
+        raise SystemExit("--select needs ≥ 2 agents and ≥ 2 recordings")
+    t0 = time.time()
     if args.twins:
         from magenv.scenarios import make_trial
         from magenv.seeding import VALIDATION_START
@@ -159,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         if missing:
             raise SystemExit(f"{run}/cv.csv holds no held-out score of {missing}")
         scores[f"{run} (held out)"] = {t.name: held[t.name] for t in trials}
+    if args.select:
+        scores["selected (held out)"], picked = nested_selection(scores, agents)
     names = list(scores)
     print(f"MagVQF-v0 on {len(trials)} recordings; total RMSE ° · per-recording ratio to vqf (geometric mean)")
     print(
@@ -170,6 +200,9 @@ def main(argv: list[str] | None = None) -> int:
         student = getattr(methods[a], "student", None)
         if getattr(student, "decisions", 0):
             print(f"{a}: {student.guarded / student.decisions:.1%} of its decisions fell back on its guard's fallback")
+    if args.select:
+        print("\nchosen without the recording: " + ", ".join(f"{r[:2]} {a}" for r, a in picked.items()))
+        print(f"chosen on all {len(files)} recordings (the one to ship): {choice(scores, agents)}")
     if args.json:
         args.json.write_text(json.dumps(scores, indent=1))
     print(f"({time.time() - t0:.0f} s)")

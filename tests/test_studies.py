@@ -86,6 +86,25 @@ def test_the_real_vqf_table_groups_the_recordings_and_names_the_worst():
     assert any(line.startswith("agent / vqf_fan_lambda_tuned on the magnet recordings: 1.73") for line in lines)
 
 
+def test_the_nested_choice_never_scores_a_recording_with_the_agent_chosen_on_it():
+    from studies import vqf_real
+
+    # a is better on r1 and r2, b by far on r3: on all three b wins; without r3, a does.
+    scores = {
+        "vqf": {"r1": 1.0, "r2": 1.0, "r3": 1.0},
+        "a": {"r1": 0.5, "r2": 0.5, "r3": 2.0},
+        "b": {"r1": 0.8, "r2": 0.8, "r3": 0.1},
+    }
+    held, picked = vqf_real.nested_selection(scores, ["a", "b"])
+    assert picked == {"r1": "b", "r2": "b", "r3": "a"}
+    assert held == {"r1": 0.8, "r2": 0.8, "r3": 2.0}  # r3 gets a's 2.0, not b's 0.1 that chose b
+    assert vqf_real.choice(scores, ["a", "b"]) == "b"
+    with pytest.raises(ValueError, match="no score of agent 'c'"):
+        vqf_real.nested_selection(scores, ["a", "c"])
+    with pytest.raises(ValueError, match="≥ 2 recordings"):
+        vqf_real.nested_selection({"vqf": {"r1": 1.0}, "a": {"r1": 1.0}}, ["a"])
+
+
 def test_recordings_needed_grows_with_the_spread_of_the_per_recording_ratios():
     from studies import vqf_real
 
