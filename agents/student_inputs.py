@@ -267,8 +267,9 @@ class VQFInputs(StudentInputs):
     the sensor's arbitrary initial heading, so that a student keyed to it would learn the trials' headings, not
     the disturbance).
 
-    With a teacher of a ``rule`` (``oracle_vqf_rule``; run.yaml student ``rule: [norm_tol, th_dip]``) each kept
-    block is followed by the rule's trust recomputed from that block (``magenv.envs.vqf.fan_trust``), and the
+    With a teacher of a ``rule`` (``oracle_vqf_rule``, ``oracle_vqf_tail``; run.yaml student ``rule: [norm_tol,
+    th_dip]``) each kept block is followed by the rule's trust recomputed from that block
+    (``magenv.envs.vqf.fan_trust``), and the
     current block's, in float64, is a state-dependent candidate (bit for bit the teacher's continuation, and the
     guard's ``fallback: rule``)."""
 

@@ -29,7 +29,7 @@ PINS = {
         ("constraint_test3", 1): 0.8393455152389848,
     },
     "magenv/MagQSF-v0": {("handheld_texting", 0): 2.3617735177872037, ("handheld_corridor", 1): 4.512188344131417},
-    "magenv/MagVQF-v0": {("dynamic_magnet", 0): 0.6756097011238702, ("stationary_magnet", 1): 0.2908653663925039},
+    "magenv/MagVQF-v0": {("dynamic_magnet", 0): 1.1315157644837845, ("stationary_magnet", 1): 0.2908653663925039},
 }
 
 
