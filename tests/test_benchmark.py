@@ -216,6 +216,22 @@ def test_a_summary_names_what_is_not_a_score_card(tmp_path, capsys):
 # ----------------------------------------------------------------- the baselines' table
 
 
+def test_the_aggregates_are_the_same_whatever_numpy_drew_before():
+    """rliable draws its bootstrap from numpy's global generator: the aggregates seed it, and leave it as found."""
+    from magenv.benchmark import score
+
+    rng = np.random.default_rng(3)
+    matrices = {"a": rng.normal(0.3, 1.0, (5, 4)), "b": rng.normal(-1.0, 1.0, (5, 4))}
+    np.random.seed(1)  # noqa: NPY002
+    first = score.aggregates(matrices, reps=200)
+    after = np.random.rand()  # noqa: NPY002
+    np.random.seed(2)  # noqa: NPY002
+    assert score.aggregates(matrices, reps=200) == first
+    np.random.seed(1)  # noqa: NPY002
+    assert np.random.rand() == after  # noqa: NPY002  (the caller's generator is untouched)
+    assert first["a"]["iqm"][1] < first["a"]["iqm"][0] < first["a"]["iqm"][2]
+
+
 def test_the_baselines_table_shows_what_did_not_finish():
     rows = [
         {"env": suite.BLEND.env_id, "task": t, "method": m, "seed": s, "rmse": 1.0 + s, "normalised": 0.1 * s + n}
@@ -226,6 +242,8 @@ def test_the_baselines_table_shows_what_did_not_finish():
     names = [t.name for t in suite.TASKS if t.normalised]
     matrices, covered = benchmark.baseline_matrices(rows, names)
     assert matrices["DAgger"].shape == (2, 2) and covered["PPO"] == f"2 of {len(names)} tasks, seeds 0, 1"
+    assert list(matrices) == ["DAgger", "PPO"]  # the rows' order does not reach the bootstrap
+    assert list(benchmark.baseline_matrices(rows[::-1], names)[0]) == ["DAgger", "PPO"]
     records = [
         {"run": {"env_id": suite.BLEND.env_id, "algo": "ppo"}, "train_s": 600.0, "eval_s": 60.0},
         {"run": {"env_id": suite.BLEND.env_id, "algo": "dagger"}, "train_s": 9.0, "eval_s": 1.0,
@@ -342,6 +360,26 @@ def test_the_baseline_configs_are_what_train_sh_runs():
     script = (ROOT / "agents" / "configs" / "bench" / "train.sh").read_text()
     algos = yaml.safe_load("[" + script.split("for algo in ")[1].split(";")[0].replace(" ", ", ") + "]")
     assert sorted(algos) == sorted(p.stem for p in BENCH_CONFIGS) == sorted(benchmark.ALGO_LABELS)
+
+
+def test_train_sh_trains_every_seed_of_every_method_then_scores_the_table(tmp_path):
+    """One command reproduces the table: 5 seeds × 4 methods of ``magenv sweep``, then ``magenv benchmark``."""
+    import subprocess
+
+    log, fake = tmp_path / "calls.txt", tmp_path / "magenv"
+    fake.write_text(f'#!/usr/bin/env bash\necho "$*" >> {log}\n')
+    fake.chmod(0o755)
+    script = ROOT / "agents" / "configs" / "bench" / "train.sh"
+    env = {"PATH": "/usr/bin:/bin", "MAGENV": str(fake)}
+    subprocess.run(["bash", str(script), str(tmp_path / "runs"), "1"], env=env, check=True, timeout=60)
+    calls = log.read_text().splitlines()
+    sweeps = [c.split() for c in calls[:-1]]
+    assert len(sweeps) == 5 * 4 and all(c[0] == "sweep" and c[-4:-1] == ["--workers", "1", "--seeds"] for c in sweeps)
+    assert sorted((Path(c[1]).stem, c[-1]) for c in sweeps) == sorted(
+        (algo, str(seed)) for algo in benchmark.ALGO_LABELS for seed in range(suite.BASELINE_SEEDS)
+    )
+    runs = tmp_path / "runs"
+    assert calls[-1] == f"benchmark --sweep {runs} --out {runs}/table"
 
 
 def test_a_weights_file_acts_as_its_run_folders_model(tmp_path):

@@ -525,9 +525,11 @@ def _run_key(row: dict) -> tuple:
 
 def baseline_matrices(rows: list[dict], tasks: list[str]) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Method → (training seeds × tasks) mean normalised scores over the ``tasks`` where the method has runs,
-    the seeds that finished on every one of them; method → which tasks and seeds (for the table's caption)."""
+    the seeds that finished on every one of them; method → which tasks and seeds (for the table's caption).
+    Methods in name order, so that the bootstrap (one generator drawn method after method) depends on the rows,
+    not on their order."""
     matrices, covered = {}, {}
-    for method in dict.fromkeys(r["method"] for r in rows):
+    for method in sorted({r["method"] for r in rows}):
         mine = [r for r in rows if r["method"] == method and r["normalised"] is not None]
         have = [t for t in tasks if any(r["task"] == t for r in mine)]
         seeds = sorted(set.intersection(*[{r["seed"] for r in mine if r["task"] == t} for t in have])) if have else []
@@ -645,9 +647,9 @@ def index_markdown(
         f"at the budget with {suite.BASELINE_SEEDS} training seeds (configs: `agents/configs/bench/`), trained by "
         "`nice -n 19 agents/configs/bench/train.sh RUNS` (`magenv sweep`, resumable; the budget was chosen so "
         "that the 100 runs train within a day on two free cores: the cost table below says how far the runs "
-        "measured so far bear that out) and scored by `magenv benchmark --sweep RUNS --out docs/benchmark` (with "
-        "`--rows docs/benchmark/baselines.csv` the runs of the table before, whose folders are on another machine, "
-        "are kept).",
+        "measured so far bear that out), which ends by scoring them into RUNS/table (`magenv benchmark --sweep RUNS "
+        "--out RUNS/table`: this page, its CSV and its profile; with `--rows docs/benchmark/baselines.csv` the runs "
+        "of the table before, whose folders are on another machine, are kept).",
         "",
         "Scoring an SB3 run: the agent acts on a task's trials together, one env per trial and one forward of its "
         "network per decision for all (`magenv.evaluation`), with torch on one thread; a trial's score does not "

@@ -20,6 +20,7 @@ profiles (the fraction of runs above each score τ).
 from __future__ import annotations
 
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -95,6 +96,18 @@ def _optimality_gap(scores: np.ndarray) -> float:
     return metrics.aggregate_optimality_gap(scores, gamma=1.0)
 
 
+@contextmanager
+def _global_numpy_seed(seed: int):
+    """numpy's global generator seeded with ``seed`` inside, restored after: rliable draws its bootstrap indices
+    from it (``np.random.choice``), whatever ``random_state`` it is given."""
+    saved = np.random.get_state()  # noqa: NPY002
+    np.random.seed(seed)  # noqa: NPY002
+    try:
+        yield
+    finally:
+        np.random.set_state(saved)  # noqa: NPY002
+
+
 def aggregates(matrices: dict[str, np.ndarray], reps: int = AGGREGATE_REPS, seed: int = AGGREGATE_SEED) -> dict:
     """rliable's aggregates of each method's (runs × tasks) normalised-score matrix: ``{method: {"iqm": (point,
     low, high), "optimality_gap": …, "improvement": …}}``, ``improvement`` the probability of improvement over
@@ -112,10 +125,14 @@ def aggregates(matrices: dict[str, np.ndarray], reps: int = AGGREGATE_REPS, seed
     pairs = {m: [x, np.zeros_like(x)] for m, x in checked.items()}
     with warnings.catch_warnings():  # arch's notice that it will change its default generator
         warnings.simplefilter("ignore", FutureWarning)
-        points, cis = rly.get_interval_estimates(checked, funcs, reps=reps, random_state=np.random.RandomState(seed))
-        p_points, p_cis = rly.get_interval_estimates(
-            pairs, improvement, reps=reps, random_state=np.random.RandomState(seed)
-        )
+        with _global_numpy_seed(seed):
+            points, cis = rly.get_interval_estimates(
+                checked, funcs, reps=reps, random_state=np.random.RandomState(seed)
+            )
+        with _global_numpy_seed(seed):
+            p_points, p_cis = rly.get_interval_estimates(
+                pairs, improvement, reps=reps, random_state=np.random.RandomState(seed)
+            )
     out = {}
     for m in checked:
         out[m] = {
@@ -149,12 +166,8 @@ def profile_png(matrices: dict[str, np.ndarray], path: str | Path, title: str = 
 
     checked = {m: _matrix(m, x) for m, x in matrices.items()}
     taus = np.linspace(*PROFILE_RANGE, 101)
-    saved = np.random.get_state()  # noqa: NPY002  (rliable draws its profile bands from numpy's global generator)
-    np.random.seed(AGGREGATE_SEED)  # noqa: NPY002
-    try:
+    with _global_numpy_seed(AGGREGATE_SEED):
         profiles, cis = rly.create_performance_profile(checked, taus, reps=AGGREGATE_REPS)
-    finally:
-        np.random.set_state(saved)  # noqa: NPY002
     colors = dict(zip(checked, plt.get_cmap("tab10")(np.arange(10)).tolist()))
     fig, ax = plt.subplots(figsize=(7, 4.5))
     plot_utils.plot_performance_profiles(

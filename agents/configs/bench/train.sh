@@ -4,7 +4,8 @@
 # again and finished runs are skipped, an interrupted one resumes from its last checkpoint (magenv sweep); a sweep
 # that stops (Ray failing to start on a loaded machine, a run that failed) is tried again, up to 3 times.
 #   nice -n 19 agents/configs/bench/train.sh [OUT=runs/bench] [WORKERS=2]
-# Score what has finished: magenv benchmark --sweep OUT --out docs/benchmark
+# It ends by scoring the finished runs into OUT/table (index.md, baselines.csv, baselines.png); the same at any
+# time: magenv benchmark --sweep OUT --out OUT/table
 set -u
 OUT=${1:-runs/bench}
 WORKERS=${2:-2}
@@ -19,3 +20,4 @@ for seed in 0 1 2 3 4; do
     done
   done
 done
+"$MAGENV" benchmark --sweep "$OUT" --out "$OUT/table"
