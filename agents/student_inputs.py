@@ -269,9 +269,8 @@ class VQFInputs(StudentInputs):
 
     With a teacher of a ``rule`` (``oracle_vqf_rule``, ``oracle_vqf_tail``; run.yaml student ``rule: [norm_tol,
     th_dip]``) each kept block is followed by the rule's trust recomputed from that block
-    (``magenv.envs.vqf.fan_trust``), and the
-    current block's, in float64, is a state-dependent candidate (bit for bit the teacher's continuation, and the
-    guard's ``fallback: rule``)."""
+    (``magenv.envs.vqf.fan_trust``), and the current block's, in float64, is a state-dependent candidate (bit for
+    bit the teacher's continuation, and the guard's ``fallback: rule``)."""
 
     env_id = VQF_ID
     env_kwargs = {"features": "extended"}
